@@ -1,0 +1,285 @@
+"""Configuration: a shallow tree of frozen dataclasses with named presets.
+
+Presets:
+    ``test``  seconds per run, for the test suite (tiny rays and iterations).
+    ``cpu``   the default without a GPU: fewer rays and iterations than the paper.
+    ``paper`` the paper's settings (Vox-Fusion code release), the default with a GPU.
+
+A config file is JSON whose top-level keys are the section names below and whose values
+override the preset field by field; an unknown section or field is an error
+(``ConfigError``) so that typos never pass silently.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass, field, fields, replace
+from pathlib import Path
+from typing import Any
+
+
+class ConfigError(ValueError):
+    """A config file or override names something that does not exist or has a bad value."""
+
+
+@dataclass(frozen=True)
+class VoxelConfig:
+    voxel_size: float = 0.2
+    """Edge length of a voxel in metres (the paper uses 0.2 m everywhere)."""
+    embed_dim: int = 16
+    """Length of the learnable embedding stored at each voxel corner."""
+    embed_init_std: float = 0.01
+    """Embeddings are initialised from N(0, std^2)."""
+    max_depth: float = 10.0
+    """Depth beyond this (metres) is ignored when allocating voxels."""
+    alloc_pixel_stride: int = 2
+    """Back-project every k-th pixel in x and y when allocating (0.2 m voxels need few points)."""
+
+
+@dataclass(frozen=True)
+class DecoderConfig:
+    hidden_dim: int = 128
+    """Width of the shared FC layers."""
+    num_layers: int = 2
+    """Number of shared FC layers (paper: 2-4)."""
+    feature_dim: int = 128
+    """Length of the feature handed from the SDF head to the colour head."""
+    color_hidden_dim: int = 256
+    """Width of the colour head's FC layers (paper: two layers of 256)."""
+    color_layers: int = 2
+
+
+@dataclass(frozen=True)
+class RenderConfig:
+    step_ratio: float = 0.1
+    """Sampling step as a fraction of the voxel size (paper: 0.05-0.1)."""
+    max_hits: int = 24
+    """M_h: how many voxels a ray may gather before the distance cap is applied."""
+    max_distance: float = 10.0
+    """D_max: samples farther than this along the ray are masked (metres)."""
+    truncation: float = 0.1
+    """tr: SDF truncation distance (metres)."""
+    chunk_rays: int = 4096
+    """Rays rendered at once when rendering whole images (bounds memory)."""
+
+
+@dataclass(frozen=True)
+class LossConfig:
+    rgb_weight: float = 0.5
+    depth_weight: float = 1.0
+    sdf_weight: float = 5000.0
+    fs_weight: float = 10.0
+
+
+@dataclass(frozen=True)
+class TrackingConfig:
+    num_rays: int = 1024
+    """N_t: pixels sampled per tracking iteration."""
+    iterations: int = 30
+    lr_rot: float = 1e-3
+    lr_trans: float = 1e-3
+    constant_velocity: bool = True
+    """Initialise from a constant-velocity guess instead of the last pose."""
+    outlier_factor: float = 10.0
+    """Rays whose depth error exceeds this times the median are dropped."""
+    convergence_tol: float = 1e-5
+    """Stop early when the pose update (rad + m) falls below this."""
+    min_valid_ratio: float = 0.3
+    """Tracking fails when fewer than this share of sampled rays hit the map."""
+    max_depth_residual: float = 0.2
+    """Tracking fails when the median depth residual (m) stays above this."""
+    rgb_weight: float = 0.5
+    depth_weight: float = 1.0
+    sdf_weight: float = 5000.0
+    fs_weight: float = 10.0
+
+
+@dataclass(frozen=True)
+class MappingConfig:
+    num_rays: int = 1024
+    """N_m: rays sampled per keyframe in the window, per iteration."""
+    iterations: int = 10
+    """Optimisation iterations per mapped frame."""
+    first_frame_iterations: int = 100
+    """Iterations on the first frame (map initialisation)."""
+    window_size: int = 5
+    """N_kf: keyframes in the optimisation window, including the newest frame."""
+    lr_embed: float = 5e-3
+    lr_decoder: float = 5e-3
+    lr_pose: float = 1e-3
+    optimize_poses: bool = True
+    """Bundle adjustment: optimise keyframe poses in the window (the first keyframe is fixed)."""
+    keyframe_ratio: float = 0.05
+    """p_kf threshold: new-voxel / observed-voxel ratio that makes a keyframe."""
+    keyframe_max_interval: int = 50
+    """N: a keyframe is forced after this many frames without one."""
+    map_every: int = 1
+    """Map every k-th tracked frame (1 = every frame)."""
+
+
+@dataclass(frozen=True)
+class MultiMapConfig:
+    enabled: bool = True
+    region_size: float = 8.0
+    """A new map starts when the camera leaves a cube of this edge around the map origin."""
+    new_map_on_tracking_failure: bool = True
+
+
+@dataclass(frozen=True)
+class LoopConfig:
+    enabled: bool = True
+    similarity_threshold: float = 0.9
+    """Cosine similarity a keyframe must exceed to become a loop candidate."""
+    min_frame_gap: int = 30
+    """Candidates must be at least this many frames older than the query."""
+    geometry_rays: int = 512
+    """Rays cast into the candidate map for the geometry check."""
+    geometry_min_hit_ratio: float = 0.5
+    inter_map_iterations: int = 50
+    intra_map_iterations: int = 20
+    netvlad_weights: str | None = None
+    """Path to NetVLAD-style weights; None uses the offline descriptor."""
+
+
+@dataclass(frozen=True)
+class MeshConfig:
+    resolution: int = 8
+    """Marching-cubes cells per voxel edge."""
+    update_every_keyframes: int = 5
+    """The runtime extracts a live mesh after this many new keyframes."""
+
+
+@dataclass(frozen=True)
+class RuntimeConfig:
+    device: str = "auto"
+    """auto, cpu or cuda."""
+    processes: bool = True
+    """Tracking and mapping in separate processes (False: one process, for debugging)."""
+    queue_size: int = 8
+    """Bounded queue between tracking and mapping."""
+    input_width: int | None = None
+    """Resize input frames to this width inside the pipeline (intrinsics scaled)."""
+    checkpoint_every_keyframes: int = 10
+    """Write map.pt every this many keyframes while running (0: only at the end)."""
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class SLAMConfig:
+    preset: str = "cpu"
+    voxel: VoxelConfig = field(default_factory=VoxelConfig)
+    decoder: DecoderConfig = field(default_factory=DecoderConfig)
+    render: RenderConfig = field(default_factory=RenderConfig)
+    loss: LossConfig = field(default_factory=LossConfig)
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    mapping: MappingConfig = field(default_factory=MappingConfig)
+    multimap: MultiMapConfig = field(default_factory=MultiMapConfig)
+    loop: LoopConfig = field(default_factory=LoopConfig)
+    mesh: MeshConfig = field(default_factory=MeshConfig)
+    runtime: RuntimeConfig = field(default_factory=RuntimeConfig)
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+def _paper() -> SLAMConfig:
+    return SLAMConfig(
+        preset="paper",
+        render=RenderConfig(step_ratio=0.05, max_hits=50, truncation=0.1),
+        tracking=TrackingConfig(num_rays=2048, iterations=30),
+        mapping=MappingConfig(num_rays=2048, iterations=15, window_size=5),
+        runtime=RuntimeConfig(device="auto"),
+    )
+
+
+def _cpu() -> SLAMConfig:
+    return SLAMConfig(
+        preset="cpu",
+        render=RenderConfig(step_ratio=0.1, max_hits=16, truncation=0.1),
+        tracking=TrackingConfig(num_rays=512, iterations=15),
+        mapping=MappingConfig(num_rays=384, iterations=6, window_size=4, first_frame_iterations=60),
+        mesh=MeshConfig(resolution=6),
+        runtime=RuntimeConfig(device="auto", input_width=320),
+    )
+
+
+def _test() -> SLAMConfig:
+    return SLAMConfig(
+        preset="test",
+        decoder=DecoderConfig(hidden_dim=32, feature_dim=32, color_hidden_dim=32),
+        render=RenderConfig(step_ratio=0.2, max_hits=8, truncation=0.1, chunk_rays=2048),
+        tracking=TrackingConfig(num_rays=128, iterations=4),
+        mapping=MappingConfig(num_rays=128, iterations=2, window_size=3, first_frame_iterations=10),
+        loop=LoopConfig(inter_map_iterations=5, intra_map_iterations=3, geometry_rays=64),
+        mesh=MeshConfig(resolution=4, update_every_keyframes=2),
+        runtime=RuntimeConfig(device="cpu", input_width=160, processes=True),
+    )
+
+
+PRESETS = {"test": _test, "cpu": _cpu, "paper": _paper}
+
+
+def preset(name: str) -> SLAMConfig:
+    """The named preset (``test``, ``cpu`` or ``paper``)."""
+    try:
+        return PRESETS[name]()
+    except KeyError:
+        raise ConfigError(f"unknown preset {name!r}; choose one of {sorted(PRESETS)}") from None
+
+
+def default_preset_name() -> str:
+    """``paper`` when CUDA is present, else ``cpu``."""
+    import torch
+
+    return "paper" if torch.cuda.is_available() else "cpu"
+
+
+def apply_overrides(config: SLAMConfig, overrides: dict[str, Any]) -> SLAMConfig:
+    """Return ``config`` with ``{"section": {"field": value}}`` overrides applied.
+
+    Raises ConfigError for an unknown section or field, or a value of the wrong type.
+    """
+    section_names = {f.name for f in fields(config)} - {"preset"}
+    changes: dict[str, Any] = {}
+    for section, values in overrides.items():
+        if section not in section_names:
+            raise ConfigError(f"unknown config section {section!r}; known: {sorted(section_names)}")
+        if not isinstance(values, dict):
+            raise ConfigError(f"config section {section!r} must be a mapping of fields")
+        current = getattr(config, section)
+        known = {f.name: f for f in fields(current)}
+        for key, value in values.items():
+            if key not in known:
+                raise ConfigError(f"unknown field {section}.{key}; known: {sorted(known)}")
+            expected = type(getattr(current, key))
+            if getattr(current, key) is not None and expected is float and isinstance(value, int):
+                value = float(value)
+            if getattr(current, key) is not None and not isinstance(value, expected):
+                raise ConfigError(
+                    f"{section}.{key} must be {expected.__name__}, got {type(value).__name__}"
+                )
+        changes[section] = replace(current, **values)
+    return replace(config, **changes)
+
+
+def load_config(preset_name: str, path: str | Path | None = None) -> SLAMConfig:
+    """The preset, overridden by the JSON file at ``path`` if given."""
+    config = preset(preset_name)
+    if path is None:
+        return config
+    try:
+        overrides = json.loads(Path(path).read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise ConfigError(f"cannot read config file {path}: {exc}") from exc
+    if not isinstance(overrides, dict):
+        raise ConfigError(f"config file {path} must hold a JSON object")
+    overrides.pop("preset", None)
+    return apply_overrides(config, overrides)
+
+
+def config_from_dict(data: dict[str, Any]) -> SLAMConfig:
+    """Rebuild a config from ``SLAMConfig.to_dict()`` output (checkpoints, run.json)."""
+    data = dict(data)
+    base = preset(data.pop("preset", "cpu"))
+    return apply_overrides(base, data)
