@@ -56,10 +56,12 @@ def so3_log(R: torch.Tensor) -> torch.Tensor:
     """
     trace = R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2]
     cos = torch.clamp((trace - 1) / 2, -1.0, 1.0)
-    theta = torch.acos(cos)
     vee = torch.stack(
         [R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1
     )
+    # atan2, not acos: acos has an infinite slope at cos = +-1 (NaN gradients at the identity,
+    # ~1e-8 rad of noise at pi); |vee| / 2 = sin(theta).
+    theta = torch.atan2(_safe_norm(vee) / 2, (trace - 1) / 2)
     sin = torch.sin(theta)
     small = theta < 1e-3
     # General and small-angle branches: omega = theta / (2 sin theta) * vee.
@@ -70,7 +72,8 @@ def so3_log(R: torch.Tensor) -> torch.Tensor:
     if bool(near_pi.any()):
         sym = (R + R.transpose(-1, -2)) / 2
         eye = torch.eye(3, dtype=R.dtype, device=R.device)
-        nn = (sym + eye) / 2  # = n n^T at theta = pi (approximately near it)
+        # sym = cos I + (1 - cos) n n^T exactly; the clamp only guards batch entries not near pi.
+        nn = (sym - cos[..., None, None] * eye) / torch.clamp(1 - cos, min=1.0)[..., None, None]
         diag = torch.diagonal(nn, dim1=-2, dim2=-1)
         col = diag.argmax(-1)
         n = torch.gather(nn, -1, col[..., None, None].expand(*nn.shape[:-1], 1)).squeeze(-1)
