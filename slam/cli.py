@@ -1,0 +1,153 @@
+"""Core command line: ``run``, ``eval-ate``, ``eval-mesh``, ``render``.
+
+The installed ``voxfusion`` script is ``server.cli:main``, which adds ``serve``, ``demo`` and
+``ar`` to this parser (imports point inward: ``slam`` never imports ``server``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from .eval.commands import add_eval_ate_arguments, add_eval_mesh_arguments, cmd_eval_ate, cmd_eval_mesh
+
+
+def _floats(text: str, n: tuple[int, ...], what: str) -> tuple[float, ...]:
+    try:
+        values = tuple(float(v) for v in text.replace(" ", "").split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{what} must be comma-separated numbers, got {text!r}") from None
+    if len(values) not in n:
+        raise argparse.ArgumentTypeError(f"{what} needs {' or '.join(map(str, n))} numbers, got {len(values)}")
+    return values
+
+
+def _intrinsics(text: str) -> tuple[float, ...]:
+    return _floats(text, (4, 9), "--intrinsics (fx,fy,cx,cy[,k1,k2,p1,p2,k3])")
+
+
+def add_run_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("paths", nargs="+", metavar="PATH",
+                   help="dataset folder(s), or a synthetic spec such as synthetic:orbit?frames=100")
+    p.add_argument("--out", required=True, type=Path, help="output folder")
+    p.add_argument("--format", default="auto", choices=["auto", "tum", "replica", "scannet", "7scenes", "synthetic"])
+    p.add_argument("--preset", default=None, choices=["test", "cpu", "paper"],
+                   help="default: paper with CUDA, cpu otherwise")
+    p.add_argument("--config", type=Path, default=None, help="JSON overrides of the preset")
+    p.add_argument("--device", default=None, choices=["auto", "cpu", "cuda"])
+    p.add_argument("--max-frames", type=int, default=None)
+    p.add_argument("--stride", type=int, default=1)
+    p.add_argument("--intrinsics", type=_intrinsics, default=None, metavar="fx,fy,cx,cy")
+    p.add_argument("--depth-scale", type=float, default=None)
+    p.add_argument("--gt-poses", action="store_true", help="map with the dataset's poses (no tracking)")
+    p.add_argument("--no-loops", action="store_true", help="multi-maps without loop closure")
+    p.add_argument("--single-process", action="store_true", help="tracking and mapping in one process")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from dataclasses import replace
+
+    from .config import ConfigError, default_preset_name, load_config
+    from .data import DataError, open_sequence
+    from .runtime import run_slam
+
+    try:
+        config = load_config(args.preset or default_preset_name(), args.config)
+        runtime = config.runtime
+        if args.device:
+            runtime = replace(runtime, device=args.device)
+        if args.single_process:
+            runtime = replace(runtime, processes=False)
+        config = replace(config, runtime=runtime)
+        if args.no_loops:
+            config = replace(config, loop=replace(config.loop, enabled=False))
+        sources = [open_sequence(p, args.format, stride=args.stride, max_frames=args.max_frames,
+                                 intrinsics=args.intrinsics, depth_scale=args.depth_scale) for p in args.paths]
+    except (ConfigError, DataError, ValueError) as exc:
+        print(f"voxfusion run: {exc}", file=sys.stderr)
+        return 2
+    result = run_slam(sources, config, args.out, use_gt_poses=args.gt_poses, progress=not args.quiet)
+    line = (f"{result.status}: {result.frames} frames, {result.keyframes} keyframes, "
+            f"{result.fps:.2f} frames/s")
+    if result.ate_rmse is not None:
+        line += f", ATE RMSE {result.ate_rmse * 100:.2f} cm"
+    print(line + f" -> {result.out_dir}")
+    if result.error:
+        print(result.error, file=sys.stderr)
+    return {"finished": 0, "cancelled": 130}.get(result.status, 1)
+
+
+def add_render_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("checkpoint", type=Path, help="map.pt of a run")
+    p.add_argument("--pose", required=True, type=Path,
+                   help="4x4 T_world_cam as 16 numbers (row-major) or a JSON 4x4 list")
+    p.add_argument("--intrinsics", required=True, metavar="fx,fy,cx,cy,width,height",
+                   type=lambda s: _floats(s, (6,), "--intrinsics"))
+    p.add_argument("--out", required=True, type=Path, help="colour PNG")
+    p.add_argument("--depth", type=Path, default=None, help="16-bit depth PNG in millimetres")
+
+
+def _read_pose(path: Path):
+    import numpy as np
+
+    text = path.read_text()
+    try:
+        values = np.asarray(json.loads(text), dtype=np.float64)
+    except json.JSONDecodeError:
+        values = np.asarray(text.split(), dtype=np.float64)
+    if values.size != 16:
+        raise ValueError(f"{path}: a pose needs 16 numbers, found {values.size}")
+    return values.reshape(4, 4)
+
+
+def cmd_render(args: argparse.Namespace) -> int:
+    import cv2
+    import numpy as np
+
+    from .checkpoint import CheckpointError, load_checkpoint
+    from .views import render_view
+
+    try:
+        maps = load_checkpoint(args.checkpoint)
+        T = _read_pose(args.pose)
+    except (CheckpointError, ValueError, OSError) as exc:
+        print(f"voxfusion render: {exc}", file=sys.stderr)
+        return 2
+    fx, fy, cx, cy, w, h = args.intrinsics
+    K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
+    view = render_view(maps, T, K, int(w), int(h))
+    cv2.imwrite(str(args.out), cv2.cvtColor((view.rgb * 255).round().astype(np.uint8), cv2.COLOR_RGB2BGR))
+    if args.depth:
+        cv2.imwrite(str(args.depth), np.clip(view.depth * 1000, 0, 65535).round().astype(np.uint16))
+    print(f"wrote {args.out}" + (f" and {args.depth}" if args.depth else ""))
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="voxfusion", description="Vox-Fusion++ neural implicit RGB-D SLAM")
+    sub = parser.add_subparsers(dest="command", required=True)
+    p = sub.add_parser("run", help="run SLAM on a dataset and write trajectory, mesh and map")
+    add_run_arguments(p)
+    p.set_defaults(handler=cmd_run)
+    p = sub.add_parser("eval-ate", help="absolute trajectory error of TUM files")
+    add_eval_ate_arguments(p)
+    p.set_defaults(handler=cmd_eval_ate)
+    p = sub.add_parser("eval-mesh", help="mesh accuracy / completion against a GT mesh")
+    add_eval_mesh_arguments(p)
+    p.set_defaults(handler=cmd_eval_mesh)
+    p = sub.add_parser("render", help="render a view of a saved map")
+    add_render_arguments(p)
+    p.set_defaults(handler=cmd_render)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    return int(args.handler(args) or 0)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,102 @@
+"""Frames on the pipeline's device and resolution, and pixel/ray sampling from them."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from .data.frame import Frame
+from .data.io import resize_rgbd
+from .render import camera_rays
+
+
+@dataclass(frozen=True)
+class TensorFrame:
+    """A frame ready for the pipeline.
+
+    rgb (H, W, 3) float32, depth (H, W) float32 (0 = invalid), K (3, 3) float32,
+    T_world_cam_gt (4, 4) float64 numpy or None. ``valid`` (P,) int64 flat indices of pixels
+    with usable depth, from which rays are sampled.
+    """
+
+    index: int
+    timestamp: float
+    rgb: torch.Tensor
+    depth: torch.Tensor
+    K: torch.Tensor
+    valid: torch.Tensor
+    T_world_cam_gt: np.ndarray | None = None
+
+    @property
+    def height(self) -> int:
+        return int(self.depth.shape[0])
+
+    @property
+    def width(self) -> int:
+        return int(self.depth.shape[1])
+
+
+def prepare_frame(frame: Frame, width: int | None, device: torch.device, max_depth: float) -> TensorFrame:
+    """Resize a reader's Frame to ``width`` (None keeps it) and move it to ``device``."""
+    rgb, depth, K = frame.rgb, frame.depth, frame.K
+    if width is not None and width < frame.width:
+        rgb, depth, K = resize_rgbd(rgb, depth, K, width)
+    depth = np.where((depth > 0) & (depth < max_depth), depth, 0).astype(np.float32)
+    d = torch.from_numpy(np.ascontiguousarray(depth)).to(device)
+    valid = torch.nonzero(d.reshape(-1) > 0, as_tuple=True)[0]
+    return TensorFrame(
+        index=frame.index,
+        timestamp=float(frame.timestamp),
+        rgb=torch.from_numpy(np.ascontiguousarray(rgb, dtype=np.float32)).to(device),
+        depth=d,
+        K=torch.as_tensor(K, dtype=torch.float32).to(device),
+        valid=valid,
+        T_world_cam_gt=None if frame.T_world_cam is None else np.asarray(frame.T_world_cam, np.float64),
+    )
+
+
+@dataclass(frozen=True)
+class PixelBatch:
+    """Sampled pixels of one frame: dirs_cam (R, 3) with z = 1, rgb (R, 3), depth (R,)."""
+
+    dirs_cam: torch.Tensor
+    rgb: torch.Tensor
+    depth: torch.Tensor
+
+
+def sample_pixels(frame: TensorFrame, num: int, generator: torch.Generator | None = None) -> PixelBatch:
+    """``num`` pixels drawn uniformly (with replacement) among those with valid depth."""
+    if frame.valid.numel() == 0:
+        raise ValueError(f"frame {frame.index} has no valid depth")
+    pick = torch.randint(0, frame.valid.numel(), (num,), generator=generator).to(frame.valid.device)
+    flat = frame.valid[pick]
+    return pixels_at(frame, flat)
+
+
+def pixels_at(frame: TensorFrame, flat: torch.Tensor) -> PixelBatch:
+    """The pixels at flat indices (R,) of the image."""
+    v = torch.div(flat, frame.width, rounding_mode="floor")
+    u = flat - v * frame.width
+    uv = torch.stack([u, v], -1).to(torch.float32)
+    return PixelBatch(camera_rays(frame.K, uv), frame.rgb.reshape(-1, 3)[flat], frame.depth.reshape(-1)[flat])
+
+
+def backproject(frame: TensorFrame, T_map_cam: torch.Tensor, stride: int,
+                depth_offsets: tuple[float, ...] = (0.0,)) -> torch.Tensor:
+    """Map-frame points of every ``stride``-th valid pixel, at depth + each offset. -> (N, 3)."""
+    H, W = frame.height, frame.width
+    vs = torch.arange(0, H, stride, device=frame.depth.device)
+    us = torch.arange(0, W, stride, device=frame.depth.device)
+    vv, uu = torch.meshgrid(vs, us, indexing="ij")
+    flat = (vv * W + uu).reshape(-1)
+    d = frame.depth.reshape(-1)[flat]
+    keep = d > 0
+    flat, d = flat[keep], d[keep]
+    batch = pixels_at(frame, flat)
+    pts = []
+    for off in depth_offsets:
+        cam = batch.dirs_cam * (d + off)[:, None]
+        pts.append(cam @ T_map_cam[:3, :3].T + T_map_cam[:3, 3])
+    return torch.cat(pts, 0)

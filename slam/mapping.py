@@ -1,0 +1,261 @@
+"""The mapping process (paper: Mapping Process and Dynamic Voxel Management).
+
+For every tracked frame the mapper
+1. decides whether it is a keyframe: the ratio ``p_kf = N_c / N_o`` of voxels the frame would
+   newly allocate to the voxels it observes exceeds ``keyframe_ratio``, or no keyframe was
+   taken for ``keyframe_max_interval`` frames;
+2. allocates the voxels of a keyframe's back-projected depth (at depth and +-tr, so the
+   truncation band around the surface lies inside allocated voxels);
+3. jointly optimises embeddings, decoder and the poses of the keyframes in a window of
+   ``window_size`` frames (random earlier keyframes plus the newest frame; the first keyframe
+   is fixed to remove the gauge freedom).
+
+The ``Mapper`` is plain state with no process code; ``slam.runtime`` runs it in its own process.
+"""
+
+from __future__ import annotations
+
+import random
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from .config import SLAMConfig
+from .frames import TensorFrame, backproject, sample_pixels
+from .geometry import se3_exp, se3_inverse
+from .losses import LossWeights, Losses, compute_losses
+from .maps import Keyframe, MapSet, SubMap
+from .render import render_rays
+from .voxels import grow_adam_state
+
+
+@dataclass(frozen=True)
+class TrackedFrame:
+    """What tracking hands to mapping: the frame and its estimated world pose (4, 4) float32."""
+
+    frame: TensorFrame
+    T_world_cam: torch.Tensor
+    tracking_ok: bool = True
+
+
+@dataclass(frozen=True)
+class MapSnapshot:
+    """A read-only copy of one submap for the tracker, published by version.
+
+    Plain numpy arrays, so it pickles by value between processes (no shared-memory file
+    descriptors piling up, no manager): T_world_map (4, 4), voxel_codes (Nv,) int64,
+    voxel_corners (Nv, 8) int64, embeddings (Nc, D) float32, decoder_state name -> array.
+    """
+
+    version: int
+    map_id: int
+    T_world_map: np.ndarray
+    voxel_size: float
+    voxel_codes: np.ndarray
+    voxel_corners: np.ndarray
+    embeddings: np.ndarray
+    decoder_state: dict[str, np.ndarray]
+
+
+@dataclass(frozen=True)
+class MappingStep:
+    frame_index: int
+    is_keyframe: bool
+    new_voxel_ratio: float
+    new_voxels: int
+    losses: dict[str, float]
+    seconds: float
+
+
+@dataclass
+class _Timer:
+    totals: dict[str, float] = field(default_factory=dict)
+
+    def add(self, name: str, seconds: float) -> None:
+        self.totals[name] = self.totals.get(name, 0.0) + seconds
+
+
+def training_far(depth: torch.Tensor, truncation: float, max_distance: float) -> torch.Tensor:
+    """Far bound of training rays (R,): just past the truncation band behind the observed
+    depth. Samples farther back are masked by the renderer anyway, so not generating them
+    saves their cost."""
+    return torch.clamp(depth + 2.0 * truncation, max=max_distance)
+
+
+class Mapper:
+    """Owns the map set and optimises it as tracked frames arrive."""
+
+    def __init__(self, config: SLAMConfig, device: torch.device, agent: int = 0, seed: int = 0):
+        self.config = config
+        self.device = device
+        self.agent = agent
+        self.maps = MapSet(config)
+        self.version = 0
+        self.frames_since_keyframe = 0
+        self.timer = _Timer()
+        self._rng = random.Random(seed)
+        self._gen = torch.Generator().manual_seed(seed)
+        self._optimizer: torch.optim.Optimizer | None = None
+        self._seed = seed
+
+    # ---------------------------------------------------------------- helpers
+    @property
+    def current(self) -> SubMap | None:
+        return self.maps.maps[-1] if self.maps.maps else None
+
+    def _loss_weights(self) -> LossWeights:
+        c = self.config.loss
+        return LossWeights(c.rgb_weight, c.depth_weight, c.sdf_weight, c.fs_weight)
+
+    def _T_map_cam(self, submap: SubMap, T_world_cam: torch.Tensor) -> torch.Tensor:
+        return se3_inverse(submap.T_world_map) @ T_world_cam.to(self.device)
+
+    def _points(self, frame: TensorFrame, T_map_cam: torch.Tensor) -> torch.Tensor:
+        tr = self.config.render.truncation
+        return backproject(frame, T_map_cam, self.config.voxel.alloc_pixel_stride, (-tr, 0.0, tr))
+
+    def _ensure_optimizer(self, submap: SubMap) -> torch.optim.Optimizer:
+        if self._optimizer is None:
+            m = self.config.mapping
+            self._optimizer = torch.optim.Adam([
+                {"params": [submap.voxels.embeddings], "lr": m.lr_embed},
+                {"params": list(submap.decoder.parameters()), "lr": m.lr_decoder},
+            ])
+        return self._optimizer
+
+    def _allocate(self, submap: SubMap, points: torch.Tensor) -> int:
+        old = submap.voxels.embeddings
+        result = submap.voxels.allocate(points)
+        if self._optimizer is not None and submap.voxels.embeddings is not old:
+            grow_adam_state(self._optimizer, old, submap.voxels.embeddings)
+        return result.new_voxels
+
+    # ------------------------------------------------------------------ steps
+    def start_map(self, T_world_map: torch.Tensor | None = None) -> SubMap:
+        submap = SubMap.create(len(self.maps.maps), self.agent, self.config, self.device,
+                               T_world_map, seed=self._seed)
+        self.maps.maps.append(submap)
+        self._optimizer = None
+        return submap
+
+    def process(self, tracked: TrackedFrame, optimize: bool = True) -> MappingStep:
+        """Keyframe test, allocation and (optionally) one round of windowed optimisation."""
+        t0 = time.perf_counter()
+        first = self.current is None
+        submap = self.current or self.start_map()
+        T_map_cam = self._T_map_cam(submap, tracked.T_world_cam)
+        ta = time.perf_counter()
+        points = self._points(tracked.frame, T_map_cam)
+        observed, new = submap.voxels.count_new(points)
+        ratio = new / max(observed, 1)
+        m = self.config.mapping
+        is_kf = first or ratio > m.keyframe_ratio or self.frames_since_keyframe + 1 >= m.keyframe_max_interval
+        new_voxels = 0
+        if is_kf:
+            new_voxels = self._allocate(submap, points)
+            submap.keyframes.append(Keyframe(
+                tracked.frame.index, tracked.frame.timestamp, tracked.frame, tracked.frame.K,
+                T_map_cam.detach().clone()))
+            self.frames_since_keyframe = 0
+        else:
+            self.frames_since_keyframe += 1
+        self.timer.add("voxel_allocation", time.perf_counter() - ta)
+        losses: dict[str, float] = {}
+        if optimize:
+            iters = m.first_frame_iterations if first else m.iterations
+            current = None if is_kf else (tracked.frame, T_map_cam)
+            losses = self.optimize(submap, iters, current)
+        self.version += 1
+        return MappingStep(tracked.frame.index, is_kf, ratio, new_voxels, losses, time.perf_counter() - t0)
+
+    def _window(self, submap: SubMap) -> list[Keyframe]:
+        """N_kf - 1 random earlier keyframes plus the newest keyframe."""
+        k = self.config.mapping.window_size
+        older = submap.keyframes[:-1]
+        chosen = self._rng.sample(older, min(len(older), max(k - 1, 0)))
+        return chosen + [submap.keyframes[-1]]
+
+    def optimize(self, submap: SubMap, iterations: int,
+                 current: tuple[TensorFrame, torch.Tensor] | None = None) -> dict[str, float]:
+        """Joint optimisation over the window; ``current`` adds the newest non-keyframe with a
+        fixed pose. Returns the last iteration's losses."""
+        m, r = self.config.mapping, self.config.render
+        window = self._window(submap)
+        if current is not None:
+            window = window[-(m.window_size - 1):] if m.window_size > 1 else []
+        frames = [(kf, kf.T_map_cam) for kf in window]
+        optimizer = self._ensure_optimizer(submap)
+        first_kf = submap.keyframes[0]
+        pose_kfs = [kf for kf in window if m.optimize_poses and kf is not first_kf]
+        twists = [torch.zeros(6, device=self.device, requires_grad=True) for _ in pose_kfs]
+        pose_opt = torch.optim.Adam(twists, lr=m.lr_pose) if twists else None
+        weights = self._loss_weights()
+        losses: Losses | None = None
+        for _ in range(iterations):
+            tq = time.perf_counter()
+            origins, dirs, rgb, depth = [], [], [], []
+            twist_of = {id(kf): tw for kf, tw in zip(pose_kfs, twists)}
+            sources = [(kf.frame, pose) for kf, pose in frames]
+            if current is not None:
+                sources.append(current)
+            for i, (frame, T_map_cam) in enumerate(sources):
+                batch = sample_pixels(frame, m.num_rays, self._gen)
+                T = T_map_cam
+                if i < len(frames) and id(frames[i][0]) in twist_of:
+                    T = T_map_cam @ se3_exp(twist_of[id(frames[i][0])])
+                dirs.append(batch.dirs_cam @ T[:3, :3].T)
+                origins.append(T[:3, 3].expand(batch.dirs_cam.shape[0], 3))
+                rgb.append(batch.rgb)
+                depth.append(batch.depth)
+            o, d, c_gt, d_gt = torch.cat(origins), torch.cat(dirs), torch.cat(rgb), torch.cat(depth)
+            n = o.shape[0]
+            out = render_rays(o, d, submap.view(), submap.decoder,
+                              near=torch.full((n,), 0.05, device=self.device),
+                              far=training_far(d_gt, r.truncation, r.max_distance),
+                              step=r.step_ratio * submap.voxels.voxel_size, truncation=r.truncation,
+                              max_hits=r.max_hits, offsets=torch.rand(n, generator=self._gen).to(self.device))
+            losses = compute_losses(out, c_gt, d_gt, r.truncation, weights, max_depth=r.max_distance)
+            tb = time.perf_counter()
+            optimizer.zero_grad(set_to_none=True)
+            if pose_opt is not None:
+                pose_opt.zero_grad(set_to_none=True)
+            losses.total.backward()
+            optimizer.step()
+            if pose_opt is not None:
+                pose_opt.step()
+            self.timer.add("render", tb - tq)
+            self.timer.add("backward", time.perf_counter() - tb)
+        with torch.no_grad():
+            for kf, tw in zip(pose_kfs, twists):
+                kf.T_map_cam = kf.T_map_cam @ se3_exp(tw.detach())
+        return {} if losses is None else {k: float(v) for k, v in losses.as_floats().items()}
+
+    # --------------------------------------------------------------- outputs
+    def snapshot(self) -> MapSnapshot:
+        """Detached copies of the current submap's tensors for the tracker."""
+        submap = self.current
+        assert submap is not None, "no map yet"
+        v = submap.voxels
+        def arr(t: torch.Tensor) -> np.ndarray:
+            return t.detach().cpu().numpy().copy()
+
+        return MapSnapshot(
+            version=self.version,
+            map_id=submap.map_id,
+            T_world_map=arr(submap.T_world_map),
+            voxel_size=v.voxel_size,
+            voxel_codes=arr(v.voxel_codes),
+            voxel_corners=arr(v.voxel_corners),
+            embeddings=arr(v.embeddings),
+            decoder_state={k: arr(t) for k, t in submap.decoder.state_dict().items()},
+        )
+
+    def keyframe_poses_world(self, submap: SubMap) -> torch.Tensor:
+        """(K, 4, 4) optimised keyframe poses of ``submap`` in the world frame."""
+        if not submap.keyframes:
+            return torch.zeros(0, 4, 4)
+        poses = torch.stack([kf.T_map_cam for kf in submap.keyframes])
+        return (submap.T_world_map @ poses).detach().cpu()
+

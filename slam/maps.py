@@ -1,0 +1,105 @@
+"""Maps as the runtime holds them: keyframes, a submap (voxels + decoder + pose), the map set.
+
+A ``SubMap`` owns its sparse voxels, its decoder and its keyframes, all in the map's own
+frame; ``T_world_map`` places it in the world (paper: Loop Closure based Multi-maps). A
+single-map run has one submap with ``T_world_map = I``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from .config import SLAMConfig
+from .decoder import Decoder
+from .frames import TensorFrame
+from .render import MapView
+from .voxels import SparseVoxelMap
+
+
+@dataclass
+class Keyframe:
+    """A keyframe kept for windowed optimisation.
+
+    ``frame`` holds its images at the pipeline resolution (None when loaded from a
+    checkpoint, which stores poses only); K (3, 3) float32; ``T_map_cam`` (4, 4) float32 is
+    refined by bundle adjustment.
+    """
+
+    frame_index: int
+    timestamp: float
+    frame: "TensorFrame | None"
+    K: torch.Tensor
+    T_map_cam: torch.Tensor
+    descriptor: np.ndarray | None = None
+
+
+@dataclass
+class SubMap:
+    map_id: int
+    agent: int
+    voxels: SparseVoxelMap
+    decoder: Decoder
+    T_world_map: torch.Tensor
+    keyframes: list[Keyframe] = field(default_factory=list)
+
+    @classmethod
+    def create(cls, map_id: int, agent: int, config: SLAMConfig, device: torch.device,
+               T_world_map: torch.Tensor | None = None, seed: int = 0) -> "SubMap":
+        torch.manual_seed(seed + map_id)
+        voxels = SparseVoxelMap(config.voxel.voxel_size, config.voxel.embed_dim,
+                                config.voxel.embed_init_std, device=device, seed=seed + map_id)
+        decoder = Decoder(config.decoder, config.voxel.embed_dim).to(device)
+        T = torch.eye(4, device=device) if T_world_map is None else T_world_map.to(device)
+        return cls(map_id, agent, voxels, decoder, T)
+
+    def view(self) -> MapView:
+        return MapView.of(self.voxels)
+
+    def memory_bytes(self) -> tuple[int, int]:
+        """(embeddings + voxel index bytes, decoder bytes)."""
+        return self.voxels.nbytes(), self.decoder.num_bytes()
+
+    def state_dict(self) -> dict:
+        return {
+            "map_id": self.map_id,
+            "agent": self.agent,
+            "voxels": self.voxels.state_dict(),
+            "decoder": {k: v.detach().cpu() for k, v in self.decoder.state_dict().items()},
+            "T_world_map": self.T_world_map.detach().cpu(),
+            "keyframes": [
+                {"frame_index": kf.frame_index, "timestamp": kf.timestamp,
+                 "T_map_cam": kf.T_map_cam.detach().cpu(), "K": kf.K.detach().cpu()}
+                for kf in self.keyframes
+            ],
+        }
+
+    @classmethod
+    def from_state_dict(cls, state: dict, config: SLAMConfig, device: torch.device | str = "cpu") -> "SubMap":
+        voxels = SparseVoxelMap.from_state_dict(state["voxels"], device=device)
+        decoder = Decoder(config.decoder, voxels.embed_dim)
+        decoder.load_state_dict(state["decoder"])
+        decoder.to(device)
+        submap = cls(int(state["map_id"]), int(state["agent"]), voxels, decoder,
+                     state["T_world_map"].to(device))
+        # Keyframe images are not stored in checkpoints; only their poses.
+        for kf in state.get("keyframes", []):
+            submap.keyframes.append(Keyframe(kf["frame_index"], kf["timestamp"], None,
+                                             kf["K"].to(device), kf["T_map_cam"].to(device)))
+        return submap
+
+
+@dataclass
+class MapSet:
+    """All submaps of a run, in creation order; ``config`` says how they were built."""
+
+    config: SLAMConfig
+    maps: list[SubMap] = field(default_factory=list)
+
+    def num_voxels(self) -> int:
+        return sum(m.voxels.num_voxels for m in self.maps)
+
+    def num_keyframes(self) -> int:
+        return sum(len(m.keyframes) for m in self.maps)

@@ -1,0 +1,281 @@
+"""Volume rendering over the sparse voxel map (paper: Volume Renderer).
+
+One small function per idea, nerfacc-style: rays -> voxel hits -> flat samples with a ray
+index (no padding) -> trilinear embeddings -> decoder -> SDF weights -> per-ray sums.
+
+Ray parametrisation: a ray is ``x(t) = origin + t * direction`` with the camera-frame
+direction ``K^-1 [u, v, 1]`` rotated into the map frame, so ``t`` *is* the z-depth and the
+rendered depth compares directly with the depth image.
+
+SDF units: the decoder predicts ``s`` in units of the truncation ``tr`` (free space has
+``s = 1``), as in the paper's implementation; the paper's weight
+``w = sigmoid(s / tr) * sigmoid(-s / tr)`` is applied to it, which makes the weights peak
+within a few centimetres of the surface. Samples more than ``tr`` past the first sign change
+of a ray are masked (the paper masks points behind the truncation region).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from .voxels import lookup_sorted, morton_decode, morton_encode
+
+
+@dataclass(frozen=True)
+class MapView:
+    """The tensors of one map that rendering reads (all in the map frame).
+
+    voxel_codes: (Nv,) sorted int64 Morton codes. voxel_corners: (Nv, 8) int64 embedding rows.
+    embeddings: (Nc, D) float32 (may require grad). voxel_size: metres.
+    """
+
+    voxel_codes: torch.Tensor
+    voxel_corners: torch.Tensor
+    embeddings: torch.Tensor
+    voxel_size: float
+    voxel_coords: torch.Tensor | None = None
+    """(Nv, 3) float coordinates of the voxels (decoded once instead of per sample)."""
+
+    def __post_init__(self) -> None:
+        if self.voxel_coords is None:
+            object.__setattr__(self, "voxel_coords", morton_decode(self.voxel_codes).to(torch.float32))
+
+    @classmethod
+    def of(cls, vmap) -> "MapView":
+        return cls(vmap.voxel_codes, vmap.voxel_corners, vmap.embeddings, vmap.voxel_size)
+
+
+@dataclass(frozen=True)
+class VoxelHits:
+    """Segments of rays inside allocated voxels, sorted by ray then by ``t``.
+
+    ray_index (H,) int64, voxel_index (H,) int64 into ``voxel_codes``, t_in/t_out (H,) float.
+    """
+
+    ray_index: torch.Tensor
+    voxel_index: torch.Tensor
+    t_in: torch.Tensor
+    t_out: torch.Tensor
+
+
+@dataclass(frozen=True)
+class RaySamples:
+    """Flat samples: ray_index (S,) int64, t (S,) z-depth, voxel_index (S,) int64."""
+
+    ray_index: torch.Tensor
+    t: torch.Tensor
+    voxel_index: torch.Tensor
+
+
+@dataclass(frozen=True)
+class RenderOutput:
+    """Per-ray results for R rays and the per-sample values the losses need.
+
+    color (R, 3), depth (R,), weight_sum (R,), hit (R,) bool: the ray has samples;
+    depth_var (R,): weighted variance of sample depths (an uncertainty for tracking).
+    samples: the flat samples; sdf (S,) in units of tr.
+    """
+
+    color: torch.Tensor
+    depth: torch.Tensor
+    weight_sum: torch.Tensor
+    hit: torch.Tensor
+    depth_var: torch.Tensor
+    samples: RaySamples
+    sdf: torch.Tensor
+
+
+# --------------------------------------------------------------------- rays
+def camera_rays(K: torch.Tensor, pixels_uv: torch.Tensor) -> torch.Tensor:
+    """Camera-frame directions with z = 1. K (3, 3), pixels_uv (R, 2) float -> (R, 3).
+
+    OpenCV convention: the centre of pixel (u, v) is at the integer coordinates (u, v), so
+    callers pass integer pixel indices as floats for pixel centres (the readers scale K with
+    the same convention).
+    """
+    x = (pixels_uv[:, 0] - K[0, 2]) / K[0, 0]
+    y = (pixels_uv[:, 1] - K[1, 2]) / K[1, 1]
+    return torch.stack([x, y, torch.ones_like(x)], -1)
+
+
+def rays_in_map(T_map_cam: torch.Tensor, dirs_cam: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Rotate camera-frame directions (R, 3) by T_map_cam (4, 4) -> origins (R, 3), dirs (R, 3)."""
+    dirs = dirs_cam @ T_map_cam[:3, :3].transpose(0, 1)
+    origins = T_map_cam[:3, 3].expand_as(dirs)
+    return origins, dirs
+
+
+# ---------------------------------------------------------- ray-voxel tests
+def _axis_crossings(o: torch.Tensor, d: torch.Tensor, near: torch.Tensor, far: torch.Tensor,
+                    voxel_size: float) -> torch.Tensor:
+    """t of every voxel-face plane of one axis crossed inside (near, far); inf-padded.
+
+    o, d, near, far: (R,) -> (R, n) with n the largest count over the rays.
+    """
+    p0 = o + near * d
+    p1 = o + far * d
+    k_lo = torch.floor(torch.minimum(p0, p1) / voxel_size) + 1
+    k_hi = torch.floor(torch.maximum(p0, p1) / voxel_size)
+    moving = d.abs() > 1e-9
+    count = torch.where(moving, (k_hi - k_lo + 1).clamp(min=0), torch.zeros_like(k_lo)).long()
+    n = int(count.max()) if count.numel() else 0
+    if n == 0:
+        return o.new_full((o.shape[0], 0), float("inf"))
+    j = torch.arange(n, device=o.device, dtype=o.dtype)
+    planes = (k_lo[:, None] + j[None]) * voxel_size
+    safe_d = torch.where(moving, d, torch.ones_like(d))
+    t = (planes - o[:, None]) / safe_d[:, None]
+    return torch.where(j[None] < count[:, None], t, torch.full_like(t, float("inf")))
+
+
+def ray_voxel_intersections(origins: torch.Tensor, dirs: torch.Tensor, near: torch.Tensor,
+                            far: torch.Tensor, voxel_codes: torch.Tensor, voxel_size: float,
+                            max_hits: int) -> VoxelHits:
+    """Allocated voxels each ray passes through within [near, far], at most ``max_hits`` each.
+
+    Exact traversal without a per-step loop: the t of every face plane crossed is gathered on
+    each axis, sorted, and each interval between consecutive crossings lies in one voxel,
+    found from its midpoint. Hits come out near to far, so keeping the first ``max_hits``
+    is the paper's "gather, sort near to far, mask the far ones" with ``far <= D_max``.
+
+    origins, dirs (R, 3); near, far (R,) in units of t -> VoxelHits.
+    Example: a ray from (0.1, 0.1, -1) along +z with voxels [0,0,0] and [0,0,2] allocated
+    (size 1) and near=0, far=5 hits voxel 0 on t in [1, 2] and voxel 1 on [3, 4].
+    """
+    with torch.no_grad():
+        o, d = origins.detach(), dirs.detach()
+        crossings = [_axis_crossings(o[:, a], d[:, a], near, far, voxel_size) for a in range(3)]
+        bounds = torch.cat([near[:, None]] + crossings + [far[:, None]], 1)
+        bounds, _ = torch.sort(bounds, dim=1)
+        bounds = torch.minimum(bounds, far[:, None])
+        t0, t1 = bounds[:, :-1], bounds[:, 1:]
+        valid = t1 > t0 + 1e-7
+        mid = 0.5 * (t0 + t1)
+        pts = o[:, None, :] + mid[..., None] * d[:, None, :]
+        ijk = torch.floor(pts / voxel_size).long()
+        ray_idx, seg_idx = torch.nonzero(valid, as_tuple=True)
+        codes = morton_encode(ijk[ray_idx, seg_idx])
+        vox = lookup_sorted(voxel_codes, codes)
+        hit = vox >= 0
+        ray_idx, seg_idx, vox = ray_idx[hit], seg_idx[hit], vox[hit]
+        if max_hits > 0 and ray_idx.numel():
+            rank = _rank_within_groups(ray_idx)
+            keep = rank < max_hits
+            ray_idx, seg_idx, vox = ray_idx[keep], seg_idx[keep], vox[keep]
+        return VoxelHits(ray_idx, vox, t0[ray_idx, seg_idx], t1[ray_idx, seg_idx])
+
+
+def _rank_within_groups(sorted_group: torch.Tensor) -> torch.Tensor:
+    """0, 1, 2, ... within each run of equal values of a sorted (N,) tensor."""
+    n = sorted_group.numel()
+    starts = torch.ones(n, dtype=torch.bool, device=sorted_group.device)
+    starts[1:] = sorted_group[1:] != sorted_group[:-1]
+    idx = torch.arange(n, device=sorted_group.device)
+    group_start = torch.cummax(torch.where(starts, idx, torch.zeros_like(idx)), 0).values
+    return idx - group_start
+
+
+# ------------------------------------------------------------------ sampling
+def sample_points_from_hits(hits: VoxelHits, step: float, offsets: torch.Tensor) -> RaySamples:
+    """Samples at ``t = (k + offset[ray]) * step`` (k integer) inside every hit segment.
+
+    A fixed grid along each ray (the paper's fixed step length), shifted per ray by
+    ``offsets`` (R,) in [0, 1): 0.5 for rendering, uniform random for stratified training.
+    Output is flat and stays sorted by ray, then t.
+    """
+    u = offsets[hits.ray_index]
+    k0 = torch.ceil(hits.t_in / step - u)
+    k1 = torch.ceil(hits.t_out / step - u)
+    counts = (k1 - k0).clamp(min=0).long()
+    total = int(counts.sum())
+    seg = torch.repeat_interleave(torch.arange(counts.numel(), device=counts.device), counts)
+    first = torch.cumsum(counts, 0) - counts
+    j = torch.arange(total, device=counts.device) - first[seg]
+    t = (k0[seg] + j + u[seg]) * step
+    return RaySamples(hits.ray_index[seg], t, hits.voxel_index[seg])
+
+
+# ------------------------------------------------------------- interpolation
+def trilinear_weights(local: torch.Tensor) -> torch.Tensor:
+    """(S, 3) position inside the voxel in [0, 1]^3 -> (S, 8) corner weights.
+
+    Corner c sits at offset (c & 1, (c >> 1) & 1, (c >> 2) & 1); weights sum to one.
+    """
+    x, y, z = local.unbind(-1)
+    wx = torch.stack([1 - x, x], -1)
+    wy = torch.stack([1 - y, y], -1)
+    wz = torch.stack([1 - z, z], -1)
+    return (wz[:, :, None, None] * wy[:, None, :, None] * wx[:, None, None, :]).reshape(-1, 8)
+
+
+def interpolate_embeddings(points: torch.Tensor, voxel_index: torch.Tensor, view: MapView) -> torch.Tensor:
+    """TriLerp of corner embeddings. points (S, 3) map frame, voxel_index (S,) -> (S, D).
+
+    Differentiable with respect to both the embeddings and the points (tracking needs the
+    latter).
+    """
+    ijk = view.voxel_coords[voxel_index].to(points.dtype)
+    local = (points / view.voxel_size - ijk).clamp(0.0, 1.0)
+    w = trilinear_weights(local)
+    corner_rows = view.voxel_corners[voxel_index]
+    feats = torch.nn.functional.embedding(corner_rows, view.embeddings)  # (S, 8, D)
+    return (w[..., None] * feats).sum(1)
+
+
+# ------------------------------------------------------------------ weights
+def sdf_weights(sdf: torch.Tensor, t: torch.Tensor, ray_index: torch.Tensor, num_rays: int,
+                truncation: float) -> torch.Tensor:
+    """w = sigmoid(s/tr) * sigmoid(-s/tr), zero for samples more than tr past the first surface.
+
+    sdf (S,) in units of tr, t (S,), ray_index (S,) sorted -> (S,) unnormalised weights.
+    """
+    w = torch.sigmoid(sdf / truncation) * torch.sigmoid(-sdf / truncation)
+    with torch.no_grad():
+        same_ray = ray_index[1:] == ray_index[:-1]
+        change = (sdf[1:] * sdf[:-1] < 0) & same_ray
+        first = torch.full((num_rays,), float("inf"), dtype=t.dtype, device=t.device)
+        if bool(change.any()):
+            first = first.scatter_reduce(0, ray_index[:-1][change], t[:-1][change], "amin")
+        keep = t < first[ray_index] + truncation
+    return w * keep
+
+
+def accumulate_along_rays(weights: torch.Tensor, values: torch.Tensor, ray_index: torch.Tensor,
+                          num_rays: int) -> torch.Tensor:
+    """Sum of weights * values per ray. weights (S,), values (S, C) -> (R, C)."""
+    out = values.new_zeros(num_rays, values.shape[1])
+    return out.index_add(0, ray_index, weights[:, None] * values)
+
+
+# ------------------------------------------------------------------ renderer
+def render_rays(origins: torch.Tensor, dirs: torch.Tensor, view: MapView, decoder,
+                *, near: torch.Tensor, far: torch.Tensor, step: float, truncation: float,
+                max_hits: int, offsets: torch.Tensor | None = None,
+                color_weight_eps: float = 1e-5) -> RenderOutput:
+    """Render R rays of one map. origins, dirs (R, 3) map frame; near, far (R,) -> RenderOutput.
+
+    The colour head only runs on samples whose weight exceeds ``color_weight_eps`` (the
+    others add nothing to the normalised colour), which saves most of its cost.
+    """
+    num_rays = origins.shape[0]
+    if offsets is None:
+        offsets = torch.full((num_rays,), 0.5, device=origins.device)
+    hits = ray_voxel_intersections(origins, dirs, near, far, view.voxel_codes, view.voxel_size, max_hits)
+    samples = sample_points_from_hits(hits, step, offsets)
+    r = samples.ray_index
+    points = origins[r] + samples.t[:, None] * dirs[r]
+    feats = interpolate_embeddings(points, samples.voxel_index, view)
+    sdf, hidden = decoder.sdf_and_hidden(feats)
+    w = sdf_weights(sdf, samples.t, r, num_rays, truncation)
+    wsum = torch.zeros(num_rays, device=w.device, dtype=w.dtype).index_add(0, r, w)
+    norm = 1.0 / (wsum + 1e-8)
+    depth = torch.zeros_like(wsum).index_add(0, r, w * samples.t) * norm
+    depth_var = torch.zeros_like(wsum).index_add(0, r, w * (samples.t - depth.detach()[r]) ** 2) * norm
+    active = torch.nonzero(w.detach() > color_weight_eps, as_tuple=True)[0]
+    rgb_active = decoder.color(decoder.feature_from_hidden(hidden[active]))
+    color = accumulate_along_rays(w[active], rgb_active, r[active], num_rays) * norm[:, None]
+    hit = torch.zeros(num_rays, dtype=torch.bool, device=origins.device)
+    hit[r] = True
+    return RenderOutput(color, depth, wsum, hit, depth_var, samples, sdf)
