@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import types
+import typing
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
@@ -77,8 +79,10 @@ class TrackingConfig:
     num_rays: int = 1024
     """N_t: pixels sampled per tracking iteration."""
     iterations: int = 30
-    lr_rot: float = 1e-3
-    lr_trans: float = 1e-3
+    lr_rot: float = 1e-2
+    lr_trans: float = 1e-2
+    lr_decay: float = 0.1
+    """The learning rate falls geometrically to lr * lr_decay by the last iteration."""
     constant_velocity: bool = True
     """Initialise from a constant-velocity guess instead of the last pose."""
     outlier_factor: float = 10.0
@@ -200,7 +204,7 @@ def _cpu() -> SLAMConfig:
         preset="cpu",
         decoder=DecoderConfig(hidden_dim=64, feature_dim=64, color_hidden_dim=64),
         render=RenderConfig(step_ratio=0.1, max_hits=16, truncation=0.1),
-        tracking=TrackingConfig(num_rays=512, iterations=15),
+        tracking=TrackingConfig(num_rays=512, iterations=20),
         mapping=MappingConfig(num_rays=384, iterations=6, window_size=4, first_frame_iterations=100),
         mesh=MeshConfig(resolution=6),
         runtime=RuntimeConfig(device="auto", input_width=320),
@@ -238,6 +242,30 @@ def default_preset_name() -> str:
     return "paper" if torch.cuda.is_available() else "cpu"
 
 
+def _check_type(name: str, hint: Any, value: Any) -> Any:
+    """``value`` converted to the field's declared type, or ConfigError.
+
+    bool is not accepted for int/float fields (JSON ``true`` is no number); int is widened to
+    float; ``X | None`` accepts null.
+    """
+    options = typing.get_args(hint) if isinstance(hint, types.UnionType) or typing.get_origin(hint) is typing.Union else (hint,)
+    if value is None and type(None) in options:
+        return None
+    for option in options:
+        if option is type(None):
+            continue
+        if option is bool and isinstance(value, bool):
+            return value
+        if option is int and isinstance(value, int) and not isinstance(value, bool):
+            return value
+        if option is float and isinstance(value, (int, float)) and not isinstance(value, bool):
+            return float(value)
+        if option is str and isinstance(value, str):
+            return value
+    names = " or ".join(getattr(o, "__name__", str(o)) for o in options)
+    raise ConfigError(f"{name} must be {names}, got {type(value).__name__} {value!r}")
+
+
 def apply_overrides(config: SLAMConfig, overrides: dict[str, Any]) -> SLAMConfig:
     """Return ``config`` with ``{"section": {"field": value}}`` overrides applied.
 
@@ -252,17 +280,13 @@ def apply_overrides(config: SLAMConfig, overrides: dict[str, Any]) -> SLAMConfig
             raise ConfigError(f"config section {section!r} must be a mapping of fields")
         current = getattr(config, section)
         known = {f.name: f for f in fields(current)}
+        hints = typing.get_type_hints(type(current))
+        clean: dict[str, Any] = {}
         for key, value in values.items():
             if key not in known:
                 raise ConfigError(f"unknown field {section}.{key}; known: {sorted(known)}")
-            expected = type(getattr(current, key))
-            if getattr(current, key) is not None and expected is float and isinstance(value, int):
-                values = {**values, key: float(value)}
-                value = float(value)
-            if value is not None and getattr(current, key) is not None and not isinstance(value, expected):
-                raise ConfigError(
-                    f"{section}.{key} must be {expected.__name__}, got {type(value).__name__}"
-                )
+            clean[key] = _check_type(f"{section}.{key}", hints[key], value)
+        values = clean
         changes[section] = replace(current, **values)
     return replace(config, **changes)
 

@@ -33,7 +33,7 @@ class Losses:
     sdf: torch.Tensor
 
     def as_floats(self) -> dict[str, float]:
-        return {k: float(getattr(self, k)) for k in ("total", "rgb", "depth", "fs", "sdf")}
+        return {k: float(getattr(self, k).detach()) for k in ("total", "rgb", "depth", "fs", "sdf")}
 
 
 def _per_ray_mean(values: torch.Tensor, mask: torch.Tensor, ray_index: torch.Tensor,

@@ -151,7 +151,9 @@ class Mapper:
         observed, new = submap.voxels.count_new(points)
         ratio = new / max(observed, 1)
         m = self.config.mapping
-        is_kf = first or ratio > m.keyframe_ratio or self.frames_since_keyframe + 1 >= m.keyframe_max_interval
+        # A frame whose tracking failed is not fused: its pose would corrupt the map.
+        is_kf = first or (tracked.tracking_ok and (
+            ratio > m.keyframe_ratio or self.frames_since_keyframe + 1 >= m.keyframe_max_interval))
         new_voxels = 0
         if is_kf:
             new_voxels = self._allocate(submap, points)
@@ -165,7 +167,7 @@ class Mapper:
         losses: dict[str, float] = {}
         if optimize:
             iters = m.first_frame_iterations if first else m.iterations
-            current = None if is_kf else (tracked.frame, T_map_cam)
+            current = None if is_kf or not tracked.tracking_ok else (tracked.frame, T_map_cam)
             losses = self.optimize(submap, iters, current)
         self.version += 1
         return MappingStep(tracked.frame.index, is_kf, ratio, new_voxels, losses, time.perf_counter() - t0)

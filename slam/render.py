@@ -130,6 +130,28 @@ def _axis_crossings(o: torch.Tensor, d: torch.Tensor, near: torch.Tensor, far: t
     return torch.where(j[None] < count[:, None], t, torch.full_like(t, float("inf")))
 
 
+def clip_to_box(origins: torch.Tensor, dirs: torch.Tensor, near: torch.Tensor, far: torch.Tensor,
+                voxel_codes: torch.Tensor, voxel_size: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Narrow [near, far] (R,) to where each ray is inside the bounding box of the voxels.
+
+    Keeps the traversal's cost bounded by the map's extent, whatever the ray's range or a
+    wild pose; rays that miss the box get an empty interval (far = near).
+    """
+    if voxel_codes.numel() == 0:
+        return near, near.clone()
+    ijk = morton_decode(voxel_codes)
+    lo = ijk.min(0).values.to(origins.dtype) * voxel_size
+    hi = (ijk.max(0).values + 1).to(origins.dtype) * voxel_size
+    safe = torch.where(dirs.abs() < 1e-12, torch.full_like(dirs, 1e-12), dirs)
+    t0 = (lo - origins) / safe
+    t1 = (hi - origins) / safe
+    t_enter = torch.minimum(t0, t1).amax(1)
+    t_exit = torch.maximum(t0, t1).amin(1)
+    new_near = torch.maximum(near, t_enter)
+    new_far = torch.minimum(far, t_exit)
+    return new_near, torch.maximum(new_far, new_near)
+
+
 def ray_voxel_intersections(origins: torch.Tensor, dirs: torch.Tensor, near: torch.Tensor,
                             far: torch.Tensor, voxel_codes: torch.Tensor, voxel_size: float,
                             max_hits: int) -> VoxelHits:
@@ -146,6 +168,7 @@ def ray_voxel_intersections(origins: torch.Tensor, dirs: torch.Tensor, near: tor
     """
     with torch.no_grad():
         o, d = origins.detach(), dirs.detach()
+        near, far = clip_to_box(o, d, near, far, voxel_codes, voxel_size)
         crossings = [_axis_crossings(o[:, a], d[:, a], near, far, voxel_size) for a in range(3)]
         bounds = torch.cat([near[:, None]] + crossings + [far[:, None]], 1)
         bounds, _ = torch.sort(bounds, dim=1)
@@ -227,7 +250,13 @@ def interpolate_embeddings(points: torch.Tensor, voxel_index: torch.Tensor, view
 # ------------------------------------------------------------------ weights
 def sdf_weights(sdf: torch.Tensor, t: torch.Tensor, ray_index: torch.Tensor, num_rays: int,
                 truncation: float) -> torch.Tensor:
-    """w = sigmoid(s/tr) * sigmoid(-s/tr), zero for samples more than tr past the first surface.
+    """w = sigmoid(s/tr) * sigmoid(-s/tr), kept only within tr of the first surface.
+
+    The paper masks samples more than tr behind the first zero crossing. We also mask those
+    more than tr in front of it: while a map is young its free space is not yet at s = 1,
+    and those samples drag the rendered depth toward the camera; the tracker then "fixes"
+    that by backing the camera away, a drift that compounds (observed on every sequence we
+    tried). Rays without a crossing keep all their weights.
 
     sdf (S,) in units of tr, t (S,), ray_index (S,) sorted -> (S,) unnormalised weights.
     """
@@ -237,8 +266,14 @@ def sdf_weights(sdf: torch.Tensor, t: torch.Tensor, ray_index: torch.Tensor, num
         change = (sdf[1:] * sdf[:-1] < 0) & same_ray
         first = torch.full((num_rays,), float("inf"), dtype=t.dtype, device=t.device)
         if bool(change.any()):
-            first = first.scatter_reduce(0, ray_index[:-1][change], t[:-1][change], "amin")
-        keep = t < first[ray_index] + truncation
+            # Zero crossing by linear interpolation between the two samples, so the kept
+            # band is centred on the surface rather than on the sample before it.
+            s0, s1 = sdf[:-1][change], sdf[1:][change]
+            t0, t1 = t[:-1][change], t[1:][change]
+            t_zero = t0 + (t1 - t0) * s0 / (s0 - s1)
+            first = first.scatter_reduce(0, ray_index[:-1][change], t_zero, "amin")
+        crossing = first[ray_index]
+        keep = (t < crossing + truncation) & ((t > crossing - truncation) | torch.isinf(crossing))
     return w * keep
 
 

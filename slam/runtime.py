@@ -216,7 +216,17 @@ def _mapping_process(config_dict: dict, device_name: str, out_dir: str, emit_mes
         state = _MapperState(Path(out_dir), emit_meshes)
         replies.put(("ready", None))
         while True:
-            msg = frames.get()
+            try:
+                msg = frames.get(timeout=0 if mapper.current is not None else None)
+            except queue.Empty:
+                # Nothing new: keep optimising the window (the paper's mapper never idles),
+                # so the tracker gets a better map by the time the next frame arrives.
+                t0 = time.perf_counter()
+                mapper.optimize(mapper.current, mapper.config.mapping.iterations)
+                mapper.version += 1
+                state.busy += time.perf_counter() - t0
+                replies.put(("snapshot", mapper.snapshot()))
+                continue
             batch = [msg]
             # Drain what queued up while we optimised: integrate all, optimise once.
             while batch[-1] is not None:
@@ -356,6 +366,8 @@ class _RunState:
     gt_poses: list[np.ndarray | None] = field(default_factory=list)
     tracking_failures: int = 0
     tracking_busy: float = 0.0
+    good_poses: list[np.ndarray] = field(default_factory=list)
+    last_ok: bool = True
     snapshot: MapSnapshot | None = None
     frozen: FrozenMap | None = None
     mapper_stats: _MapperStats | None = None
@@ -437,7 +449,7 @@ def run_slam(sources: list[Iterable[Frame]], config: SLAMConfig, out_dir: str | 
                 status = "cancelled"
                 break
             frame = _pipeline_frame(raw, config.runtime.input_width)
-            T, ok = _estimate_pose(frame, run, tracker, channel, config, device, use_gt_poses)
+            T, ok = _estimate_pose(frame, run, tracker, channel, config, device, use_gt_poses, emit)
             run.poses.append(T)
             run.timestamps.append(float(frame.timestamp))
             run.gt_poses.append(raw.T_world_cam)
@@ -480,26 +492,35 @@ def run_slam(sources: list[Iterable[Frame]], config: SLAMConfig, out_dir: str | 
 
 
 def _estimate_pose(frame: Frame, run: _RunState, tracker: Tracker, channel, config: SLAMConfig,
-                   device: torch.device, use_gt_poses: bool) -> tuple[np.ndarray, bool]:
+                   device: torch.device, use_gt_poses: bool,
+                   emit: Callable[[Event], None]) -> tuple[np.ndarray, bool]:
     """The frame's world pose: GT (``--gt-poses``), the first frame's GT or identity, or tracked."""
     if use_gt_poses:
         if frame.T_world_cam is None:
             raise ValueError(f"--gt-poses: frame {frame.index} has no ground-truth pose")
         return np.asarray(frame.T_world_cam, np.float64), True
     if not run.poses:
-        first = frame.T_world_cam if frame.T_world_cam is not None else np.eye(4)
-        return np.asarray(first, np.float64), True
+        first = np.asarray(frame.T_world_cam if frame.T_world_cam is not None else np.eye(4), np.float64)
+        run.good_poses.append(first)
+        return first, True
     while run.snapshot is None:  # the map is initialised from the first frame
-        _handle_replies(channel.poll(block=True), run, lambda e: None, config, device)
+        _handle_replies(channel.poll(block=True), run, emit, config, device)
     t0 = time.perf_counter()
     fmap = _frozen_map(run, config, device)
     tf = prepare_frame(frame, None, device, config.voxel.max_depth)
-    history = [torch.from_numpy(p).float().to(device) for p in run.poses[-2:]]
+    # Velocity only from two consecutive good poses: extrapolating from a failed estimate
+    # would compound the error frame after frame.
+    good = run.good_poses[-2:] if run.last_ok else run.good_poses[-1:]
+    history = [torch.from_numpy(p).float().to(device) for p in good]
     result = tracker.track(tf, fmap, constant_velocity_guess(history, config.tracking.constant_velocity))
     run.tracking_busy += time.perf_counter() - t0
-    if not result.ok:
+    T = result.T_world_cam.detach().cpu().numpy().astype(np.float64)
+    run.last_ok = result.ok
+    if result.ok:
+        run.good_poses.append(T)
+    else:
         run.tracking_failures += 1
-    return result.T_world_cam.detach().cpu().numpy().astype(np.float64), result.ok
+    return T, result.ok
 
 
 def _running_ate(run: _RunState) -> float | None:

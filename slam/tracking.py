@@ -77,6 +77,10 @@ class Tracker:
         rho = torch.zeros(3, device=self.device, requires_grad=True)
         phi = torch.zeros(3, device=self.device, requires_grad=True)
         opt = torch.optim.Adam([{"params": [rho], "lr": c.lr_trans}, {"params": [phi], "lr": c.lr_rot}])
+        # Adam's steps are about lr per coordinate whatever the gradient, so a fixed lr either
+        # crawls or rattles around the optimum; decay it geometrically by lr_decay overall.
+        gamma = c.lr_decay ** (1.0 / max(c.iterations - 1, 1))
+        sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma)
         best = (float("inf"), T0_map.clone(), 0.0, float("inf"))
         step = r.step_ratio * fmap.view.voxel_size
         it = 0
@@ -99,13 +103,14 @@ class Tracker:
             inlier = hit & (residual <= c.outlier_factor * med + 1e-6)
             losses = compute_losses(out, batch.rgb, batch.depth, r.truncation, self.weights,
                                     ray_weight=inlier.float(), max_depth=r.max_distance)
-            loss = float(losses.total)
+            loss = float(losses.total.detach())
             if loss < best[0]:
                 best = (loss, T.detach().clone(), hit_ratio, float(med))
             opt.zero_grad(set_to_none=True)
             losses.total.backward()
             prev = torch.cat([rho, phi]).detach().clone()
             opt.step()
+            sched.step()
             if float((torch.cat([rho, phi]).detach() - prev).norm()) < c.convergence_tol:
                 break
         loss, T_best_map, hit_ratio, residual_med = best

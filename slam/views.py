@@ -1,6 +1,6 @@
 """Whole images of the neural map: colour and depth for any camera pose and intrinsics.
 
-Every pixel centre ``(u + 0.5, v + 0.5)`` becomes a ray; each submap renders the rays in its
+Every pixel centre ``(u, v)`` (integer coordinates, the OpenCV convention of the readers) becomes a ray; each submap renders the rays in its
 own frame (``T_map_cam = T_world_map^-1 T_world_cam``) with ``slam.render.render_rays``, in
 chunks of ``config.render.chunk_rays`` rays under ``torch.no_grad`` so that memory does not
 grow with the image size. Depth is z-depth in metres, as the input depth images.
@@ -63,9 +63,9 @@ def _as_tensor(value, name: str, shape: tuple[int, ...]) -> torch.Tensor:
 
 
 def pixel_centres(width: int, height: int) -> torch.Tensor:
-    """(H * W, 2) float32 ``(u + 0.5, v + 0.5)`` in row-major order."""
-    v, u = torch.meshgrid(torch.arange(height, dtype=torch.float32) + 0.5,
-                          torch.arange(width, dtype=torch.float32) + 0.5, indexing="ij")
+    """(H * W, 2) float32 pixel centres ``(u, v)`` at integer coordinates, row-major."""
+    v, u = torch.meshgrid(torch.arange(height, dtype=torch.float32),
+                          torch.arange(width, dtype=torch.float32), indexing="ij")
     return torch.stack([u.reshape(-1), v.reshape(-1)], -1)
 
 

@@ -291,7 +291,7 @@ def scene_color(p: torch.Tensor) -> torch.Tensor:
 def scene_depth(T_world_cam: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Rays of every pixel and their analytic z-depth: origins, dirs (HW, 3), depth (HW,)."""
     width, height = SCENE_SIZE
-    v, u = torch.meshgrid(torch.arange(height) + 0.5, torch.arange(width) + 0.5, indexing="ij")
+    v, u = torch.meshgrid(torch.arange(height, dtype=torch.float32), torch.arange(width, dtype=torch.float32), indexing="ij")
     origins, dirs = rays_in_map(T_world_cam, camera_rays(SCENE_K, torch.stack([u.flatten(), v.flatten()], -1)))
     t_wall = (WALL_Z - origins[:, 2]) / dirs[:, 2]
     down = dirs[:, 1] > 1e-6
@@ -307,7 +307,7 @@ def moved_camera() -> torch.Tensor:
     return T
 
 
-def fit_scene(iterations: int = 150, batch: int = 1024, seed: int = 0) -> MapSet:
+def fit_scene(iterations: int = 300, batch: int = 1024, seed: int = 0) -> MapSet:
     """A test-preset submap fitted to the wall-and-floor scene seen from the identity camera."""
     torch.manual_seed(seed)
     submap = SubMap.create(0, 0, CONFIG, torch.device("cpu"), seed=seed)

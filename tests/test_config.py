@@ -1,0 +1,136 @@
+"""Configuration (slam.config): presets, frozen sections, JSON overrides and their errors."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import pytest
+
+from slam.config import (
+    PRESETS,
+    ConfigError,
+    SLAMConfig,
+    apply_overrides,
+    config_from_dict,
+    default_preset_name,
+    load_config,
+    preset,
+)
+
+NAMES = ("test", "cpu", "paper")
+
+
+def write(tmp_path, payload, name="cfg.json"):
+    path = tmp_path / name
+    path.write_text(payload if isinstance(payload, str) else json.dumps(payload))
+    return path
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_presets_exist_are_named_and_frozen(name):
+    cfg = preset(name)
+    assert isinstance(cfg, SLAMConfig) and cfg.preset == name
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        cfg.preset = "other"  # type: ignore[misc]
+    for section in dataclasses.fields(cfg):
+        value = getattr(cfg, section.name)
+        if dataclasses.is_dataclass(value):
+            first = dataclasses.fields(value)[0].name
+            with pytest.raises(dataclasses.FrozenInstanceError):
+                setattr(value, first, getattr(value, first))
+    assert preset(name) == cfg and preset(name) is not cfg
+
+
+def test_the_three_presets_differ_where_they_should():
+    assert set(PRESETS) == set(NAMES)
+    test, cpu, paper = (preset(n) for n in NAMES)
+    assert test.mapping.iterations <= cpu.mapping.iterations <= paper.mapping.iterations
+    assert test.tracking.num_rays < cpu.tracking.num_rays <= paper.tracking.num_rays
+    assert test.runtime.device == "cpu"
+    assert paper.voxel.voxel_size == 0.2 and paper.voxel.embed_dim == 16
+    assert paper.decoder.hidden_dim == 128 and paper.decoder.color_hidden_dim == 256
+    assert default_preset_name() in ("cpu", "paper")
+
+
+def test_unknown_preset():
+    with pytest.raises(ConfigError, match="unknown preset 'fast'"):
+        preset("fast")
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_to_dict_round_trips_every_preset(name):
+    cfg = preset(name)
+    assert config_from_dict(cfg.to_dict()) == cfg
+    assert config_from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg
+
+
+def test_round_trip_keeps_changed_fields_and_the_preset_base():
+    cfg = preset("test")
+    changed = dataclasses.replace(cfg, mapping=dataclasses.replace(cfg.mapping, iterations=7),
+                                  runtime=dataclasses.replace(cfg.runtime, input_width=None))
+    again = config_from_dict(changed.to_dict())
+    assert again == changed and again.mapping.iterations == 7 and again.runtime.input_width is None
+
+
+def test_json_file_overrides_field_by_field(tmp_path):
+    path = write(tmp_path, {"preset": "ignored", "mapping": {"iterations": 3, "lr_embed": 1},
+                            "runtime": {"processes": False}})
+    cfg = load_config("test", path)
+    base = preset("test")
+    assert cfg.mapping.iterations == 3 and cfg.runtime.processes is False
+    assert cfg.mapping.lr_embed == 1.0 and isinstance(cfg.mapping.lr_embed, float), "ints widen to float"
+    assert cfg.mapping.window_size == base.mapping.window_size and cfg.tracking == base.tracking
+    assert cfg.preset == "test"
+    assert load_config("test") == base
+
+
+@pytest.mark.parametrize("payload, message", [
+    ({"mapper": {"iterations": 3}}, "unknown config section 'mapper'"),
+    ({"mapping": {"iteration": 3}}, "unknown field mapping.iteration"),
+    ({"mapping": 3}, "section 'mapping' must be a mapping"),
+    ({"mapping": {"iterations": "ten"}}, "mapping.iterations must be int"),
+    ({"mapping": {"iterations": 2.5}}, "mapping.iterations must be int"),
+    ({"runtime": {"processes": 1}}, "runtime.processes must be bool"),
+    ({"render": {"truncation": "0.1"}}, "render.truncation must be float"),
+    ({"runtime": {"device": 0}}, "runtime.device must be str"),
+])
+def test_bad_overrides_raise_config_error_naming_them(tmp_path, payload, message):
+    with pytest.raises(ConfigError, match=message.replace(".", r"\.")):
+        load_config("test", write(tmp_path, payload))
+
+
+@pytest.mark.parametrize("payload, message", [
+    ({"mapping": {"iterations": True}}, "mapping.iterations must be int"),
+    ({"runtime": {"input_width": "wide"}}, "runtime.input_width"),
+    ({"loop": {"netvlad_weights": 5}}, "loop.netvlad_weights"),
+])
+def test_wrong_types_that_look_close_are_rejected(payload, message):
+    # A bool is an int to isinstance, and a field whose default is None has no value to
+    # compare types with; both must still be checked against the field's declared type.
+    base = preset("paper")
+    with pytest.raises(ConfigError, match=message.replace(".", r"\.")):
+        apply_overrides(base, payload)
+
+
+@pytest.mark.parametrize("text, message", [
+    ("{not json", "cannot read config file"),
+    ("[1, 2]", "must hold a JSON object"),
+])
+def test_unreadable_files_raise_config_error_naming_the_file(tmp_path, text, message):
+    path = write(tmp_path, text, "broken.json")
+    with pytest.raises(ConfigError, match=message) as info:
+        load_config("test", path)
+    assert "broken.json" in str(info.value)
+
+
+def test_missing_file_names_it(tmp_path):
+    with pytest.raises(ConfigError, match="nope.json"):
+        load_config("test", tmp_path / "nope.json")
+
+
+def test_none_fields_accept_values_and_none():
+    base = preset("paper")
+    assert base.runtime.input_width is None
+    assert apply_overrides(base, {"runtime": {"input_width": 320}}).runtime.input_width == 320
+    assert apply_overrides(preset("cpu"), {"runtime": {"input_width": None}}).runtime.input_width is None

@@ -1,0 +1,165 @@
+"""The four losses (slam.losses) on hand-made render outputs, and the decoder (slam.decoder)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+import torch
+
+from slam.config import DecoderConfig, preset
+from slam.decoder import Decoder
+from slam.losses import LossWeights, compute_losses
+from slam.render import RaySamples, RenderOutput
+
+TR = 0.1
+
+
+@pytest.fixture(scope="module", autouse=True)
+def single_thread():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def hand_made():
+    """Four rays, tr = 0.1, values worked out by hand in the tests below.
+
+    ray 0: depth 1.0; samples at 0.5, 0.85 (free space: t < 0.9), 0.95, 1.05 (SDF band) and
+           1.15 (past the band, in neither term).
+    ray 1: invalid depth (0): counts for colour only.
+    ray 2: no samples (hit False): counts nowhere even though its colour is far off.
+    ray 3: depth 2.0; one free-space sample at 1.0 and one band sample at 2.05.
+    """
+    ray = torch.tensor([0, 0, 0, 0, 0, 1, 1, 3, 3])
+    t = torch.tensor([0.5, 0.85, 0.95, 1.05, 1.15, 0.5, 0.95, 1.0, 2.05], dtype=torch.float64)
+    sdf = torch.tensor([0.8, 0.4, 0.5, -0.3, -0.9, 1.0, 0.2, 0.6, -0.2], dtype=torch.float64, requires_grad=True)
+    color = torch.tensor([[0.6, 0.5, 0.5], [0.1, 0.4, 0.1], [0.0, 0.0, 0.0], [0.2, 0.2, 0.5]],
+                         dtype=torch.float64, requires_grad=True)
+    depth = torch.tensor([1.1, 5.0, 0.0, 1.8], dtype=torch.float64, requires_grad=True)
+    out = RenderOutput(color=color, depth=depth, weight_sum=torch.ones(4, dtype=torch.float64),
+                       hit=torch.tensor([True, True, False, True]), depth_var=torch.zeros(4, dtype=torch.float64),
+                       samples=RaySamples(ray, t, torch.zeros_like(ray)), sdf=sdf)
+    rgb_gt = torch.tensor([[0.5, 0.5, 0.5], [0.1, 0.2, 0.1], [1.0, 1.0, 1.0], [0.2, 0.2, 0.2]], dtype=torch.float64)
+    depth_gt = torch.tensor([1.0, 0.0, 2.0, 2.0], dtype=torch.float64)
+    return out, rgb_gt, depth_gt
+
+
+WEIGHTS = LossWeights(rgb=0.5, depth=1.0, sdf=5000.0, fs=10.0)
+
+
+def test_each_loss_on_hand_worked_values():
+    out, rgb_gt, depth_gt = hand_made()
+    losses = compute_losses(out, rgb_gt, depth_gt, TR, WEIGHTS)
+    # colour: rays 0, 1, 3; |diff| sums 0.1 + 0.2 + 0.3 over 9 channels
+    assert losses.rgb.item() == pytest.approx(0.6 / 9)
+    # depth: rays 0 and 3: |1.1 - 1| and |1.8 - 2|
+    assert losses.depth.item() == pytest.approx(0.15)
+    # free space, per ray then over rays: ray 0 ((0.8-1)^2 + (0.4-1)^2) / 2 = 0.2, ray 3 0.16
+    assert losses.fs.item() == pytest.approx(0.18)
+    # SDF: ray 0 ((0.95 + 0.05 - 1)^2 + (1.05 - 0.03 - 1)^2) / 2 = 0.0002, ray 3 0.03^2
+    assert losses.sdf.item() == pytest.approx(0.00055)
+    expected_total = 0.5 * 0.6 / 9 + 0.15 + 10 * 0.18 + 5000 * 0.00055
+    assert losses.total.item() == pytest.approx(expected_total)
+    assert set(losses.as_floats()) == {"total", "rgb", "depth", "fs", "sdf"}
+
+
+def test_samples_outside_the_terms_get_no_gradient():
+    out, rgb_gt, depth_gt = hand_made()
+    losses = compute_losses(out, rgb_gt, depth_gt, TR, LossWeights(rgb=0.0, depth=0.0, sdf=1.0, fs=1.0))
+    losses.total.backward()
+    grad = out.sdf.grad
+    # Sample 4 (past the band), ray 1's samples (invalid depth) feed neither SDF term.
+    assert grad[[4, 5, 6]].tolist() == [0.0, 0.0, 0.0]
+    assert bool((grad[[0, 1, 3, 7, 8]] != 0).all())
+    assert abs(float(grad[2])) < 1e-9, "sample 2 sits on its target (zero residual)"
+
+
+def test_ray_weight_drops_rays_from_every_term():
+    out, rgb_gt, depth_gt = hand_made()
+    losses = compute_losses(out, rgb_gt, depth_gt, TR, WEIGHTS, ray_weight=torch.tensor([1.0, 1.0, 1.0, 0.0]))
+    assert losses.rgb.item() == pytest.approx(0.3 / 6)
+    assert losses.depth.item() == pytest.approx(0.1)
+    assert losses.fs.item() == pytest.approx(0.2)
+    assert losses.sdf.item() == pytest.approx(0.0002)
+
+
+def test_depth_beyond_max_depth_is_invalid_but_colour_still_counts():
+    out, rgb_gt, depth_gt = hand_made()
+    losses = compute_losses(out, rgb_gt, depth_gt, TR, WEIGHTS, max_depth=1.5)
+    assert losses.rgb.item() == pytest.approx(0.6 / 9)
+    assert losses.depth.item() == pytest.approx(0.1)
+    assert losses.fs.item() == pytest.approx(0.2)
+    assert losses.sdf.item() == pytest.approx(0.0002)
+
+
+def test_no_usable_ray_gives_zero_losses_that_still_backpropagate():
+    out, rgb_gt, depth_gt = hand_made()
+    losses = compute_losses(out, rgb_gt, torch.zeros(4, dtype=torch.float64), TR, WEIGHTS,
+                            ray_weight=torch.tensor([0.0, 0.0, 1.0, 0.0]))
+    assert losses.as_floats() == {"total": 0.0, "rgb": 0.0, "depth": 0.0, "fs": 0.0, "sdf": 0.0}
+    losses.total.backward()  # must not raise: the tracker calls backward unconditionally
+
+
+def test_loss_gradients_point_the_right_way():
+    out, rgb_gt, depth_gt = hand_made()
+    compute_losses(out, rgb_gt, depth_gt, TR, WEIGHTS).total.backward()
+    assert out.depth.grad[0] > 0 and out.depth.grad[3] < 0, "rendered depth pulled towards the target"
+    assert out.depth.grad[1] == 0 and out.depth.grad[2] == 0
+    assert out.sdf.grad[0] < 0, "free-space SDF below 1 is pushed up"
+    assert not bool(out.color.grad[2].any())
+
+
+# ------------------------------------------------------------------ decoder
+@pytest.fixture(scope="module")
+def decoder():
+    torch.manual_seed(0)
+    cfg = preset("test")
+    return Decoder(cfg.decoder, cfg.voxel.embed_dim)
+
+
+def test_decoder_shapes_and_colour_range(decoder):
+    emb = torch.randn(37, 16)
+    sdf, feature = decoder.sdf_and_feature(emb)
+    assert sdf.shape == (37,) and feature.shape == (37, decoder.config.feature_dim)
+    rgb = decoder.color(feature)
+    assert rgb.shape == (37, 3) and bool((rgb > 0).all()) and bool((rgb < 1).all())
+    assert decoder.sdf(emb).shape == (37,)
+    assert decoder.sdf_and_feature(torch.zeros(0, 16))[0].shape == (0,)
+
+
+def test_split_calls_equal_the_full_head(decoder):
+    emb = torch.randn(50, 16, requires_grad=True)
+    sdf, feature = decoder.sdf_and_feature(emb)
+    sdf2, hidden = decoder.sdf_and_hidden(emb)
+    feature2 = decoder.feature_from_hidden(hidden)
+    assert torch.allclose(sdf, sdf2, atol=1e-6) and torch.allclose(feature, feature2, atol=1e-6)
+    assert torch.allclose(decoder.sdf(emb), sdf, atol=1e-6)
+    g1 = torch.autograd.grad(sdf.sum() + decoder.color(feature).sum(), emb)[0]
+    g2 = torch.autograd.grad(sdf2.sum() + decoder.color(feature2).sum(), emb)[0]
+    assert torch.allclose(g1, g2, atol=1e-6)
+
+
+def linear_sizes(module: torch.nn.Module) -> list[tuple[int, int]]:
+    return [(m.in_features, m.out_features) for m in module.modules() if isinstance(m, torch.nn.Linear)]
+
+
+def test_paper_decoder_layout():
+    dec = Decoder(DecoderConfig(), embed_dim=16)
+    assert linear_sizes(dec.trunk) == [(16, 128), (128, 128)]
+    assert linear_sizes(dec.sdf_head) == [(128, 1 + 128)]
+    assert linear_sizes(dec.color_head) == [(128, 256), (256, 256), (256, 3)]
+    n_params = sum(p.numel() for p in dec.parameters())
+    assert dec.num_bytes() == 4 * n_params
+
+
+def test_decoder_sizes_are_configurable():
+    cfg = dataclasses.replace(DecoderConfig(), hidden_dim=24, num_layers=4, feature_dim=8,
+                              color_hidden_dim=12, color_layers=1)
+    dec = Decoder(cfg, embed_dim=5)
+    assert linear_sizes(dec.trunk) == [(5, 24)] + [(24, 24)] * 3
+    assert linear_sizes(dec.sdf_head) == [(24, 9)]
+    assert linear_sizes(dec.color_head) == [(8, 12), (12, 3)]
+    sdf, feature = dec.sdf_and_feature(torch.randn(4, 5))
+    assert sdf.shape == (4,) and feature.shape == (4, 8)

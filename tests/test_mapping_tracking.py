@@ -1,0 +1,243 @@
+"""Mapping (slam.mapping) and tracking (slam.tracking) on a tiny synthetic sequence.
+
+One map is trained once per module on the first frame of an 80x60 synthetic orbit with its
+ground-truth pose; the loss, snapshot and tracking tests share it. Keyframe and bundle
+adjustment tests use fresh mappers and only a few iterations.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from slam.config import preset
+from slam.data import open_sequence
+from slam.frames import TensorFrame, prepare_frame, sample_pixels
+from slam.geometry import se3_inverse, so3_exp
+from slam.losses import LossWeights, compute_losses
+from slam.mapping import Mapper, MapSnapshot, TrackedFrame
+from slam.maps import SubMap
+from slam.render import render_rays
+from slam.tracking import FrozenMap, Tracker, constant_velocity_guess
+
+CPU = torch.device("cpu")
+BASE = preset("test")
+CONFIG = replace(BASE, tracking=replace(BASE.tracking, iterations=40, num_rays=256))
+SPEC = "synthetic:orbit?frames=100&width=80&height=60"
+
+
+@pytest.fixture(scope="module", autouse=True)
+def single_thread():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="module")
+def frames() -> list[TensorFrame]:
+    seq = open_sequence(SPEC, max_frames=2)
+    return [prepare_frame(f, None, CPU, BASE.voxel.max_depth) for f in seq]
+
+
+def gt_pose(frame: TensorFrame) -> torch.Tensor:
+    return torch.from_numpy(frame.T_world_cam_gt).float()
+
+
+def eval_losses(submap: SubMap, frame: TensorFrame, T_map_cam: torch.Tensor, config=CONFIG) -> dict[str, float]:
+    """Losses of 512 fixed pixels rendered at fixed sample offsets (no randomness), plus the
+    median absolute depth error ``depth_median`` (the L1 mean is dominated by depth edges)."""
+    r = config.render
+    batch = sample_pixels(frame, 512, torch.Generator().manual_seed(123))
+    n = batch.depth.shape[0]
+    with torch.no_grad():
+        out = render_rays(T_map_cam[:3, 3].expand(n, 3), batch.dirs_cam @ T_map_cam[:3, :3].T, submap.view(),
+                          submap.decoder, near=torch.full((n,), 0.05), far=torch.full((n,), r.max_distance),
+                          step=r.step_ratio * submap.voxels.voxel_size, truncation=r.truncation,
+                          max_hits=r.max_hits)
+        c = config.loss
+        losses = compute_losses(out, batch.rgb, batch.depth, r.truncation,
+                                LossWeights(c.rgb_weight, c.depth_weight, c.sdf_weight, c.fs_weight))
+    values = {k: float(getattr(losses, k)) for k in ("total", "rgb", "depth", "fs", "sdf")}
+    values["depth_median"] = float((out.depth - batch.depth)[out.hit].abs().median())
+    return values
+
+
+@dataclasses.dataclass
+class Trained:
+    mapper: Mapper
+    before: dict[str, float]
+    after: dict[str, float]
+
+
+@pytest.fixture(scope="module")
+def trained(frames) -> Trained:
+    mapper = Mapper(CONFIG, CPU, seed=0)
+    step = mapper.process(TrackedFrame(frames[0], gt_pose(frames[0])), optimize=False)
+    assert step.is_keyframe and step.new_voxels > 0 and not step.losses
+    submap = mapper.current
+    before = eval_losses(submap, frames[0], gt_pose(frames[0]))
+    last = mapper.optimize(submap, 100)
+    assert set(last) == {"total", "rgb", "depth", "fs", "sdf"} and all(np.isfinite(list(last.values())))
+    return Trained(mapper, before, eval_losses(submap, frames[0], gt_pose(frames[0])))
+
+
+# ------------------------------------------------------------------ mapping
+def test_mapping_with_gt_poses_reduces_the_losses(trained):
+    b, a = trained.before, trained.after
+    assert a["total"] < 0.3 * b["total"], (b, a)
+    assert a["depth"] < 0.8 * b["depth"], (b, a)
+    assert a["depth_median"] < 0.02 < b["depth_median"], (b, a)
+    assert a["rgb"] < 0.95 * b["rgb"], (b, a)
+    assert a["sdf"] < b["sdf"] and a["fs"] < b["fs"], (b, a)
+
+
+def test_keyframe_selection(frames):
+    config = replace(BASE, mapping=replace(BASE.mapping, keyframe_max_interval=1000))
+    mapper = Mapper(config, CPU)
+    f, T = frames[0], gt_pose(frames[0])
+    first = mapper.process(TrackedFrame(f, T), optimize=False)
+    assert first.is_keyframe and first.new_voxel_ratio == 1.0
+    voxels = mapper.current.voxels.num_voxels
+    same = mapper.process(TrackedFrame(f, T), optimize=False)
+    assert not same.is_keyframe and same.new_voxel_ratio == 0.0 and same.new_voxels == 0
+    assert mapper.current.voxels.num_voxels == voxels, "a non-keyframe allocates nothing"
+    moved = T.clone()
+    moved[:3, 3] += torch.tensor([1.5, 0.0, 0.0])
+    far = mapper.process(TrackedFrame(f, moved), optimize=False)
+    assert far.is_keyframe and far.new_voxel_ratio > config.mapping.keyframe_ratio and far.new_voxels > 0
+    assert mapper.current.voxels.num_voxels == voxels + far.new_voxels
+    assert [kf.frame_index for kf in mapper.current.keyframes] == [f.index, f.index]
+    assert torch.equal(mapper.current.keyframes[-1].T_map_cam, moved)
+
+
+def test_keyframe_max_interval_forces_a_keyframe(frames):
+    config = replace(BASE, mapping=replace(BASE.mapping, keyframe_max_interval=3))
+    mapper = Mapper(config, CPU)
+    flags = [mapper.process(TrackedFrame(frames[0], gt_pose(frames[0])), optimize=False).is_keyframe
+             for _ in range(7)]
+    assert flags == [True, False, False, True, False, False, True]
+
+
+def test_window_holds_the_newest_keyframe_and_at_most_n_kf(frames):
+    config = replace(BASE, mapping=replace(BASE.mapping, keyframe_max_interval=1, window_size=3))
+    mapper = Mapper(config, CPU)
+    for _ in range(6):
+        mapper.process(TrackedFrame(frames[0], gt_pose(frames[0])), optimize=False)
+    submap = mapper.current
+    assert len(submap.keyframes) == 6
+    for _ in range(5):
+        window = mapper._window(submap)
+        assert len(window) == 3 and window[-1] is submap.keyframes[-1]
+        assert len({id(kf) for kf in window}) == 3
+
+
+def _ba_mapper(frames, optimize_poses: bool) -> Mapper:
+    m = replace(BASE.mapping, keyframe_max_interval=1, optimize_poses=optimize_poses, lr_pose=1e-2)
+    mapper = Mapper(replace(BASE, mapping=m), CPU)
+    for f in frames:
+        mapper.process(TrackedFrame(f, gt_pose(f)), optimize=False)
+    return mapper
+
+
+def test_bundle_adjustment_moves_keyframes_but_not_the_first(frames):
+    mapper = _ba_mapper(frames, optimize_poses=True)
+    submap = mapper.current
+    before = [kf.T_map_cam.clone() for kf in submap.keyframes]
+    mapper.optimize(submap, 4)
+    after = [kf.T_map_cam for kf in submap.keyframes]
+    assert torch.equal(after[0], before[0]), "the first keyframe fixes the gauge"
+    assert float((after[1] - before[1]).abs().max()) > 1e-4
+    R = after[1][:3, :3]
+    assert torch.allclose(R @ R.T, torch.eye(3), atol=1e-5), "poses stay rigid"
+    world = mapper.keyframe_poses_world(submap)
+    assert world.shape == (2, 4, 4) and torch.allclose(world[1], after[1])
+
+
+def test_without_pose_optimisation_no_keyframe_moves(frames):
+    mapper = _ba_mapper(frames, optimize_poses=False)
+    submap = mapper.current
+    before = [kf.T_map_cam.clone() for kf in submap.keyframes]
+    emb = submap.voxels.embeddings.detach().clone()
+    mapper.optimize(submap, 2)
+    assert all(torch.equal(a.T_map_cam, b) for a, b in zip(submap.keyframes, before))
+    assert not torch.equal(submap.voxels.embeddings.detach(), emb), "the map itself is optimised"
+
+
+def test_snapshot_is_a_detached_copy_that_renders_like_the_map(trained, frames):
+    mapper = trained.mapper
+    snap = mapper.snapshot()
+    assert isinstance(snap, MapSnapshot) and snap.version == mapper.version
+    assert isinstance(snap.embeddings, np.ndarray) and snap.embeddings.shape == tuple(mapper.current.voxels.embeddings.shape)
+    fmap = FrozenMap(snap, CONFIG, CPU)
+    assert not any(p.requires_grad for p in fmap.decoder.parameters())
+    T = gt_pose(frames[0])
+    batch = sample_pixels(frames[0], 64, torch.Generator().manual_seed(0))
+    kwargs = dict(near=torch.full((64,), 0.05), far=torch.full((64,), 5.0), step=0.04, truncation=0.1, max_hits=8)
+    o, d = T[:3, 3].expand(64, 3), batch.dirs_cam @ T[:3, :3].T
+    with torch.no_grad():
+        a = render_rays(o, d, mapper.current.view(), mapper.current.decoder, **kwargs)
+        b = render_rays(o, d, fmap.view, fmap.decoder, **kwargs)
+    assert torch.allclose(a.depth, b.depth) and torch.allclose(a.color, b.color)
+    emb = mapper.current.voxels.embeddings
+    with torch.no_grad():
+        emb.add_(1.0)
+        assert not np.allclose(snap.embeddings, emb.numpy()), "the snapshot does not share memory"
+        emb.sub_(1.0)
+
+
+# ----------------------------------------------------------------- tracking
+def pose_error(T: torch.Tensor, T_ref: torch.Tensor) -> tuple[float, float]:
+    """(translation metres, rotation degrees) of T relative to T_ref."""
+    D = se3_inverse(T_ref.double()) @ T.double()
+    cos = ((torch.diagonal(D[:3, :3]).sum() - 1) / 2).clamp(-1, 1)
+    return float(D[:3, 3].norm()), float(torch.rad2deg(torch.acos(cos)))
+
+
+def test_tracking_recovers_a_perturbed_pose(trained, frames):
+    fmap = FrozenMap(trained.mapper.snapshot(), CONFIG, CPU)
+    T_gt = gt_pose(frames[0])
+    delta = torch.eye(4)
+    delta[:3, :3] = so3_exp(torch.deg2rad(torch.tensor([0.0, 1.0, 0.0])))
+    delta[:3, 3] = torch.tensor([0.02, 0.0, 0.0])
+    T_init = T_gt @ delta
+    t0, r0 = pose_error(T_init, T_gt)
+    assert t0 == pytest.approx(0.02, abs=1e-6) and r0 == pytest.approx(1.0, abs=1e-2)
+    result = Tracker(CONFIG, CPU).track(frames[0], fmap, T_init)
+    t1, r1 = pose_error(result.T_world_cam, T_gt)
+    assert result.ok and not result.reason
+    assert t1 < 0.7 * t0 and r1 < 0.7 * r0, (t1, r1)
+    assert result.hit_ratio > 0.9 and result.depth_residual < 0.05
+    assert 1 <= result.iterations <= CONFIG.tracking.iterations
+
+
+def test_tracking_fails_far_outside_the_map(trained, frames):
+    fmap = FrozenMap(trained.mapper.snapshot(), CONFIG, CPU)
+    T = gt_pose(frames[0]).clone()
+    T[:3, 3] += torch.tensor([50.0, 0.0, 0.0])
+    result = Tracker(CONFIG, CPU).track(frames[0], fmap, T)
+    assert not result.ok
+    assert "hit the map" in result.reason and result.hit_ratio < CONFIG.tracking.min_valid_ratio
+    assert torch.allclose(result.T_world_cam, T), "a failed track keeps the initial pose"
+
+
+def test_tracking_fails_when_the_depth_residual_stays_high(trained, frames):
+    config = replace(CONFIG, tracking=replace(CONFIG.tracking, iterations=2, max_depth_residual=1e-6))
+    fmap = FrozenMap(trained.mapper.snapshot(), config, CPU)
+    result = Tracker(config, CPU).track(frames[0], fmap, gt_pose(frames[0]))
+    assert not result.ok and "median depth residual" in result.reason
+
+
+def test_constant_velocity_guess():
+    T1 = torch.eye(4)
+    T2 = torch.eye(4)
+    T2[:3, :3] = so3_exp(torch.tensor([0.0, 0.0, 0.1]))
+    T2[:3, 3] = torch.tensor([0.1, 0.0, 0.0])
+    guess = constant_velocity_guess([T1, T2], enabled=True)
+    assert torch.allclose(guess, T2 @ T2, atol=1e-6)
+    assert torch.equal(constant_velocity_guess([T1, T2], enabled=False), T2)
+    assert torch.equal(constant_velocity_guess([T2], enabled=True), T2)

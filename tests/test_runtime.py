@@ -1,0 +1,247 @@
+"""The SLAM runtime (slam.runtime.run_slam) end to end on a tiny synthetic sequence.
+
+The `test` preset is shrunk further (1 mapping iteration per frame, 2 tracking iterations,
+coarse meshes) so that a run is about a second in one process; the process-mode run pays
+~10 s for spawning the mapper (importing torch there). Outputs and events are checked for
+both modes from one run each.
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing
+import threading
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+import slam.runtime as runtime
+from slam.checkpoint import load_checkpoint
+from slam.config import SLAMConfig, preset
+from slam.data import DataError, open_sequence
+from slam.data.frame import Frame
+from slam.eval.trajectory import read_tum
+from slam.events import FinishedEvent, KeyframeEvent, MapUpdateEvent, PoseEvent, StatsEvent, SubmapEvent
+from slam.runtime import run_slam
+
+NUM_FRAMES = 4
+SPEC = "synthetic:orbit?frames=100&width=80&height=60"
+_BASE = preset("test")
+FAST = replace(
+    _BASE,
+    # 30 first-frame iterations are the fewest that reliably give a non-empty mesh here.
+    mapping=replace(_BASE.mapping, iterations=1, first_frame_iterations=30),
+    tracking=replace(_BASE.tracking, iterations=2),
+    mesh=replace(_BASE.mesh, resolution=2, update_every_keyframes=100),
+)
+# Runs that only test failure handling need no usable map.
+FAILING = replace(FAST, mapping=replace(FAST.mapping, first_frame_iterations=2))
+# No run may hang: the process-mode ones take ~15 s on a quiet 2-core machine.
+pytestmark = pytest.mark.timeout(180)
+
+
+def config(processes: bool, base=FAST):
+    return replace(base, runtime=replace(base.runtime, processes=processes))
+
+
+@pytest.fixture(scope="module", autouse=True)
+def single_thread():
+    """One torch thread in this process. run_slam sets torch's thread count to every core in
+    single-process mode; on this loaded 2-core machine that made runs several times slower,
+    so the setter is disabled here (the mapping process still sets its own)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    patch = pytest.MonkeyPatch()
+    patch.setattr(runtime, "_set_threads", lambda device, processes: None)
+    yield
+    patch.undo()
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="module")
+def frames() -> list[Frame]:
+    return list(open_sequence(SPEC, max_frames=NUM_FRAMES))
+
+
+def mapping_children() -> list:
+    return [p for p in multiprocessing.active_children() if p.name == "voxfusion-mapping"]
+
+
+@dataclass
+class Run:
+    result: runtime.RunResult
+    events: list
+    out: Path
+    info: dict
+    config: SLAMConfig
+
+
+def do_run(sources, cfg, out: Path, **kwargs) -> Run:
+    events: list = []
+    result = run_slam(sources, cfg, out, on_event=events.append, **kwargs)
+    return Run(result, events, out, json.loads((out / "run.json").read_text()), cfg)
+
+
+@pytest.fixture(scope="module", params=[True, False], ids=["processes", "single-process"])
+def run(request, frames, tmp_path_factory) -> Run:
+    out = tmp_path_factory.mktemp("run")
+    done = do_run([frames], config(request.param), out)
+    assert not mapping_children(), "the mapping process must be gone when run_slam returns"
+    return done
+
+
+# ------------------------------------------------------------ normal runs
+def test_run_finishes_and_writes_every_output(run, frames):
+    assert run.result.status == "finished" and run.result.error is None, run.result.error
+    assert run.result.frames == NUM_FRAMES
+    for name in ("trajectory.txt", "mesh.ply", "map.pt", "run.json"):
+        assert (run.out / name).is_file(), name
+
+
+def test_trajectory_has_the_input_timestamps(run, frames):
+    traj = read_tum(run.out / "trajectory.txt")
+    np.testing.assert_allclose(traj.timestamps, [f.timestamp for f in frames], atol=1e-6)
+    assert traj.poses.shape == (NUM_FRAMES, 4, 4)
+    # The first pose is the first frame's GT (the map is anchored there).
+    np.testing.assert_allclose(traj.poses[0], frames[0].T_world_cam, atol=1e-6)
+
+
+def test_mesh_has_vertex_colours_in_the_world_frame(run, frames):
+    mesh = trimesh.load(run.out / "mesh.ply", force="mesh")
+    assert len(mesh.vertices) > 100 and len(mesh.faces) > 100
+    colors = np.asarray(mesh.visual.vertex_colors)
+    assert colors.shape == (len(mesh.vertices), 4) and colors.dtype == np.uint8
+    assert len(np.unique(colors[:, :3], axis=0)) > 1, "colours come from the colour head, not one default"
+    # Every vertex lies in the world-frame box of the frames' back-projected depth, grown by
+    # two voxels (allocation covers depth +- tr rounded out to whole voxels).
+    pts = []
+    for f in frames:
+        v, u = np.nonzero(f.depth > 0)
+        cam = np.linalg.inv(f.K) @ np.stack([u, v, np.ones_like(u)]) * f.depth[v, u]
+        pts.append((f.T_world_cam[:3, :3] @ cam).T + f.T_world_cam[:3, 3])
+    pts = np.concatenate(pts)
+    margin = 2 * FAST.voxel.voxel_size
+    assert bool((mesh.vertices > pts.min(0) - margin).all()) and bool((mesh.vertices < pts.max(0) + margin).all())
+
+
+def test_map_checkpoint_loads_and_matches_run_json(run):
+    mapset = load_checkpoint(run.out / "map.pt")
+    assert len(mapset.maps) == 1 == run.info["maps"]
+    assert mapset.num_voxels() == run.info["voxels"] > 0
+    assert mapset.num_keyframes() == run.info["keyframes"] == run.result.keyframes >= 1
+    assert mapset.config == run.config
+
+
+def test_run_json_fields(run):
+    info = run.info
+    assert info["status"] == "finished" and info["error"] is None
+    assert info["config"] == run.config.to_dict()
+    assert (info["frames"], info["frames_total"], info["loops"]) == (NUM_FRAMES, NUM_FRAMES, 0)
+    assert info["maps"] == 1 and info["keyframes"] >= 1 and info["voxels"] > 0
+    assert info["map_memory_mb"]["embeddings"] > 0 and info["map_memory_mb"]["decoder"] > 0
+    assert info["timings_s"]["wall"] > 0 and info["fps"] > 0
+    assert set(info["busy_share"]) == {"tracking", "mapping"}
+    assert len(info["keyframe_poses"]) == info["keyframes"]
+    assert "ate_rmse_m" in info and info["ate_rmse_m"] is not None, "synthetic frames carry GT"
+
+
+def test_events_arrive_in_order(run, frames):
+    ev = run.events
+    poses = [e for e in ev if isinstance(e, PoseEvent)]
+    assert [e.frame_index for e in poses] == list(range(NUM_FRAMES))
+    assert [e.timestamp for e in poses] == pytest.approx([f.timestamp for f in frames])
+    assert all(e.T_world_cam.shape == (4, 4) and e.thumbnail is not None and e.thumbnail.dtype == np.uint8
+               for e in poses)
+    assert poses[0].image_size == (80, 60)
+    keyframes = [e for e in ev if isinstance(e, KeyframeEvent)]
+    assert [e.frame_index for e in keyframes][:1] == [0], "the first frame is a keyframe"
+    assert len(keyframes) == run.info["keyframes"], "one KeyframeEvent per keyframe"
+    submaps = [e for e in ev if isinstance(e, SubmapEvent)]
+    assert [(s.map_id, s.reason) for s in submaps] == [(0, "start")]
+    meshes = [e for e in ev if isinstance(e, MapUpdateEvent) and e.mesh_vertices is not None]
+    assert meshes, "at least the final map update carries a mesh"
+    last = meshes[-1]
+    assert last.mesh_vertices.dtype == np.float32 and last.mesh_vertices.shape[1] == 3
+    assert last.mesh_faces.dtype == np.int32 and last.mesh_faces.shape[1] == 3
+    assert last.mesh_colors.dtype == np.uint8 and last.mesh_colors.shape == last.mesh_vertices.shape
+    assert int(last.mesh_faces.max()) < len(last.mesh_vertices)
+    assert last.num_voxels == run.info["voxels"]
+    stats = [e for e in ev if isinstance(e, StatsEvent)]
+    assert stats and stats[-1].frames_done == NUM_FRAMES and stats[-1].frames_total == NUM_FRAMES
+    finished = [e for e in ev if isinstance(e, FinishedEvent)]
+    assert finished == [ev[-1]] and ev[-1].status == "finished" and ev[-1].error is None
+
+
+def test_gt_poses_mode_writes_the_gt_trajectory(frames, tmp_path):
+    done = do_run([frames], config(False), tmp_path, use_gt_poses=True)
+    assert done.result.status == "finished"
+    traj = read_tum(tmp_path / "trajectory.txt")
+    np.testing.assert_allclose(traj.poses, np.stack([f.T_world_cam for f in frames]), atol=1e-6)
+    assert done.result.ate_rmse == pytest.approx(0.0, abs=1e-6)
+
+
+# ------------------------------------------------------------ failing runs
+def test_stop_after_two_frames_cancels_and_still_writes(frames, tmp_path):
+    stop = threading.Event()
+
+    def on_event(event):
+        events.append(event)
+        if isinstance(event, PoseEvent) and event.frame_index == 1:
+            stop.set()
+
+    events: list = []
+    result = run_slam([frames], config(False), tmp_path, on_event=on_event, stop=stop)
+    assert result.status == "cancelled" and result.frames == 2
+    info = json.loads((tmp_path / "run.json").read_text())
+    assert info["status"] == "cancelled" and info["frames"] == 2
+    assert len(read_tum(tmp_path / "trajectory.txt").timestamps) == 2
+    assert load_checkpoint(tmp_path / "map.pt").num_voxels() > 0
+    assert (tmp_path / "mesh.ply").is_file()
+    assert isinstance(events[-1], FinishedEvent) and events[-1].status == "cancelled"
+
+
+def raising_source(frames, good: int):
+    for f in frames[:good]:
+        yield f
+    raise DataError(f"frame {good}: corrupt depth image (test)")
+
+
+@pytest.mark.timeout(120)
+def test_source_error_fails_the_run_and_ends_the_mapping_process(frames, tmp_path):
+    done = do_run([raising_source(frames, 2)], config(True, FAILING), tmp_path)
+    assert done.result.status == "failed"
+    assert "Traceback" in done.info["error"] and "frame 2: corrupt depth image" in done.info["error"]
+    assert done.info["status"] == "failed" and done.info["frames"] == 2
+    assert not mapping_children(), "the mapping process must be gone"
+    assert isinstance(done.events[-1], FinishedEvent) and done.events[-1].status == "failed"
+    assert "corrupt depth image" in done.events[-1].error
+    assert len(read_tum(tmp_path / "trajectory.txt").timestamps) == 2, "what was tracked is kept"
+
+
+def test_mapper_error_fails_the_run_with_its_traceback(frames, tmp_path):
+    blank = replace(frames[0], depth=np.zeros_like(frames[0].depth))
+    done = do_run([[blank] + frames[1:2]], config(False, FAILING), tmp_path)
+    assert done.result.status == "failed"
+    assert "Traceback" in done.info["error"] and "no valid depth" in done.info["error"]
+
+
+def test_stream_source_without_len(frames, tmp_path):
+    stream = (f for f in frames[:3])
+    assert not hasattr(stream, "__len__")
+    done = do_run([stream], config(False), tmp_path)
+    assert done.result.status == "finished" and done.result.frames == 3
+    assert done.info["frames_total"] is None and done.info["frames"] == 3
+    stats = [e for e in done.events if isinstance(e, StatsEvent)]
+    assert stats[-1].frames_total is None and stats[-1].frames_done == 3
+
+
+def test_gt_poses_on_frames_without_gt_fail_clearly(frames, tmp_path):
+    no_gt = [replace(f, T_world_cam=None) for f in frames[:2]]
+    done = do_run([no_gt], config(False, FAILING), tmp_path, use_gt_poses=True)
+    assert done.result.status == "failed"
+    assert "frame 0 has no ground-truth pose" in done.info["error"]
+
