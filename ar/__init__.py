@@ -6,6 +6,7 @@ never the server.
 from ar.assets import AssetError, load_asset
 from ar.composite import CompositeResult, composite, composite_layer, mask_iou
 from ar.objects import ObjectMesh, ObjectSpecError, VirtualObject, load_objects_json, make_shape
+from ar.occlusion import OcclusionComparison, compare_occlusion, hidden_fraction
 from ar.raster import Light, ObjectRender, SampleLayer, rasterize_objects, rasterize_triangles, render_objects
 
 __all__ = [
@@ -15,10 +16,13 @@ __all__ = [
     "ObjectMesh",
     "ObjectRender",
     "ObjectSpecError",
+    "OcclusionComparison",
     "SampleLayer",
     "VirtualObject",
+    "compare_occlusion",
     "composite",
     "composite_layer",
+    "hidden_fraction",
     "load_asset",
     "load_objects_json",
     "make_shape",

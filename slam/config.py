@@ -93,6 +93,10 @@ class TrackingConfig:
     """Tracking fails when fewer than this share of sampled rays hit the map."""
     max_depth_residual: float = 0.2
     """Tracking fails when the median depth residual (m) stays above this."""
+    max_jump_m: float = 0.3
+    max_jump_rad: float = 0.5
+    """Tracking fails when the optimised pose moved farther than this from the initial guess
+    (a diverged optimisation, not camera motion at frame rate)."""
     rgb_weight: float = 0.5
     depth_weight: float = 1.0
     sdf_weight: float = 5000.0

@@ -179,7 +179,8 @@ def ray_voxel_intersections(origins: torch.Tensor, dirs: torch.Tensor, near: tor
         pts = o[:, None, :] + mid[..., None] * d[:, None, :]
         ijk = torch.floor(pts / voxel_size).long()
         ray_idx, seg_idx = torch.nonzero(valid, as_tuple=True)
-        codes = morton_encode(ijk[ray_idx, seg_idx])
+        # Points outside the Morton range cannot be in the map; clamp so they just miss.
+        codes = morton_encode(ijk[ray_idx, seg_idx].clamp(-(1 << 20), (1 << 20) - 1))
         vox = lookup_sorted(voxel_codes, codes)
         hit = vox >= 0
         ray_idx, seg_idx, vox = ray_idx[hit], seg_idx[hit], vox[hit]

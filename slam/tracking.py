@@ -19,7 +19,7 @@ import torch
 from .config import SLAMConfig
 from .decoder import Decoder
 from .frames import TensorFrame, sample_pixels
-from .geometry import se3_exp, se3_inverse
+from .geometry import se3_exp, se3_inverse, se3_log
 from .losses import LossWeights, compute_losses
 from .mapping import MapSnapshot, training_far
 from .render import MapView, render_rays
@@ -116,7 +116,12 @@ class Tracker:
         loss, T_best_map, hit_ratio, residual_med = best
         T_world = fmap.T_world_map @ T_best_map
         reason = ""
-        if hit_ratio < c.min_valid_ratio:
+        jump = se3_log(se3_inverse(T0_map) @ T_best_map)
+        if not bool(torch.isfinite(T_best_map).all()):
+            reason = "the pose estimate is not finite"
+        elif float(jump[:3].norm()) > c.max_jump_m or float(jump[3:].norm()) > c.max_jump_rad:
+            reason = f"the estimate jumped {float(jump[:3].norm()):.2f} m / {float(jump[3:].norm()):.2f} rad from the guess"
+        elif hit_ratio < c.min_valid_ratio:
             reason = f"only {hit_ratio:.0%} of rays hit the map"
         elif residual_med > c.max_depth_residual:
             reason = f"median depth residual {residual_med:.3f} m"
