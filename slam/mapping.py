@@ -4,8 +4,10 @@ For every tracked frame the mapper
 1. decides whether it is a keyframe: the ratio ``p_kf = N_c / N_o`` of voxels the frame would
    newly allocate to the voxels it observes exceeds ``keyframe_ratio``, or no keyframe was
    taken for ``keyframe_max_interval`` frames;
-2. allocates the voxels of a keyframe's back-projected depth (at depth and +-tr, so the
-   truncation band around the surface lies inside allocated voxels);
+2. allocates the voxels of every successfully tracked frame's back-projected depth (at depth
+   and +-tr, so the truncation band around the surface lies inside allocated voxels); the
+   keyframe ratio counts voxels no keyframe has observed, so allocating every frame does not
+   starve keyframe selection;
 3. jointly optimises embeddings, decoder and the poses of the keyframes in a window of
    ``window_size`` frames (random earlier keyframes plus the newest frame; the first keyframe
    is fixed to remove the gauge freedom).
@@ -28,7 +30,7 @@ from .geometry import se3_exp, se3_inverse
 from .losses import LossWeights, Losses, compute_losses
 from .maps import Keyframe, MapSet, SubMap
 from .render import render_rays
-from .voxels import grow_adam_state
+from .voxels import grow_adam_state, lookup_sorted, morton_encode, voxel_coords_of
 
 
 @dataclass(frozen=True)
@@ -99,6 +101,8 @@ class Mapper:
         self._gen = torch.Generator().manual_seed(seed)
         self._optimizer: torch.optim.Optimizer | None = None
         self._seed = seed
+        self._kf_codes: dict[int, torch.Tensor] = {}
+        """Sorted Morton codes of the voxels observed by each submap's keyframes."""
 
     # ---------------------------------------------------------------- helpers
     @property
@@ -148,15 +152,19 @@ class Mapper:
         T_map_cam = self._T_map_cam(submap, tracked.T_world_cam)
         ta = time.perf_counter()
         points = self._points(tracked.frame, T_map_cam)
-        observed, new = submap.voxels.count_new(points)
+        observed, new, codes = self._keyframe_coverage(submap, points)
         ratio = new / max(observed, 1)
         m = self.config.mapping
         # A frame whose tracking failed is not fused: its pose would corrupt the map.
         is_kf = first or (tracked.tracking_ok and (
             ratio > m.keyframe_ratio or self.frames_since_keyframe + 1 >= m.keyframe_max_interval))
         new_voxels = 0
-        if is_kf:
+        if first or tracked.tracking_ok:
+            # Every successfully tracked frame allocates (paper: Voxel Allocation), so that the
+            # newest frame in the window always has voxels where it looks.
             new_voxels = self._allocate(submap, points)
+        if is_kf:
+            self._kf_codes[submap.map_id] = torch.unique(torch.cat([self._kf_codes.get(submap.map_id, codes), codes]))
             submap.keyframes.append(Keyframe(
                 tracked.frame.index, tracked.frame.timestamp, tracked.frame, tracked.frame.K,
                 T_map_cam.detach().clone()))
@@ -171,6 +179,17 @@ class Mapper:
             losses = self.optimize(submap, iters, current)
         self.version += 1
         return MappingStep(tracked.frame.index, is_kf, ratio, new_voxels, losses, time.perf_counter() - t0)
+
+    def _keyframe_coverage(self, submap: SubMap, points: torch.Tensor) -> tuple[int, int, torch.Tensor]:
+        """(N_o, N_c, codes): voxels the frame observes, how many of them no keyframe has
+        observed yet, and their Morton codes. Every tracked frame allocates voxels, so the
+        keyframe test compares against the keyframes' voxels, not the allocated ones."""
+        codes = torch.unique(morton_encode(voxel_coords_of(points, submap.voxels.voxel_size)))
+        covered = self._kf_codes.get(submap.map_id)
+        if covered is None:
+            return int(codes.numel()), int(codes.numel()), codes
+        new = int((lookup_sorted(covered, codes) < 0).sum())
+        return int(codes.numel()), new, codes
 
     def _window(self, submap: SubMap) -> list[Keyframe]:
         """N_kf - 1 random earlier keyframes plus the newest keyframe."""
