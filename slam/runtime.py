@@ -207,6 +207,8 @@ def _mapper_finish(mapper: Mapper, state: _MapperState) -> list[tuple[str, objec
 def _mapping_process(config_dict: dict, device_name: str, out_dir: str, emit_meshes: bool,
                      frames: "queue.Queue", replies: "queue.Queue", seed: int) -> None:
     """Entry point of the mapping process: mapper loop until the ``None`` sentinel."""
+    import multiprocessing as mp
+
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is handled by the tracking side
     try:
         config = config_from_dict(config_dict)
@@ -215,10 +217,15 @@ def _mapping_process(config_dict: dict, device_name: str, out_dir: str, emit_mes
         mapper = Mapper(config, device, seed=seed)
         state = _MapperState(Path(out_dir), emit_meshes)
         replies.put(("ready", None))
+        parent = mp.parent_process()
         while True:
+            if parent is not None and not parent.is_alive():
+                return  # the tracking side was killed: nobody will read our outputs
             try:
-                msg = frames.get(timeout=0 if mapper.current is not None else None)
+                msg = frames.get(timeout=0 if mapper.current is not None else _POLL_SECONDS)
             except queue.Empty:
+                if mapper.current is None:
+                    continue
                 # Nothing new: keep optimising the window (the paper's mapper never idles),
                 # so the tracker gets a better map by the time the next frame arrives.
                 t0 = time.perf_counter()

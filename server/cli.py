@@ -1,0 +1,119 @@
+"""``voxfusion serve`` and ``voxfusion demo``, added to the core command line (``slam.cli``).
+
+``main`` is the installed console script: it builds the core parser (run, eval-ate, eval-mesh,
+render), adds the server's subcommands, and calls the chosen subcommand's ``handler``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ipaddress
+import sys
+from pathlib import Path
+
+DEFAULT_DEMO_SPEC = "orbit?frames=150&width=320&height=240"
+
+
+def add_server_commands(subparsers) -> None:
+    """Add ``serve`` and ``demo`` to an argparse subparsers action."""
+    serve = subparsers.add_parser("serve", help="run the web application (API, page, live viewer)",
+                                  description="Run the web application. Settings not given here come from "
+                                              "VOXFUSION_* environment variables (see server/README.md).")
+    _server_options(serve)
+    serve.set_defaults(handler=serve_command)
+
+    demo = subparsers.add_parser("demo", help="the web application with a synthetic session already running",
+                                 description="Start the server and one session on the built-in synthetic scene, "
+                                             "then print the URL to open.")
+    _server_options(demo)
+    demo.add_argument("--preset", choices=("test", "cpu", "paper"), default=None,
+                      help="config preset (default: paper with a GPU, else cpu)")
+    demo.add_argument("--spec", default=DEFAULT_DEMO_SPEC,
+                      help=f"synthetic scene spec (default {DEFAULT_DEMO_SPEC!r})")
+    demo.set_defaults(handler=demo_command)
+
+
+def _server_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--host", default="127.0.0.1",
+                        help="interface to bind (default 127.0.0.1; use 0.0.0.0 only with VOXFUSION_TOKEN set)")
+    parser.add_argument("--port", type=int, default=8000, help="HTTP port (default 8000)")
+    parser.add_argument("--data-dir", type=Path, default=None, help="sessions and assets (default VOXFUSION_DATA_DIR)")
+    parser.add_argument("--viewer-port", type=int, default=None,
+                        help="viser's own port (default VOXFUSION_VIEWER_PORT or 8080; -1 turns the viewer off)")
+    parser.add_argument("--viewer-host", default=None,
+                        help="interface viser binds to (default 127.0.0.1: browsers reach it through /viewer)")
+    parser.add_argument("--max-sessions", type=int, default=None, help="sessions that run at once")
+
+
+def _settings(args: argparse.Namespace):
+    from server.settings import settings_from_env
+
+    return settings_from_env().with_overrides(data_dir=args.data_dir, viewer_port=args.viewer_port,
+                                              viewer_host=args.viewer_host, max_sessions=args.max_sessions)
+
+
+def _is_loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def _serve(args: argparse.Namespace, demo=None) -> int:
+    import uvicorn
+
+    from server.main import create_app
+
+    settings = _settings(args)
+    if not _is_loopback(args.host) and settings.token is None:
+        print(f"voxfusion: WARNING: listening on {args.host} without VOXFUSION_TOKEN: anyone who can reach this "
+              f"port can upload data and run sessions", file=sys.stderr)
+    print(f"voxfusion: data in {settings.data_dir}", flush=True)
+    # One worker: sessions, their worker processes and the viewer live in this process.
+    uvicorn.run(create_app(settings, demo=demo), host=args.host, port=args.port, workers=1, log_level="info")
+    return 0
+
+
+def serve_command(args: argparse.Namespace) -> int:
+    return _serve(args)
+
+
+def demo_command(args: argparse.Namespace) -> int:
+    from server.main import DemoSession
+    from slam.config import default_preset_name
+
+    host = "127.0.0.1" if args.host in ("0.0.0.0", "::") else args.host
+    url = f"http://{host}:{args.port}/"
+    return _serve(args, DemoSession(spec=args.spec, preset=args.preset or default_preset_name(),
+                                    announce=f"voxfusion demo: open {url} in a browser"))
+
+
+def _subparsers_action(parser: argparse.ArgumentParser):
+    for action in parser._actions:  # argparse offers no public accessor for it
+        if isinstance(action, argparse._SubParsersAction):
+            return action
+    return parser.add_subparsers(dest="command", required=True)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The core parser from ``slam.cli`` (when present) plus ``serve`` and ``demo``."""
+    try:
+        from slam.cli import build_parser as build_core_parser
+    except ImportError:
+        parser = argparse.ArgumentParser(prog="voxfusion", description="Vox-Fusion++ neural RGB-D SLAM")
+    else:
+        parser = build_core_parser()
+    add_server_commands(_subparsers_action(parser))
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Parse and run: every subcommand (core or server) sets ``handler`` (as in ``slam.cli``)."""
+    args = build_parser().parse_args(argv)
+    return int(args.handler(args) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

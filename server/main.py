@@ -1,0 +1,178 @@
+"""The FastAPI application: ``create_app(settings)``.
+
+The lifespan starts what the app owns and stops it again: the viser viewer (its own thread and
+port), the session manager (worker processes and their supervisor), the map cache and the
+asset store. Run it with one uvicorn worker (sessions live in this process's memory):
+``voxfusion serve`` does.
+"""
+
+from __future__ import annotations
+
+from contextlib import asynccontextmanager
+from dataclasses import dataclass
+
+from fastapi import FastAPI, Request
+from fastapi.responses import JSONResponse
+from fastapi.staticfiles import StaticFiles
+
+from server.assets import AssetStore
+from server.rendering import MapCache, MeshFiles, NoMapYet
+from server.routes_pages import STATIC_DIR
+from server.sessions import SessionConflict, SessionManager, SessionNotFound
+from server.settings import Settings, settings_from_env
+from server.upload import UploadError
+from server.viewer import ViewerAdapter
+from server.worker import SourceSpec
+
+DESCRIPTION = """
+Neural implicit dense RGB-D SLAM (Vox-Fusion++) as a service.
+
+* **Sessions** run the SLAM pipeline on a dataset zip (TUM RGB-D, Replica, ScanNet, 7-Scenes),
+  on the built-in synthetic scene, or on frames streamed over HTTP or a WebSocket.
+* While a session runs: its status, trajectory, mesh (PLY/GLB/OBJ) and rendered colour/depth
+  views for any camera; the live 3D viewer at `/viewer`; AR composites with occlusion.
+* Poses are 4x4 camera-to-world matrices `T_world_cam` (OpenCV axes: x right, y down,
+  z forward), in metres. Depth PNGs are 16-bit millimetres.
+
+**Streaming over a WebSocket** (`/api/sessions/{id}/stream`): send a JSON header
+`{"intrinsics": "fx,fy,cx,cy", "depth_scale": 5000}` (answer `{"type": "ready"}`), then per frame
+either a binary message (float64 LE timestamp, uint32 LE colour length n, n colour bytes, the
+16-bit depth PNG) or a text message `{"timestamp": t, "color": base64, "depth": base64}`; each is
+answered `{"type": "ack", "index": i}` or `{"type": "error", "status": 4xx, "detail": ...}`.
+Send `{"type": "finish"}` to end the input.
+
+When the server has a token (`VOXFUSION_TOKEN`), send `Authorization: Bearer <token>` (or
+`?token=` for pages and WebSockets). Errors are JSON `{"detail": "what is wrong"}`.
+"""
+
+
+@dataclass(frozen=True)
+class DemoSession:
+    """A synthetic session that ``voxfusion demo`` starts with the server."""
+
+    spec: str
+    preset: str
+    announce: str | None = None
+    """Printed with the session id once the server is up (the URL to open)."""
+
+
+class BodySizeLimit:
+    """Pure ASGI middleware: 413 for request bodies over ``max_bytes``, before they are read
+    (Content-Length) or as soon as a streamed body passes the limit."""
+
+    def __init__(self, app, max_bytes: int) -> None:
+        self.app = app
+        self.max_bytes = max_bytes
+
+    async def __call__(self, scope, receive, send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        declared = dict(scope.get("headers") or []).get(b"content-length")
+        if declared is not None and declared.isdigit() and int(declared) > self.max_bytes:
+            await self._too_large(send)
+            return
+        received = 0
+        started = False
+
+        async def limited_receive():
+            nonlocal received
+            message = await receive()
+            if message["type"] == "http.request":
+                received += len(message.get("body", b""))
+                if received > self.max_bytes:
+                    raise _BodyTooLarge()
+            return message
+
+        async def tracking_send(message):
+            nonlocal started
+            if message["type"] == "http.response.start":
+                started = True
+            await send(message)
+
+        try:
+            await self.app(scope, limited_receive, tracking_send)
+        except _BodyTooLarge:
+            if not started:
+                await self._too_large(send)
+
+    async def _too_large(self, send) -> None:
+        response = JSONResponse({"detail": f"request body larger than {self.max_bytes // (1024 * 1024)} MiB "
+                                           f"(VOXFUSION_MAX_UPLOAD_MB)"}, status_code=413)
+        await response({"type": "http"}, None, send)
+
+
+class _BodyTooLarge(Exception):
+    pass
+
+
+def _error_handlers(app: FastAPI) -> None:
+    def detail(status_code: int):
+        async def handler(request: Request, error: Exception) -> JSONResponse:
+            message = str(error.args[0]) if isinstance(error, KeyError) and error.args else str(error)
+            if isinstance(error, SessionNotFound):
+                message = f"no session {message!r}"
+            return JSONResponse({"detail": message}, status_code=status_code)
+        return handler
+
+    async def upload_error(request: Request, error: UploadError) -> JSONResponse:
+        return JSONResponse({"detail": str(error)}, status_code=error.status)
+
+    app.add_exception_handler(UploadError, upload_error)
+    app.add_exception_handler(SessionNotFound, detail(404))
+    app.add_exception_handler(SessionConflict, detail(409))
+    app.add_exception_handler(NoMapYet, detail(409))
+
+
+def create_app(settings: Settings | None = None, demo: DemoSession | None = None) -> FastAPI:
+    """The application; ``settings`` default to the environment's (``settings_from_env``)."""
+    from server import routes_ar, routes_assets, routes_pages, routes_render, routes_sessions, routes_stream
+
+    settings = settings or settings_from_env()
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI):
+        import torch
+
+        settings.data_dir.mkdir(parents=True, exist_ok=True)
+        threads_before = torch.get_num_threads()
+        torch.set_num_threads(settings.render_threads)
+        viewer = None
+        if settings.viewer_enabled:
+            viewer = ViewerAdapter(settings.viewer_host, settings.viewer_port)
+            viewer.start()
+        map_cache = MapCache()
+        hooks = [map_cache.evict] + ([viewer.remove_session] if viewer else [])
+        manager = SessionManager(settings, event_sinks=[viewer.handle_event] if viewer else [], removal_hooks=hooks)
+        manager.start()
+        app.state.settings = settings
+        app.state.viewer = viewer
+        app.state.manager = manager
+        app.state.map_cache = map_cache
+        app.state.mesh_files = MeshFiles()
+        app.state.assets = AssetStore(settings.assets_dir)
+        if demo is not None:
+            from server.sessions import new_session_id
+
+            spec = SourceSpec(kind="synthetic", path=demo.spec, format="synthetic")
+            app.state.demo_session = manager.create(new_session_id(), spec, demo.preset).id
+            if demo.announce:
+                print(f"{demo.announce} (session {app.state.demo_session}, preset {demo.preset})", flush=True)
+        try:
+            yield
+        finally:
+            manager.stop(grace_s=min(settings.cancel_grace_s, 5.0))
+            if viewer is not None:
+                viewer.stop()
+            torch.set_num_threads(threads_before)
+
+    app = FastAPI(title="voxfusion", version="0.1.0", description=DESCRIPTION, lifespan=lifespan,
+                  openapi_tags=[{"name": "sessions"}, {"name": "streaming"}, {"name": "render"},
+                                {"name": "ar"}, {"name": "viewer"}])
+    app.state.settings = settings
+    app.add_middleware(BodySizeLimit, max_bytes=settings.max_upload_bytes)
+    _error_handlers(app)
+    for module in (routes_sessions, routes_stream, routes_render, routes_ar, routes_assets, routes_pages):
+        app.include_router(module.router)
+    app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
+    return app

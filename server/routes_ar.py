@@ -1,0 +1,136 @@
+"""Augmented reality: virtual objects composited into a rendered view or an input frame,
+hidden where the reconstructed scene is in front of them."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from fastapi import APIRouter, Depends, HTTPException, Response, status
+from starlette.concurrency import run_in_threadpool
+
+from ar import ObjectSpecError, composite, load_objects_json
+from server.assets import AssetStore
+from server.deps import get_assets, get_manager, get_map_cache, require_token
+from server.rendering import Camera, MapCache, check_pose, intrinsics_matrix, png_from_rgb, render
+from server.routes_render import load_map
+from server.schemas import ARRequest, ErrorOut
+from server.sessions import SessionManager, check_session_id
+from server.stream import read_recorded_frame
+from server.worker import SourceSpec
+from slam.data import DataError
+
+router = APIRouter(tags=["ar"], dependencies=[Depends(require_token)],
+                   responses={401: {"model": ErrorOut}, 404: {"model": ErrorOut}})
+
+TIMESTAMP_TOLERANCE_S = 1e-3
+
+
+@dataclass(frozen=True)
+class Background:
+    """What the objects are composited into."""
+
+    rgb: np.ndarray
+    """(H, W, 3) float32 in [0, 1]."""
+    depth: np.ndarray
+    """(H, W) float32 metres, 0 = unknown."""
+    camera: Camera
+
+
+def input_frame(spec: SourceSpec, session_dir, index: int):
+    """(rgb, depth, K, timestamp) of the session's ``index``-th input frame. KeyError if absent."""
+    if spec.kind == "stream":
+        frame = read_recorded_frame(session_dir / "input", index)
+        return frame.rgb, frame.depth, frame.K, frame.timestamp
+    from slam.data import open_sequence
+
+    if spec.kind == "synthetic":
+        sequence = open_sequence(f"synthetic:{spec.path}", "synthetic", stride=spec.stride, max_frames=spec.max_frames)
+    else:
+        sequence = open_sequence(spec.path, spec.format, stride=spec.stride, max_frames=spec.max_frames,
+                                 intrinsics=spec.intrinsics, depth_scale=spec.depth_scale)
+    if not 0 <= index < len(sequence):
+        raise KeyError(f"frame {index} does not exist (the input has {len(sequence)} frames)")
+    frame = sequence[index]
+    return frame.rgb, frame.depth, frame.K, frame.timestamp
+
+
+def estimated_pose(manager: SessionManager, session_id: str, index: int, timestamp: float) -> np.ndarray | None:
+    """The session's estimate of frame ``index``: from this run's pose events, else trajectory.txt."""
+    indices, _, poses = manager.tracked_poses(session_id)
+    hit = np.flatnonzero(indices == index)
+    if len(hit):
+        return poses[hit[0]]
+    path = manager.session_dir(session_id) / "trajectory.txt"
+    if not path.is_file():
+        return None
+    from slam.eval.trajectory import read_tum
+
+    trajectory = read_tum(path)
+    if len(trajectory) == 0:
+        return None
+    nearest = int(np.argmin(np.abs(trajectory.timestamps - timestamp)))
+    if abs(trajectory.timestamps[nearest] - timestamp) > TIMESTAMP_TOLERANCE_S:
+        return None
+    return trajectory.poses[nearest]
+
+
+def _camera_override(request: ARRequest) -> tuple[np.ndarray | None, np.ndarray | None, tuple[int, int] | None]:
+    T = None
+    if request.T_world_cam is not None:
+        try:
+            T = check_pose(np.array(request.T_world_cam, dtype=np.float64))
+        except ValueError as error:
+            raise HTTPException(422, str(error)) from None
+    K = size = None
+    if request.intrinsics is not None:
+        i = request.intrinsics
+        K, size = intrinsics_matrix(i.fx, i.fy, i.cx, i.cy), (i.width, i.height)
+    return T, K, size
+
+
+async def background_for(request: ARRequest, session_id: str, manager: SessionManager, maps: MapCache) -> Background:
+    T, K, size = _camera_override(request)
+    if request.background == "render":
+        if T is None or K is None:
+            raise HTTPException(422,
+                                "background 'render' needs T_world_cam and intrinsics")
+        camera = Camera(T, K, *size)
+        mapset = await load_map(manager, maps, session_id)
+        view = await run_in_threadpool(render, mapset, camera)
+        return Background(np.asarray(view.rgb), np.asarray(view.depth), camera)
+    index = int(request.background.split(":", 1)[1])
+    state = manager.get(session_id)
+    try:
+        rgb, depth, frame_K, stamp = await run_in_threadpool(input_frame, state.spec, manager.session_dir(session_id),
+                                                             index)
+    except (KeyError, DataError) as error:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"background frame:{index}: {error}") from None
+    height, width = depth.shape
+    if size is not None and size != (width, height):
+        raise HTTPException(422,
+                            f"intrinsics are for {size[0]}x{size[1]} but frame {index} is {width}x{height}")
+    if T is None:
+        T = estimated_pose(manager, session_id, index, stamp)
+        if T is None:
+            raise HTTPException(status.HTTP_409_CONFLICT, f"frame {index} has no estimated pose yet; give T_world_cam")
+    return Background(rgb, depth, Camera(T, frame_K if K is None else K, width, height))
+
+
+@router.post("/api/sessions/{session_id}/ar", response_class=Response,
+             responses={200: {"content": {"image/png": {}}, "description": "composited PNG"},
+                        409: {"model": ErrorOut}, 422: {"model": ErrorOut}},
+             summary="Composite virtual objects into a view of the session, with occlusion")
+async def ar_view(session_id: str, request: ARRequest, manager: SessionManager = Depends(get_manager),
+                  maps: MapCache = Depends(get_map_cache), assets: AssetStore = Depends(get_assets)) -> Response:
+    check_session_id(session_id)
+    try:
+        objects = await run_in_threadpool(
+            load_objects_json, [o.model_dump(exclude_none=True) for o in request.objects], assets.resolve)
+    except (ObjectSpecError, ValueError) as error:
+        raise HTTPException(422, str(error)) from None
+    background = await background_for(request, session_id, manager, maps)
+    camera = background.camera
+    result = await run_in_threadpool(composite, background.rgb, background.depth, objects, camera.K,
+                                     camera.T_world_cam)
+    return Response(await run_in_threadpool(png_from_rgb, result.rgb), media_type="image/png")

@@ -1,0 +1,135 @@
+"""Novel views of a session's map: colour or depth images for any camera, and surface picking."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+from fastapi import APIRouter, Depends, HTTPException, Query, Response, status
+from starlette.concurrency import run_in_threadpool
+
+from server.deps import get_manager, get_map_cache, get_viewer, require_token
+from server.rendering import (
+    Camera,
+    MapCache,
+    NoMapYet,
+    check_pose,
+    intrinsics_matrix,
+    pick_surface,
+    png_from_depth,
+    png_from_depth_preview,
+    png_from_rgb,
+    render,
+)
+from server.schemas import CameraRequest, ErrorOut, Intrinsics, PickOut, PickRequest, ViewerCameraOut, ViewerInfo
+from server.sessions import ENDED, SessionManager, check_session_id
+from server.viewer import ViewerAdapter
+
+router = APIRouter(tags=["render"], dependencies=[Depends(require_token)],
+                   responses={401: {"model": ErrorOut}, 404: {"model": ErrorOut}})
+
+PNG = {"content": {"image/png": {}}, "description": "PNG image"}
+
+
+def camera_from(request: CameraRequest) -> Camera:
+    """Validated pinhole camera; 422 with the reason for a matrix that is not a rigid pose."""
+    try:
+        T = check_pose(np.array(request.T_world_cam, dtype=np.float64))
+    except ValueError as error:
+        raise HTTPException(422, str(error)) from None
+    i = request.intrinsics
+    return Camera(T, intrinsics_matrix(i.fx, i.fy, i.cx, i.cy), i.width, i.height)
+
+
+async def load_map(manager: SessionManager, maps: MapCache, session_id: str):
+    """The latest map of a session (409 while it has none)."""
+    directory = manager.session_dir(check_session_id(session_id))
+    manager.get(session_id)
+    try:
+        return await run_in_threadpool(maps.get, session_id, directory / "map.pt")
+    except NoMapYet as error:
+        raise HTTPException(status.HTTP_409_CONFLICT, f"session {session_id}: {error}") from None
+
+
+@router.post("/api/sessions/{session_id}/render", response_class=Response,
+             responses={200: PNG, 409: {"model": ErrorOut}, 422: {"model": ErrorOut}},
+             summary="Render the map from a camera: colour PNG, or depth as a 16-bit PNG in millimetres")
+async def render_view(session_id: str, request: CameraRequest,
+                      output: Literal["color", "depth", "depth_preview"] = Query(
+                          "color", description="color: RGB PNG; depth: 16-bit PNG in millimetres (0 = no surface); "
+                                               "depth_preview: colour-mapped 8-bit PNG for display"),
+                      manager: SessionManager = Depends(get_manager),
+                      maps: MapCache = Depends(get_map_cache)) -> Response:
+    """Works while the session runs (the newest ``map.pt``) and after it ended."""
+    camera = camera_from(request)
+    mapset = await load_map(manager, maps, session_id)
+    view = await run_in_threadpool(render, mapset, camera)
+    if output == "color":
+        data = await run_in_threadpool(png_from_rgb, view.rgb)
+    elif output == "depth":
+        data = await run_in_threadpool(png_from_depth, view.depth)
+    else:
+        data = await run_in_threadpool(png_from_depth_preview, view.depth)
+    return Response(data, media_type="image/png")
+
+
+@router.post("/api/sessions/{session_id}/pick", response_model=PickOut,
+             responses={409: {"model": ErrorOut}, 422: {"model": ErrorOut}},
+             summary="Back-project a pixel of a rendered view onto the map's surface")
+async def pick(session_id: str, request: PickRequest, manager: SessionManager = Depends(get_manager),
+               maps: MapCache = Depends(get_map_cache)) -> PickOut:
+    """The world point (and surface normal) seen at pixel (u, v); used to place AR objects."""
+    camera = camera_from(request)
+    if request.u > camera.width or request.v > camera.height:
+        raise HTTPException(422,
+                            f"pixel ({request.u}, {request.v}) is outside the {camera.width}x{camera.height} image")
+    mapset = await load_map(manager, maps, session_id)
+    result = await run_in_threadpool(pick_surface, mapset, camera, request.u, request.v)
+    if result is None:
+        return PickOut(hit=False)
+    return PickOut(hit=True, point=result.point.tolist(), normal=result.normal.tolist(), depth=result.depth)
+
+
+@router.get("/api/viewer", response_model=ViewerInfo, tags=["viewer"], summary="Is the 3D viewer running")
+def viewer_info(viewer: ViewerAdapter | None = Depends(get_viewer)) -> ViewerInfo:
+    if viewer is None or not viewer.running:
+        return ViewerInfo(enabled=False, port=None, clients=0)
+    return ViewerInfo(enabled=True, port=viewer.port, clients=viewer.client_count())
+
+
+@router.post("/api/viewer/select/{session_id}", status_code=204, tags=["viewer"],
+             summary="Show this session in the 3D viewer")
+def viewer_select(session_id: str, manager: SessionManager = Depends(get_manager),
+                  viewer: ViewerAdapter | None = Depends(get_viewer)) -> Response:
+    state = manager.get(check_session_id(session_id))
+    if viewer is None:
+        return Response(status_code=204)
+    if not viewer.has_session(session_id) and state.status in ENDED:
+        # A session from before a restart: show its results from disk.
+        directory = manager.session_dir(session_id)
+        viewer.load_finished(session_id, directory / "mesh.ply", _positions(directory / "trajectory.txt"))
+    viewer.select(session_id)
+    return Response(status_code=204)
+
+
+def _positions(path) -> np.ndarray | None:
+    from slam.data import DataError
+    from slam.eval.trajectory import read_tum
+
+    try:
+        return read_tum(path).positions if path.is_file() else None
+    except DataError:
+        return None
+
+
+@router.get("/api/viewer/camera", response_model=ViewerCameraOut, tags=["viewer"],
+            responses={409: {"model": ErrorOut}},
+            summary="The current camera of the 3D viewer (the browser that moved last)")
+def viewer_camera(width: int = Query(320, ge=16, le=2048, description="image width wanted; aspect kept"),
+                  viewer: ViewerAdapter | None = Depends(get_viewer)) -> ViewerCameraOut:
+    camera = None if viewer is None else viewer.current_camera()
+    if camera is None:
+        raise HTTPException(status.HTTP_409_CONFLICT, "no browser is connected to the 3D viewer")
+    fx, fy, cx, cy, w, h = camera.intrinsics(width)
+    return ViewerCameraOut(T_world_cam=camera.T_world_cam.tolist(),
+                           intrinsics=Intrinsics(fx=fx, fy=fy, cx=cx, cy=cy, width=w, height=min(h, 2048)))

@@ -1,0 +1,282 @@
+"""Sessions: create (zip upload, synthetic, stream), list, status, cancel, delete, results."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Literal
+
+from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response, status
+from fastapi.responses import FileResponse, PlainTextResponse
+from pydantic import ValidationError
+from starlette.concurrency import run_in_threadpool
+from starlette.datastructures import UploadFile
+
+from server.deps import get_manager, get_map_cache, get_mesh_files, get_settings, require_token
+from server.rendering import MapCache, MeshFiles, NoMapYet, mesh_bytes_from_arrays
+from server.schemas import ErrorOut, SessionCreated, SessionCreateJSON, SessionOut, SessionOutputs
+from server.sessions import SessionManager, SessionStatus, check_session_id, new_session_id
+from server.settings import Settings
+from server.upload import (
+    UploadError,
+    ZipLimits,
+    dataset_root,
+    extract_zip,
+    parse_depth_scale,
+    parse_intrinsics,
+    remove_tree,
+    save_upload,
+)
+from server.worker import SourceSpec
+from slam.data import FORMATS, DataError
+
+router = APIRouter(prefix="/api/sessions", tags=["sessions"], dependencies=[Depends(require_token)],
+                   responses={401: {"model": ErrorOut}, 404: {"model": ErrorOut}})
+
+MESH_MEDIA_TYPES = {"ply": "application/octet-stream", "glb": "model/gltf-binary", "obj": "text/plain"}
+PRESETS = ("test", "cpu", "paper")
+
+_MULTIPART_SCHEMA = {
+    "type": "object",
+    "required": ["file"],
+    "properties": {
+        "file": {"type": "string", "format": "binary",
+                 "description": "zip of a TUM RGB-D, Replica, ScanNet or 7-Scenes folder"},
+        "format": {"type": "string", "enum": list(FORMATS[:-1]), "default": "auto"},
+        "preset": {"type": "string", "enum": list(PRESETS)},
+        "intrinsics": {"type": "string", "description": "fx,fy,cx,cy (replaces the format's camera)",
+                       "example": "517.3,516.5,318.6,255.3"},
+        "depth_scale": {"type": "number", "description": "raw depth units per metre", "example": 5000},
+        "stride": {"type": "integer", "minimum": 1, "default": 1},
+        "max_frames": {"type": "integer", "minimum": 1},
+    },
+}
+_CREATE_OPENAPI = {
+    "requestBody": {
+        "required": True,
+        "content": {
+            "multipart/form-data": {"schema": _MULTIPART_SCHEMA},
+            "application/json": {
+                "schema": SessionCreateJSON.model_json_schema(),
+                "examples": {
+                    "synthetic": {"value": {"source": "synthetic", "spec": "orbit?frames=60&width=160&height=120",
+                                            "preset": "test"}},
+                    "stream": {"value": {"source": "stream", "intrinsics": "525,525,319.5,239.5",
+                                         "depth_scale": 5000}},
+                },
+            },
+        },
+    }
+}
+
+
+def session_out(manager: SessionManager, state: SessionStatus) -> SessionOut:
+    directory = manager.session_dir(state.id)
+    data = {k: v for k, v in state.to_json().items() if k != "spec"}
+    outputs = SessionOutputs(trajectory=(directory / "trajectory.txt").is_file() or state.frames_done > 0,
+                             mesh=(directory / "mesh.ply").is_file() or bool(manager.live_meshes(state.id))
+                             or (directory / "map.pt").is_file(),
+                             map=(directory / "map.pt").is_file())
+    return SessionOut(**data, outputs=outputs)
+
+
+def _default_preset() -> str:
+    from slam.config import default_preset_name
+
+    return default_preset_name()
+
+
+def _form_text(form, name: str) -> str | None:
+    value = form.get(name)
+    if value is None or isinstance(value, UploadFile):
+        return None
+    value = value.strip()
+    return value or None
+
+
+def _form_int(form, name: str) -> int | None:
+    text = _form_text(form, name)
+    if text is None:
+        return None
+    try:
+        value = int(text)
+    except ValueError:
+        raise UploadError(f"{name}: expected a whole number, got {text!r}") from None
+    if value < 1:
+        raise UploadError(f"{name}: must be >= 1, got {value}")
+    return value
+
+
+def _upload_spec(form) -> tuple[SourceSpec, str]:
+    """Options of a zip upload from the multipart form (validated, no files touched yet)."""
+    fmt = _form_text(form, "format") or "auto"
+    if fmt not in FORMATS or fmt == "synthetic":
+        raise UploadError(f"format: expected one of {', '.join(FORMATS[:-1])}, got {fmt!r}")
+    preset = _form_text(form, "preset") or _default_preset()
+    if preset not in PRESETS:
+        raise UploadError(f"preset: expected one of {', '.join(PRESETS)}, got {preset!r}")
+    intrinsics = _form_text(form, "intrinsics")
+    depth_scale = _form_text(form, "depth_scale")
+    spec = SourceSpec(kind="dataset", format=fmt,
+                      intrinsics=None if intrinsics is None else parse_intrinsics(intrinsics),
+                      depth_scale=None if depth_scale is None else parse_depth_scale(depth_scale),
+                      stride=_form_int(form, "stride") or 1, max_frames=_form_int(form, "max_frames"))
+    return spec, preset
+
+
+def _unpack_dataset(settings: Settings, session_dir: Path, upload: UploadFile, spec: SourceSpec) -> SourceSpec:
+    """Save, check and extract the zip, find the dataset folder, open its first frame.
+
+    Runs in a worker thread. On any error the session folder is removed again.
+    """
+    from dataclasses import replace
+
+    from slam.data import detect_format, open_sequence
+
+    zip_path = settings.uploads_dir / f"{session_dir.name}.zip"
+    input_dir = session_dir / "input"
+    try:
+        save_upload(upload.file, zip_path, settings.max_upload_bytes)
+        extract_zip(zip_path, input_dir, ZipLimits(settings.max_zip_entries, settings.max_unzipped_bytes))
+        root = dataset_root(input_dir)
+        try:
+            fmt = detect_format(root) if spec.format == "auto" else spec.format
+            sequence = open_sequence(root, fmt, stride=spec.stride, max_frames=spec.max_frames,
+                                     intrinsics=spec.intrinsics, depth_scale=spec.depth_scale)
+            if len(sequence) == 0:
+                raise DataError("the dataset has no frames")
+            sequence[0]
+        except DataError as error:
+            # Messages name files; show them relative to the archive, not as server paths.
+            message = str(error).replace(f"{input_dir.resolve()}/", "").replace(f"{input_dir}/", "")
+            raise UploadError(f"the dataset cannot be read: {message}") from None
+        return replace(spec, path=str(root), format=fmt)
+    except BaseException:
+        remove_tree(session_dir)
+        raise
+    finally:
+        zip_path.unlink(missing_ok=True)
+
+
+def _json_spec(body: SessionCreateJSON) -> tuple[SourceSpec, str]:
+    preset = body.preset or _default_preset()
+    if body.source == "synthetic":
+        from slam.data.synthetic import parse_synthetic_spec
+
+        spec_text = body.spec.removeprefix("synthetic:")
+        try:
+            parse_synthetic_spec(spec_text)
+        except DataError as error:
+            raise UploadError(f"spec: {error}") from None
+        return SourceSpec(kind="synthetic", path=spec_text, format="synthetic", max_frames=body.max_frames), preset
+    intrinsics = None if body.intrinsics is None else parse_intrinsics(body.intrinsics)
+    return SourceSpec(kind="stream", format="stream", intrinsics=intrinsics, depth_scale=body.depth_scale), preset
+
+
+@router.post("", status_code=status.HTTP_201_CREATED, response_model=SessionCreated,
+             openapi_extra=_CREATE_OPENAPI,
+             responses={400: {"model": ErrorOut}, 413: {"model": ErrorOut}, 422: {"model": ErrorOut}},
+             summary="Create a session from a dataset zip, the synthetic source or a stream")
+async def create_session(request: Request, manager: SessionManager = Depends(get_manager),
+                         settings: Settings = Depends(get_settings)) -> SessionCreated:
+    """Multipart with a ``file`` (zip of a dataset folder; ``format``, ``preset``, ``intrinsics``,
+    ``depth_scale``, ``stride``, ``max_frames`` optional), or JSON ``{"source": "synthetic"}`` /
+    ``{"source": "stream"}``. The zip is validated and its first frame read before the session is
+    queued; every problem is a 4xx that says what is wrong."""
+    content_type = request.headers.get("content-type", "")
+    session_id = new_session_id()
+    if content_type.startswith("multipart/form-data"):
+        form = await request.form(max_files=1, max_fields=20)
+        upload = form.get("file")
+        if not isinstance(upload, UploadFile):
+            raise UploadError("file: a zip of the dataset is required in the multipart field 'file'")
+        spec, preset = _upload_spec(form)
+        spec = await run_in_threadpool(_unpack_dataset, settings, manager.session_dir(session_id), upload, spec)
+    elif content_type.startswith("application/json"):
+        try:
+            body = SessionCreateJSON.model_validate(json.loads(await request.body()))
+        except json.JSONDecodeError as error:
+            raise UploadError(f"the body is not valid JSON ({error})", status=400) from None
+        except ValidationError as error:
+            raise UploadError("; ".join(f"{'.'.join(map(str, e['loc'])) or 'body'}: {e['msg']}"
+                                        for e in error.errors())) from None
+        spec, preset = _json_spec(body)
+    else:
+        raise HTTPException(status.HTTP_415_UNSUPPORTED_MEDIA_TYPE,
+                            "send multipart/form-data with a zip in 'file', or application/json")
+    created = manager.create(session_id, spec, preset)
+    return SessionCreated(id=created.id, status=created.status)
+
+
+@router.get("", response_model=list[SessionOut], summary="All sessions, newest first")
+def list_sessions(manager: SessionManager = Depends(get_manager)) -> list[SessionOut]:
+    return [session_out(manager, s) for s in manager.list()]
+
+
+@router.get("/{session_id}", response_model=SessionOut, summary="Status of one session")
+def get_session(session_id: str, manager: SessionManager = Depends(get_manager)) -> SessionOut:
+    return session_out(manager, manager.get(check_session_id(session_id)))
+
+
+@router.post("/{session_id}/cancel", response_model=SessionOut, summary="Stop a session, keep its results")
+def cancel_session(session_id: str, manager: SessionManager = Depends(get_manager)) -> SessionOut:
+    return session_out(manager, manager.cancel(check_session_id(session_id)))
+
+
+@router.delete("/{session_id}", status_code=status.HTTP_204_NO_CONTENT, summary="Cancel and delete a session")
+def delete_session(session_id: str, manager: SessionManager = Depends(get_manager)) -> Response:
+    manager.delete(check_session_id(session_id))
+    return Response(status_code=status.HTTP_204_NO_CONTENT)
+
+
+@router.get("/{session_id}/trajectory", response_class=PlainTextResponse,
+            responses={200: {"content": {"text/plain": {"example": "# timestamp tx ty tz qx qy qz qw\n"
+                                                                   "0.000000 0.1 0.2 1.4 0 0 0 1\n"}}},
+                       409: {"model": ErrorOut}},
+            summary="Estimated trajectory (TUM text), also while running")
+def get_trajectory(session_id: str, manager: SessionManager = Depends(get_manager)) -> Response:
+    from slam.eval.trajectory import Trajectory, format_tum
+
+    directory = manager.session_dir(check_session_id(session_id))
+    state = manager.get(session_id)
+    path = directory / "trajectory.txt"
+    if path.is_file() and state.status in ("finished", "failed", "cancelled"):
+        return PlainTextResponse(path.read_text())
+    _, stamps, poses = manager.tracked_poses(session_id)
+    if len(stamps) == 0:
+        if path.is_file():
+            return PlainTextResponse(path.read_text())
+        raise HTTPException(status.HTTP_409_CONFLICT, f"session {session_id} has no tracked poses yet")
+    return PlainTextResponse(format_tum(Trajectory(stamps, poses)))
+
+
+@router.get("/{session_id}/mesh", responses={200: {"content": {t: {} for t in set(MESH_MEDIA_TYPES.values())}},
+                                             409: {"model": ErrorOut}},
+            summary="The current mesh (world frame, vertex colours), also while running")
+async def get_mesh(session_id: str, format: Literal["ply", "glb", "obj"] = Query("ply"),
+                   manager: SessionManager = Depends(get_manager), maps: MapCache = Depends(get_map_cache),
+                   mesh_files: MeshFiles = Depends(get_mesh_files)) -> Response:
+    """Finished sessions serve ``mesh.ply`` (converted for GLB/OBJ). Running sessions serve the
+    latest live meshes of their maps, or extract one from the latest ``map.pt``."""
+    directory = manager.session_dir(check_session_id(session_id))
+    state = manager.get(session_id)
+    filename = f"{session_id}_mesh.{format}"
+    headers = {"Content-Disposition": f'attachment; filename="{filename}"'}
+    ply = directory / "mesh.ply"
+    if state.status in ("finished", "failed", "cancelled") and ply.is_file():
+        if format == "ply":
+            return FileResponse(ply, media_type=MESH_MEDIA_TYPES["ply"], filename=filename)
+        data = await run_in_threadpool(mesh_files.convert, ply, format)
+        return Response(data, media_type=MESH_MEDIA_TYPES[format], headers=headers)
+    live = manager.live_meshes(session_id)
+    if live:
+        data = await run_in_threadpool(mesh_bytes_from_arrays, [live[m] for m in sorted(live)], format)
+        return Response(data, media_type=MESH_MEDIA_TYPES[format], headers=headers)
+    try:
+        mapset = await run_in_threadpool(maps.get, session_id, directory / "map.pt")
+        data = await run_in_threadpool(mesh_files.extract_from_map, mapset, format)
+    except NoMapYet as error:
+        if ply.is_file():
+            return FileResponse(ply, media_type=MESH_MEDIA_TYPES["ply"], filename=filename)
+        raise HTTPException(status.HTTP_409_CONFLICT, f"session {session_id}: {error}") from None
+    return Response(data, media_type=MESH_MEDIA_TYPES[format], headers=headers)

@@ -1,0 +1,172 @@
+"""Streamed RGB-D input: one frame per HTTP request, or many over a WebSocket.
+
+WebSocket protocol at ``/api/sessions/{id}/stream`` (token as ``?token=`` when one is set):
+
+1. The client sends a JSON header: ``{"intrinsics": "fx,fy,cx,cy", "depth_scale": 5000}``;
+   both are optional when the session was created with them (``{}`` is a valid header).
+   The server answers ``{"type": "ready", "frames_received": n}``.
+2. Each frame is either
+   * one **binary** message: 8-byte little-endian float64 timestamp, 4-byte little-endian
+     uint32 length ``n`` of the colour image, the ``n`` colour bytes (PNG/JPEG), then the depth
+     PNG bytes (16-bit) up to the end of the message; or
+   * one **text** message ``{"timestamp": t, "color": "<base64>", "depth": "<base64>"}``
+     (``intrinsics`` / ``depth_scale`` may be added as in the header).
+   The server answers each with ``{"type": "ack", "index": i}``, or with
+   ``{"type": "error", "status": 422, "detail": "..."}`` for a bad frame (the socket stays open;
+   503 means the session is behind: resend later).
+3. ``{"type": "finish"}`` ends the input; the server answers ``{"type": "finished", "frames": n}``
+   and closes. Closing without it leaves the stream open (reconnect, or POST ``/finish``).
+"""
+
+from __future__ import annotations
+
+import base64
+import binascii
+import json
+import struct
+
+from fastapi import APIRouter, Depends, File, Form, UploadFile, WebSocket, WebSocketDisconnect, status
+from starlette.concurrency import run_in_threadpool
+
+from server.deps import get_manager, require_token, token_ok
+from server.schemas import ErrorOut, FrameAccepted, StreamFinished
+from server.sessions import SessionConflict, SessionManager, SessionNotFound, check_session_id
+from server.stream import StreamInput
+from server.upload import UploadError
+
+router = APIRouter(prefix="/api/sessions", tags=["streaming"])
+
+BINARY_PREFIX = struct.Struct("<dI")
+
+
+@router.post("/{session_id}/frames", response_model=FrameAccepted, dependencies=[Depends(require_token)],
+             responses={409: {"model": ErrorOut}, 413: {"model": ErrorOut}, 422: {"model": ErrorOut},
+                        503: {"model": ErrorOut}},
+             summary="Send one frame to a stream session")
+async def post_frame(
+    session_id: str,
+    color: UploadFile = File(description="colour image, PNG or JPEG"),
+    depth: UploadFile = File(description="depth, 16-bit single-channel PNG"),
+    timestamp: str | None = Form(None, description="seconds (default: index / 30)", examples=["1305031453.36"]),
+    depth_scale: str | None = Form(None, description="raw depth units per metre (default: the session's, or 1000)",
+                                   examples=["5000"]),
+    intrinsics: str | None = Form(None, description="fx,fy,cx,cy: required on the first frame unless given "
+                                                    "when the session was created", examples=["525,525,319.5,239.5"]),
+    manager: SessionManager = Depends(get_manager),
+) -> FrameAccepted:
+    stream = manager.stream(check_session_id(session_id))
+    color_bytes, depth_bytes = await color.read(), await depth.read()
+    index = await run_in_threadpool(stream.add_frame, color_bytes, depth_bytes, timestamp=timestamp,
+                                    depth_scale=depth_scale, intrinsics=intrinsics)
+    return FrameAccepted(index=index, frames_received=stream.frames_received)
+
+
+@router.post("/{session_id}/finish", response_model=StreamFinished, dependencies=[Depends(require_token)],
+             responses={409: {"model": ErrorOut}}, summary="End the input of a stream session")
+async def finish_stream(session_id: str, manager: SessionManager = Depends(get_manager)) -> StreamFinished:
+    stream = manager.stream(check_session_id(session_id))
+    return StreamFinished(frames=await run_in_threadpool(stream.finish))
+
+
+def decode_binary_frame(message: bytes) -> tuple[float, bytes, bytes]:
+    """Binary frame message -> (timestamp, colour bytes, depth bytes); see the module docstring."""
+    if len(message) < BINARY_PREFIX.size:
+        raise UploadError(f"binary frame: {len(message)} bytes is shorter than the {BINARY_PREFIX.size}-byte prefix")
+    timestamp, color_size = BINARY_PREFIX.unpack_from(message)
+    start = BINARY_PREFIX.size
+    if start + color_size >= len(message):
+        raise UploadError(f"binary frame: colour length {color_size} leaves no bytes for the depth image")
+    return timestamp, message[start:start + color_size], message[start + color_size:]
+
+
+def decode_json_frame(data: dict) -> tuple[object, bytes, bytes, dict]:
+    """Text frame message -> (timestamp, colour bytes, depth bytes, extra options)."""
+    unknown = set(data) - {"timestamp", "color", "depth", "intrinsics", "depth_scale", "type"}
+    if unknown:
+        raise UploadError(f"frame: unknown key(s) {sorted(unknown)}")
+    images = []
+    for key in ("color", "depth"):
+        if not isinstance(data.get(key), str):
+            raise UploadError(f"frame: '{key}' must be a base64 string")
+        try:
+            images.append(base64.b64decode(data[key], validate=True))
+        except (binascii.Error, ValueError):
+            raise UploadError(f"frame: '{key}' is not valid base64") from None
+    options = {k: data[k] for k in ("intrinsics", "depth_scale") if k in data}
+    return data.get("timestamp"), images[0], images[1], options
+
+
+async def _send_error(websocket: WebSocket, error: UploadError) -> None:
+    await websocket.send_json({"type": "error", "status": error.status, "detail": str(error)})
+
+
+@router.websocket("/{session_id}/stream")
+async def stream_socket(websocket: WebSocket, session_id: str) -> None:
+    """Frames over a WebSocket; the protocol is in this module's docstring and the README."""
+    if not token_ok(websocket):
+        await websocket.close(code=status.WS_1008_POLICY_VIOLATION, reason="missing or wrong token")
+        return
+    manager: SessionManager = websocket.app.state.manager
+    try:
+        stream = manager.stream(check_session_id(session_id))
+    except (SessionNotFound, SessionConflict) as error:
+        await websocket.close(code=status.WS_1008_POLICY_VIOLATION, reason=f"no stream session {session_id}: {error}")
+        return
+    await websocket.accept()
+    try:
+        header = await _read_header(websocket)
+        if header is None:
+            return
+        await _serve_frames(websocket, stream, header)
+    except WebSocketDisconnect:
+        return
+
+
+async def _read_header(websocket: WebSocket) -> dict | None:
+    text = await websocket.receive_text()
+    try:
+        header = json.loads(text)
+        if not isinstance(header, dict):
+            raise ValueError("not an object")
+    except ValueError as error:
+        await websocket.send_json({"type": "error", "status": 400, "detail": f"header: expected a JSON object ({error})"})
+        await websocket.close(code=status.WS_1003_UNSUPPORTED_DATA)
+        return None
+    unknown = set(header) - {"intrinsics", "depth_scale", "type"}
+    if unknown:
+        await websocket.send_json({"type": "error", "status": 422, "detail": f"header: unknown key(s) {sorted(unknown)}"})
+        await websocket.close(code=status.WS_1003_UNSUPPORTED_DATA)
+        return None
+    return {k: header[k] for k in ("intrinsics", "depth_scale") if k in header}
+
+
+async def _serve_frames(websocket: WebSocket, stream: StreamInput, options: dict) -> None:
+    await websocket.send_json({"type": "ready", "frames_received": stream.frames_received})
+    while True:
+        message = await websocket.receive()
+        if message["type"] == "websocket.disconnect":
+            return
+        try:
+            if message.get("bytes") is not None:
+                timestamp, color, depth = decode_binary_frame(message["bytes"])
+                extra = {}
+            else:
+                data = json.loads(message.get("text") or "null")
+                if not isinstance(data, dict):
+                    raise UploadError("frame: expected a JSON object", status=400)
+                if data.get("type") == "finish":
+                    frames = await run_in_threadpool(stream.finish)
+                    await websocket.send_json({"type": "finished", "frames": frames})
+                    await websocket.close()
+                    return
+                timestamp, color, depth, extra = decode_json_frame(data)
+            frame_options = {**options, **extra}
+            index = await run_in_threadpool(stream.add_frame, color, depth, timestamp=timestamp,
+                                            depth_scale=frame_options.get("depth_scale"),
+                                            intrinsics=frame_options.get("intrinsics"))
+            # Intrinsics and scale are remembered by the stream after the first frame.
+            await websocket.send_json({"type": "ack", "index": index})
+        except json.JSONDecodeError as error:
+            await _send_error(websocket, UploadError(f"frame: not valid JSON ({error})", status=400))
+        except UploadError as error:
+            await _send_error(websocket, error)

@@ -1,0 +1,175 @@
+"""Pydantic models of the HTTP API (only here, at the edge), with examples for the OpenAPI schema."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+IDENTITY = [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]]
+EXAMPLE_POSE = [[1.0, 0.0, 0.0, 0.5], [0.0, 0.0, 1.0, -1.5], [0.0, -1.0, 0.0, 1.4], [0.0, 0.0, 0.0, 1.0]]
+MAX_SIDE = 2048
+
+Matrix4 = list[list[float]]
+
+
+class Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class Intrinsics(Strict):
+    """A pinhole camera: focal lengths and principal point in pixels, image size."""
+
+    fx: float = Field(gt=0, examples=[200.0])
+    fy: float = Field(gt=0, examples=[200.0])
+    cx: float = Field(examples=[160.0])
+    cy: float = Field(examples=[120.0])
+    width: int = Field(ge=1, le=MAX_SIDE, examples=[320])
+    height: int = Field(ge=1, le=MAX_SIDE, examples=[240])
+
+
+def _check_matrix(value: Matrix4) -> Matrix4:
+    if len(value) != 4 or any(len(row) != 4 for row in value):
+        raise ValueError("must be a 4x4 nested list")
+    return value
+
+
+class CameraRequest(Strict):
+    """A camera to render: ``T_world_cam`` is camera-to-world (OpenCV axes: x right, y down, z forward)."""
+
+    T_world_cam: Matrix4 = Field(examples=[EXAMPLE_POSE])
+    intrinsics: Intrinsics
+
+    _matrix = field_validator("T_world_cam")(_check_matrix)
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{
+        "T_world_cam": EXAMPLE_POSE,
+        "intrinsics": {"fx": 200.0, "fy": 200.0, "cx": 160.0, "cy": 120.0, "width": 320, "height": 240}}]})
+
+
+class SessionCreateJSON(Strict):
+    """A session without an upload: the synthetic generator, or frames streamed later."""
+
+    source: Literal["synthetic", "stream"] = Field(examples=["synthetic"])
+    spec: str = Field("orbit?frames=120&width=320&height=240", max_length=200,
+                      description="synthetic scene spec (kind?frames=&width=&height=&seed=&noise=)",
+                      examples=["orbit?frames=60&width=160&height=120"])
+    preset: Literal["test", "cpu", "paper"] | None = Field(None, description="config preset; default cpu without a GPU")
+    intrinsics: str | None = Field(None, description="stream: 'fx,fy,cx,cy' (else on the first frame)",
+                                   examples=["525,525,319.5,239.5"])
+    depth_scale: float | None = Field(None, gt=0, description="stream: raw depth units per metre (default 1000)")
+    max_frames: int | None = Field(None, ge=1)
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
+        {"source": "synthetic", "spec": "orbit?frames=60&width=160&height=120", "preset": "test"},
+        {"source": "stream", "intrinsics": "525,525,319.5,239.5", "depth_scale": 5000, "preset": "cpu"}]})
+
+
+class SessionCreated(BaseModel):
+    id: str = Field(examples=["3f2a9c0d1b7e"])
+    status: str = Field(examples=["queued"])
+
+
+class SessionOutputs(BaseModel):
+    """Which result files exist now."""
+
+    trajectory: bool
+    mesh: bool
+    map: bool
+
+
+class SessionOut(BaseModel):
+    id: str = Field(examples=["3f2a9c0d1b7e"])
+    status: Literal["queued", "running", "finished", "failed", "cancelled"]
+    frames_done: int = Field(examples=[42])
+    frames_total: int | None = Field(examples=[120], description="None for streams")
+    fps: float = Field(examples=[3.5])
+    keyframes: int
+    maps: int
+    loops: int
+    error: str | None = Field(examples=[None])
+    created: str = Field(examples=["2025-01-01T12:00:00+00:00"])
+    source: str = Field(examples=["synthetic:orbit?frames=120&width=320&height=240"])
+    preset: str = Field(examples=["cpu"])
+    outputs: SessionOutputs
+
+
+class FrameAccepted(BaseModel):
+    index: int = Field(examples=[0])
+    frames_received: int = Field(examples=[1])
+
+
+class StreamFinished(BaseModel):
+    frames: int = Field(examples=[240])
+
+
+class ARObject(Strict):
+    """A virtual object: exactly one of ``shape`` or ``asset``; placed by ``T_world_obj`` and ``scale``."""
+
+    shape: Literal["cube", "sphere", "cylinder", "axes"] | None = None
+    asset: str | None = Field(None, description="id from POST /api/assets")
+    T_world_obj: Matrix4 = Field(default_factory=lambda: [row[:] for row in IDENTITY])
+    scale: float = Field(1.0, gt=0, le=100)
+    color: list[float] | None = Field(None, min_length=3, max_length=3, description="[r, g, b] in [0, 1]")
+
+    _matrix = field_validator("T_world_obj")(_check_matrix)
+
+
+class ARRequest(Strict):
+    """Virtual objects composited into a rendered view or an input frame, with occlusion."""
+
+    background: str = Field("render", pattern=r"^(render|frame:\d{1,7})$",
+                            description="'render' (neural render of the map) or 'frame:N' (the N-th input frame)")
+    T_world_cam: Matrix4 | None = Field(None, description="required for 'render'; default for 'frame:N': its estimated pose")
+    intrinsics: Intrinsics | None = Field(None, description="required for 'render'; default for 'frame:N': the frame's")
+    objects: list[ARObject] = Field(max_length=64)
+
+    _matrix = field_validator("T_world_cam")(lambda v: v if v is None else _check_matrix(v))
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{
+        "background": "render",
+        "T_world_cam": EXAMPLE_POSE,
+        "intrinsics": {"fx": 200.0, "fy": 200.0, "cx": 160.0, "cy": 120.0, "width": 320, "height": 240},
+        "objects": [{"shape": "cube", "T_world_obj": [[1, 0, 0, 0.5], [0, 1, 0, 0.5], [0, 0, 1, 0.3], [0, 0, 0, 1]],
+                     "scale": 0.3, "color": [0.9, 0.2, 0.2]}]}]})
+
+
+class PickRequest(CameraRequest):
+    """A pixel of a camera's image (as in the render call) to back-project onto the map."""
+
+    u: float = Field(ge=0, examples=[160.0], description="column, pixels")
+    v: float = Field(ge=0, examples=[120.0], description="row, pixels")
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{
+        "T_world_cam": EXAMPLE_POSE, "u": 160, "v": 120,
+        "intrinsics": {"fx": 200.0, "fy": 200.0, "cx": 160.0, "cy": 120.0, "width": 320, "height": 240}}]})
+
+
+class PickOut(BaseModel):
+    hit: bool
+    point: list[float] | None = Field(None, examples=[[0.4, 1.2, 0.75]])
+    normal: list[float] | None = Field(None, examples=[[0.0, 0.0, 1.0]])
+    depth: float | None = Field(None, examples=[1.9])
+
+
+class AssetOut(BaseModel):
+    id: str = Field(examples=["9c1d2e3f4a5b6c7d"])
+    vertices: int
+    faces: int
+
+
+class ViewerCameraOut(BaseModel):
+    """The viewpoint of the browser that moved last, ready for the render call."""
+
+    T_world_cam: Matrix4
+    intrinsics: Intrinsics
+
+
+class ViewerInfo(BaseModel):
+    enabled: bool
+    port: int | None = Field(description="viser's own port (direct access; the page uses /viewer)")
+    clients: int
+
+
+class ErrorOut(BaseModel):
+    detail: str = Field(examples=["depth: depth must be a 16-bit PNG, got 8-bit"])

@@ -1,0 +1,524 @@
+"""The session manager: SLAM sessions as worker processes, a FIFO queue, status on disk.
+
+Each session runs ``server.worker.run_worker`` in its own spawn-context process (not daemonic:
+the runtime starts a mapping process of its own). One supervisor thread in the API process
+
+* drains every worker's event queue and applies the events to the session's status and to the
+  event sinks (the live viewer),
+* notices workers that end, normally or not (a crash fails only that session, with its error),
+* kills the process group of a cancelled worker that outlives the grace period,
+* starts queued sessions while fewer than ``max_sessions`` run.
+
+Outputs live in ``DATA_DIR/sessions/<id>/`` (``session.json`` metadata, ``input/``, and the
+runtime's ``trajectory.txt``, ``mesh.ply``, ``map.pt``, ``run.json``), so finished sessions are
+listed again after a restart.
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing as mp
+import os
+import queue
+import re
+import secrets
+import signal
+import threading
+import time
+from collections import deque
+from dataclasses import asdict, dataclass, field, replace
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from server.settings import Settings
+from server.stream import StreamInput
+from server.worker import SourceSpec, WorkerDone, WorkerJob, WorkerStarted, run_worker
+from slam.events import FinishedEvent, MapUpdateEvent, PoseEvent, StatsEvent
+
+STATUSES = ("queued", "running", "finished", "failed", "cancelled")
+ENDED = ("finished", "failed", "cancelled")
+SESSION_ID = re.compile(r"^[0-9a-f]{12}$")
+EventSink = Callable[[str, object], None]
+"""Called with (session id, event) in the supervisor thread for every worker event."""
+
+_SUPERVISOR_TICK_S = 0.05
+_MAX_EVENTS_PER_TICK = 200
+_PERSIST_EVERY_S = 1.0
+
+
+class SessionNotFound(KeyError):
+    pass
+
+
+class SessionConflict(RuntimeError):
+    """The session is in a state where the request makes no sense (409)."""
+
+
+@dataclass(frozen=True)
+class SessionStatus:
+    """What the API reports for a session (also the content of ``session.json``)."""
+
+    id: str
+    status: str
+    created: str
+    """ISO 8601, UTC."""
+    source: str
+    preset: str
+    frames_done: int = 0
+    frames_total: int | None = None
+    fps: float = 0.0
+    keyframes: int = 0
+    maps: int = 0
+    loops: int = 0
+    error: str | None = None
+    spec: SourceSpec = field(default_factory=lambda: SourceSpec(kind="synthetic"))
+
+    def to_json(self) -> dict:
+        return asdict(self)
+
+    @staticmethod
+    def from_json(data: dict) -> "SessionStatus":
+        data = dict(data)
+        spec = data.pop("spec")
+        if spec.get("intrinsics") is not None:
+            spec["intrinsics"] = tuple(spec["intrinsics"])
+        return SessionStatus(spec=SourceSpec(**spec), **data)
+
+
+@dataclass
+class _Session:
+    """Mutable bookkeeping of one session; only the manager touches it, under its lock."""
+
+    status: SessionStatus
+    directory: Path
+    job: WorkerJob
+    stop_event: object = None
+    event_queue: object = None
+    frame_queue: object = None
+    stream: StreamInput | None = None
+    process: mp.process.BaseProcess | None = None
+    worker_pid: int | None = None
+    done: WorkerDone | None = None
+    cancel_requested_at: float | None = None
+    delete_when_stopped: bool = False
+    dirty_since: float | None = None
+    live_meshes: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=dict)
+    """Latest mesh per map from MapUpdateEvents: (V, 3) float32, (F, 3) int32, (V, 3) uint8."""
+    poses: dict[int, tuple[float, np.ndarray]] = field(default_factory=dict)
+    """frame index -> (timestamp, (4, 4) T_world_cam) from PoseEvents: the trajectory so far."""
+
+
+def new_session_id() -> str:
+    return secrets.token_hex(6)
+
+
+def check_session_id(session_id: str) -> str:
+    """The id if it has our shape (12 hex digits); it is used in paths, so nothing else passes."""
+    if not SESSION_ID.match(session_id):
+        raise SessionNotFound(session_id)
+    return session_id
+
+
+def _now_iso() -> str:
+    return datetime.now(timezone.utc).isoformat(timespec="seconds")
+
+
+def _write_json_atomic(path: Path, data: dict) -> None:
+    tmp = path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(data, indent=1))
+    os.replace(tmp, path)
+
+
+class SessionManager:
+    """Owns all sessions. Thread-safe; ``start()``/``stop()`` are called by the app's lifespan."""
+
+    def __init__(self, settings: Settings, event_sinks: list[EventSink] | None = None,
+                 removal_hooks: list[Callable[[str], None]] | None = None) -> None:
+        self.settings = settings
+        self._event_sinks = list(event_sinks or [])
+        self._removal_hooks = list(removal_hooks or [])
+        self._ctx = mp.get_context("spawn")
+        self._lock = threading.RLock()
+        self._sessions: dict[str, _Session] = {}
+        self._queue: deque[str] = deque()
+        self._stopping_sessions: list[_Session] = []
+        """Deleted sessions whose workers are still stopping (no longer listed)."""
+        self._thread: threading.Thread | None = None
+        self._stopping = threading.Event()
+
+    # -- lifecycle ---------------------------------------------------------------------------
+
+    def start(self) -> None:
+        self.settings.sessions_dir.mkdir(parents=True, exist_ok=True)
+        self._recover()
+        self._stopping.clear()
+        self._thread = threading.Thread(target=self._supervise, name="session-supervisor", daemon=True)
+        self._thread.start()
+
+    def stop(self, grace_s: float = 5.0) -> None:
+        """Cancel running sessions (they end as ``cancelled``), wait up to ``grace_s``, kill the rest."""
+        with self._lock:
+            running = [s for s in self._sessions.values() if s.process is not None] + self._stopping_sessions
+            for session in running:
+                self._request_stop(session)
+            for session_id in list(self._queue):
+                self._set_status(self._sessions[session_id], "cancelled", "the server stopped before it started")
+                self._release_ipc(self._sessions[session_id])
+            self._queue.clear()
+        deadline = time.monotonic() + grace_s
+        while time.monotonic() < deadline and any(s.process is not None for s in running):
+            time.sleep(_SUPERVISOR_TICK_S)
+        self._stopping.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+        with self._lock:
+            for session in running:
+                if session.process is not None:
+                    self._kill(session)
+                    self._reap(session, forced_reason="the server stopped while it was running")
+            for session in self._sessions.values():
+                self._persist(session)
+
+    def _recover(self) -> None:
+        """List the sessions already on disk; those that were interrupted are marked failed."""
+        for meta in sorted(self.settings.sessions_dir.glob("*/session.json")):
+            try:
+                status = SessionStatus.from_json(json.loads(meta.read_text()))
+            except (OSError, ValueError, TypeError, KeyError) as error:
+                print(f"voxfusion: skipping unreadable {meta}: {error}")
+                continue
+            if status.status not in ENDED:
+                status = replace(status, status="failed",
+                                 error=f"interrupted: the server stopped while the session was {status.status}")
+            job = WorkerJob(session_id=status.id, source=status.spec, preset=status.preset,
+                            out_dir=str(meta.parent))
+            session = _Session(status=status, directory=meta.parent, job=job)
+            self._sessions[status.id] = session
+            self._persist(session)
+
+    # -- creating ----------------------------------------------------------------------------
+
+    def session_dir(self, session_id: str) -> Path:
+        return self.settings.sessions_dir / check_session_id(session_id)
+
+    def create(self, session_id: str, spec: SourceSpec, preset: str) -> SessionStatus:
+        """Register and queue a session whose folder (with ``input/`` for uploads) exists."""
+        directory = self.session_dir(session_id)
+        directory.mkdir(parents=True, exist_ok=True)
+        status = SessionStatus(id=session_id, status="queued", created=_now_iso(), source=spec.describe(),
+                               preset=preset, spec=spec)
+        job = WorkerJob(session_id=session_id, source=spec, preset=preset, out_dir=str(directory))
+        session = _Session(status=status, directory=directory, job=job)
+        session.stop_event = self._ctx.Event()
+        session.event_queue = self._ctx.Queue()
+        if spec.kind == "stream":
+            session.frame_queue = self._ctx.Queue(maxsize=self.settings.stream_queue_frames)
+            session.stream = StreamInput(session.frame_queue, directory / "input", intrinsics=spec.intrinsics,
+                                         depth_scale=spec.depth_scale,
+                                         put_timeout_s=self.settings.stream_put_timeout_s)
+        with self._lock:
+            self._sessions[session_id] = session
+            self._queue.append(session_id)
+            self._persist(session)
+        return status
+
+    # -- reading -----------------------------------------------------------------------------
+
+    def list(self) -> list[SessionStatus]:
+        with self._lock:
+            return sorted((s.status for s in self._sessions.values()), key=lambda s: s.created, reverse=True)
+
+    def get(self, session_id: str) -> SessionStatus:
+        return self._get(session_id).status
+
+    def _get(self, session_id: str) -> _Session:
+        with self._lock:
+            session = self._sessions.get(session_id)
+        if session is None:
+            raise SessionNotFound(session_id)
+        return session
+
+    def stream(self, session_id: str) -> StreamInput:
+        """The frame input of a stream session (SessionConflict for other kinds)."""
+        session = self._get(session_id)
+        if session.stream is None:
+            raise SessionConflict(f"session {session_id} reads {session.status.source}, not a stream")
+        return session.stream
+
+    def live_meshes(self, session_id: str) -> dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """The latest mesh per map seen in this session's events (empty before the first)."""
+        session = self._get(session_id)
+        with self._lock:
+            return dict(session.live_meshes)
+
+    def tracked_poses(self, session_id: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Poses reported so far while this server ran the session: (N,) frame indices,
+        (N,) timestamps, (N, 4, 4) T_world_cam, sorted by frame index (empty after a restart)."""
+        session = self._get(session_id)
+        with self._lock:
+            items = sorted(session.poses.items())
+        if not items:
+            return np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros((0, 4, 4))
+        indices = np.array([i for i, _ in items], dtype=np.int64)
+        stamps = np.array([t for _, (t, _) in items])
+        poses = np.stack([T for _, (_, T) in items])
+        return indices, stamps, poses
+
+    def running_count(self) -> int:
+        with self._lock:
+            return sum(1 for s in self._sessions.values() if s.process is not None)
+
+    # -- cancelling and deleting -------------------------------------------------------------
+
+    def cancel(self, session_id: str) -> SessionStatus:
+        """Stop a queued or running session; its outputs so far are kept."""
+        session = self._get(session_id)
+        with self._lock:
+            if session.status.status == "queued":
+                self._queue.remove(session_id)
+                self._set_status(session, "cancelled", None)
+                self._close_inputs(session, "the session was cancelled")
+                self._release_ipc(session)
+            elif session.status.status == "running":
+                self._request_stop(session)
+            return session.status
+
+    def delete(self, session_id: str) -> None:
+        """Cancel if needed, forget the session and remove its folder (once its worker is gone)."""
+        session = self._get(session_id)
+        with self._lock:
+            del self._sessions[session_id]
+            if session_id in self._queue:
+                self._queue.remove(session_id)
+            self._close_inputs(session, "the session was deleted")
+            if session.process is not None:
+                session.delete_when_stopped = True
+                self._request_stop(session)
+                self._stopping_sessions.append(session)
+            else:
+                self._release_ipc(session)
+                self._remove_files(session)
+        for hook in self._removal_hooks:
+            hook(session_id)
+
+    def _request_stop(self, session: _Session) -> None:
+        if session.cancel_requested_at is None:
+            session.cancel_requested_at = time.monotonic()
+            session.stop_event.set()
+            self._close_inputs(session, "the session was cancelled")
+
+    def _close_inputs(self, session: _Session, reason: str) -> None:
+        if session.stream is not None:
+            session.stream.close(reason)
+
+    def _release_ipc(self, session: _Session) -> None:
+        """Close and drop the queues and the stop event, so their semaphores and pipes are freed."""
+        for q in (session.event_queue, session.frame_queue):
+            if q is not None:
+                q.cancel_join_thread()
+                q.close()
+        if session.stream is not None:
+            session.stream.release("the session ended")
+        session.event_queue = session.frame_queue = session.stop_event = None
+
+    def _remove_files(self, session: _Session) -> None:
+        import shutil
+
+        shutil.rmtree(session.directory, ignore_errors=True)
+
+    # -- the supervisor ----------------------------------------------------------------------
+
+    def _supervise(self) -> None:
+        while not self._stopping.is_set():
+            try:
+                self._tick()
+            except Exception as error:  # noqa: BLE001 - the supervisor must outlive one bad event
+                import traceback
+
+                traceback.print_exc()
+                print(f"voxfusion: supervisor error: {error}")
+            time.sleep(_SUPERVISOR_TICK_S)
+
+    def _tick(self) -> None:
+        with self._lock:
+            active = [s for s in self._sessions.values() if s.process is not None]
+            active += self._stopping_sessions
+        for session in active:
+            self._drain(session)
+        with self._lock:
+            for session in active:
+                self._check_worker(session)
+            self._stopping_sessions = [s for s in self._stopping_sessions if s.process is not None]
+            self._start_queued()
+            now = time.monotonic()
+            for session in self._sessions.values():
+                if session.dirty_since is not None and now - session.dirty_since >= _PERSIST_EVERY_S:
+                    self._persist(session)
+
+    def _drain(self, session: _Session) -> None:
+        for _ in range(_MAX_EVENTS_PER_TICK):
+            try:
+                event = session.event_queue.get_nowait()
+            except queue.Empty:
+                return
+            except (EOFError, OSError, ValueError):
+                # The worker is gone and the pipe is closed: nothing more will come.
+                return
+            except Exception as error:  # noqa: BLE001 - half a message from a killed worker
+                print(f"voxfusion: dropping an unreadable event of session {session.status.id}: {error}")
+                return
+            self._apply(session, event)
+
+    def _apply(self, session: _Session, event: object) -> None:
+        with self._lock:
+            if isinstance(event, WorkerStarted):
+                session.worker_pid = event.pid
+                return
+            if isinstance(event, WorkerDone):
+                session.done = event
+                return
+            if isinstance(event, StatsEvent):
+                session.status = replace(
+                    session.status, frames_done=event.frames_done, frames_total=event.frames_total,
+                    fps=round(float(event.fps), 3), keyframes=event.keyframes, maps=event.maps,
+                    loops=event.loops)
+                self._mark_dirty(session)
+            elif isinstance(event, PoseEvent):
+                session.poses[event.frame_index] = (float(event.timestamp), np.asarray(event.T_world_cam))
+                # Stats come every few frames; poses give the progress in between.
+                if len(session.poses) > session.status.frames_done:
+                    session.status = replace(session.status, frames_done=len(session.poses))
+                    self._mark_dirty(session)
+            elif isinstance(event, MapUpdateEvent) and event.mesh_faces is not None and len(event.mesh_faces):
+                session.live_meshes[event.map_id] = (event.mesh_vertices, event.mesh_faces, event.mesh_colors)
+            elif isinstance(event, FinishedEvent) and session.done is None:
+                session.done = WorkerDone(status=event.status, error=event.error)
+        if session.delete_when_stopped:
+            return
+        for sink in self._event_sinks:
+            sink(session.status.id, event)
+
+    def _check_worker(self, session: _Session) -> None:
+        process = session.process
+        if process is None:
+            return
+        if process.is_alive():
+            grace = self.settings.cancel_grace_s
+            if session.cancel_requested_at is not None and time.monotonic() - session.cancel_requested_at > grace:
+                self._kill(session)
+            return
+        self._drain(session)
+        self._reap(session)
+
+    def _reap(self, session: _Session, forced_reason: str | None = None) -> None:
+        """The worker has exited (or was killed): settle the final status and free resources."""
+        process = session.process
+        process.join(timeout=1.0)
+        exitcode = process.exitcode
+        done = session.done
+        if session.cancel_requested_at is not None:
+            status, error = "cancelled", None
+            if done is not None and done.status == "failed":
+                status, error = "failed", done.error
+        elif done is not None:
+            status, error = done.status, done.error
+        elif forced_reason is not None:
+            status, error = "cancelled", forced_reason
+        else:
+            status, error = "failed", _describe_exit(exitcode)
+        if done is not None and done.frames:
+            session.status = replace(session.status, frames_done=done.frames, keyframes=done.keyframes,
+                                     maps=done.maps, loops=done.loops, fps=round(done.fps, 3))
+        if process.is_alive():
+            self._kill(session)
+        elif session.worker_pid is not None:
+            # A worker that crashed leaves its mapping process behind: end the whole group.
+            _kill_group(session.worker_pid)
+        try:
+            process.close()
+        except ValueError:
+            pass
+        session.process = None
+        self._close_inputs(session, f"the session {status}")
+        self._release_ipc(session)
+        session.live_meshes.clear()
+        if session.delete_when_stopped:
+            self._remove_files(session)
+            return
+        self._set_status(session, status, error)
+        for sink in self._event_sinks:
+            sink(session.status.id, FinishedEvent(status=status, error=error))
+
+    def _kill(self, session: _Session) -> None:
+        """SIGKILL the worker's process group (the worker and the mapping process it started)."""
+        process = session.process
+        if process is None or process.pid is None:
+            return
+        try:
+            os.killpg(process.pid, signal.SIGKILL)
+        except (ProcessLookupError, PermissionError):
+            # Not yet in its own group (killed before it called setpgrp): kill just the worker.
+            process.kill()
+        process.join(timeout=5.0)
+
+    def _start_queued(self) -> None:
+        running = sum(1 for s in self._sessions.values() if s.process is not None)
+        while self._queue and running < self.settings.max_sessions and not self._stopping.is_set():
+            session = self._sessions[self._queue.popleft()]
+            process = self._ctx.Process(
+                target=run_worker, name=f"voxfusion-session-{session.status.id}",
+                args=(session.job, session.stop_event, session.event_queue, session.frame_queue),
+                daemon=False)
+            try:
+                process.start()
+            except (OSError, RuntimeError) as error:
+                self._set_status(session, "failed", f"could not start the worker process: {error}")
+                continue
+            # The API process only reads events. Closing its copy of the pipe's write end means
+            # a worker that dies mid-message gives EOF instead of a read that waits forever.
+            session.event_queue._writer.close()
+            session.process = process
+            self._set_status(session, "running", None)
+            running += 1
+
+    # -- status on disk ----------------------------------------------------------------------
+
+    def _set_status(self, session: _Session, status: str, error: str | None) -> None:
+        session.status = replace(session.status, status=status, error=error)
+        self._persist(session)
+
+    def _mark_dirty(self, session: _Session) -> None:
+        if session.dirty_since is None:
+            session.dirty_since = time.monotonic()
+
+    def _persist(self, session: _Session) -> None:
+        session.dirty_since = None
+        if not session.directory.is_dir():
+            return
+        try:
+            _write_json_atomic(session.directory / "session.json", session.status.to_json())
+        except OSError as error:
+            print(f"voxfusion: cannot write {session.directory / 'session.json'}: {error}")
+
+
+def _kill_group(group: int) -> None:
+    try:
+        os.killpg(group, signal.SIGKILL)
+    except (ProcessLookupError, PermissionError):
+        pass
+
+
+def _describe_exit(exitcode: int | None) -> str:
+    if exitcode is None:
+        return "the worker process vanished"
+    if exitcode < 0:
+        try:
+            name = signal.Signals(-exitcode).name
+        except ValueError:
+            name = f"signal {-exitcode}"
+        hint = " (out of memory?)" if -exitcode == signal.SIGKILL else ""
+        return f"the worker process was killed by {name}{hint}; see worker.log"
+    return f"the worker process exited with code {exitcode} without a result; see worker.log"

@@ -1,0 +1,139 @@
+"""Server settings: one frozen dataclass, read from the environment (``VOXFUSION_*``).
+
+| variable | default | meaning |
+| --- | --- | --- |
+| ``VOXFUSION_DATA_DIR`` | ``$XDG_DATA_HOME/voxfusion`` (``~/.local/share/voxfusion``) | sessions, uploads, assets |
+| ``VOXFUSION_TOKEN`` | unset | when set, every API call and the viewer page need it |
+| ``VOXFUSION_MAX_UPLOAD_MB`` | 2048 | largest request body (a dataset zip) |
+| ``VOXFUSION_MAX_UNZIPPED_MB`` | 8192 | largest total uncompressed size of a zip |
+| ``VOXFUSION_MAX_ZIP_ENTRIES`` | 200000 | most entries in a zip |
+| ``VOXFUSION_MAX_SESSIONS`` | cpu_count // 4, at least 1 | sessions running at once; more wait in a queue |
+| ``VOXFUSION_VIEWER_PORT`` | 8080 | viser's own port (0: any free port; -1: no viewer) |
+| ``VOXFUSION_CANCEL_GRACE_S`` | 10 | seconds a cancelled worker gets before it is killed |
+| ``VOXFUSION_RENDER_THREADS`` | 1 | torch threads of the API process (renders, meshes) |
+
+The data directory is outside the working directory on purpose: sessions survive restarts
+and do not depend on where the server was started (Docker sets ``/data``, a volume).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Mapping
+
+
+class SettingsError(ValueError):
+    """An environment variable has a value that cannot be used; names the variable."""
+
+
+def default_data_dir(env: Mapping[str, str]) -> Path:
+    """``$XDG_DATA_HOME/voxfusion``, or ``~/.local/share/voxfusion`` (the XDG default)."""
+    base = env.get("XDG_DATA_HOME") or str(Path.home() / ".local" / "share")
+    return Path(base) / "voxfusion"
+
+
+def default_max_sessions() -> int:
+    """One session per four cores: a session runs a tracking and a mapping process, and each
+    uses several torch threads, so more sessions than that mostly share the same cores."""
+    return max(1, (os.cpu_count() or 1) // 4)
+
+
+@dataclass(frozen=True)
+class Settings:
+    data_dir: Path
+    """Root of ``sessions/<id>/``, ``assets/`` and ``uploads/`` (temporary)."""
+    token: str | None = None
+    """Bearer token every API call and the viewer need; None = open (loopback use)."""
+    max_upload_mb: int = 2048
+    """Largest request body in MiB; a larger one gets 413 before it is read."""
+    max_unzipped_mb: int = 8192
+    """Largest total uncompressed size of a dataset zip in MiB."""
+    max_zip_entries: int = 200_000
+    max_sessions: int = 1
+    """Sessions that run at once; later ones wait in a FIFO queue."""
+    viewer_host: str = "127.0.0.1"
+    """Interface viser binds to. The page reaches it through the API's ``/viewer`` proxy."""
+    viewer_port: int = 8080
+    """viser's port (it moves to the next free one if taken); 0 = any free port, -1 = no viewer."""
+    cancel_grace_s: float = 10.0
+    """Seconds a cancelled worker may take to stop before its process group is killed."""
+    stream_queue_frames: int = 16
+    """Streamed frames buffered between the API and a worker (back-pressure beyond that)."""
+    stream_put_timeout_s: float = 30.0
+    """How long a streamed frame waits for room in that buffer before 503."""
+    render_threads: int = 1
+    """torch intra-op threads in the API process. One: the API shares the cores with the SLAM
+    workers, and oversubscribed cores made a 160x120 render 3-6x slower (2 s -> 7-12 s)."""
+
+    @property
+    def max_upload_bytes(self) -> int:
+        return self.max_upload_mb * 1024 * 1024
+
+    @property
+    def max_unzipped_bytes(self) -> int:
+        return self.max_unzipped_mb * 1024 * 1024
+
+    @property
+    def viewer_enabled(self) -> bool:
+        return self.viewer_port >= 0
+
+    @property
+    def sessions_dir(self) -> Path:
+        return self.data_dir / "sessions"
+
+    @property
+    def assets_dir(self) -> Path:
+        return self.data_dir / "assets"
+
+    @property
+    def uploads_dir(self) -> Path:
+        return self.data_dir / "uploads"
+
+    def with_overrides(self, **changes: object) -> "Settings":
+        """A copy with some fields replaced (the CLI's flags win over the environment)."""
+        return replace(self, **{k: v for k, v in changes.items() if v is not None})
+
+
+def _int(env: Mapping[str, str], name: str, default: int, minimum: int) -> int:
+    text = env.get(name)
+    if text is None or text == "":
+        return default
+    try:
+        value = int(text)
+    except ValueError:
+        raise SettingsError(f"{name}={text!r} is not an integer") from None
+    if value < minimum:
+        raise SettingsError(f"{name}={value} must be >= {minimum}")
+    return value
+
+
+def _float(env: Mapping[str, str], name: str, default: float, minimum: float) -> float:
+    text = env.get(name)
+    if text is None or text == "":
+        return default
+    try:
+        value = float(text)
+    except ValueError:
+        raise SettingsError(f"{name}={text!r} is not a number") from None
+    if not value >= minimum:
+        raise SettingsError(f"{name}={value} must be >= {minimum}")
+    return value
+
+
+def settings_from_env(env: Mapping[str, str] | None = None) -> Settings:
+    """Settings from ``VOXFUSION_*`` variables (see the module docstring for the table)."""
+    env = os.environ if env is None else env
+    data_dir = env.get("VOXFUSION_DATA_DIR") or default_data_dir(env)
+    return Settings(
+        data_dir=Path(data_dir).expanduser(),
+        token=env.get("VOXFUSION_TOKEN") or None,
+        max_upload_mb=_int(env, "VOXFUSION_MAX_UPLOAD_MB", 2048, 1),
+        max_unzipped_mb=_int(env, "VOXFUSION_MAX_UNZIPPED_MB", 8192, 1),
+        max_zip_entries=_int(env, "VOXFUSION_MAX_ZIP_ENTRIES", 200_000, 1),
+        max_sessions=_int(env, "VOXFUSION_MAX_SESSIONS", default_max_sessions(), 1),
+        viewer_port=_int(env, "VOXFUSION_VIEWER_PORT", 8080, -1),
+        cancel_grace_s=_float(env, "VOXFUSION_CANCEL_GRACE_S", 10.0, 0.0),
+        render_threads=_int(env, "VOXFUSION_RENDER_THREADS", 1, 1),
+    )

@@ -1,0 +1,213 @@
+"""The input side of a streamed session: validate each frame, hand it to the worker through a
+bounded queue (back-pressure instead of unbounded memory), and keep a copy of the raw bytes in
+the session folder so that the frames can be shown again later (AR ``frame:N`` backgrounds).
+
+Layout of ``sessions/<id>/input/`` for a stream::
+
+    frames.jsonl          one JSON object per frame: index, timestamp, color, depth, depth_scale, K
+    color/000000.png      the colour bytes as sent (PNG or JPEG)
+    depth/000000.png      the 16-bit depth PNG as sent
+"""
+
+from __future__ import annotations
+
+import json
+import queue
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from server.upload import (
+    PNG_SIGNATURE,
+    StreamFrame,
+    UploadError,
+    decode_color,
+    decode_depth,
+    decode_stream_frame,
+    intrinsics_matrix,
+    parse_depth_scale,
+    parse_intrinsics,
+)
+
+DEFAULT_DEPTH_SCALE = 1000.0
+"""Raw depth units per metre when neither the session nor the first frame says (millimetres)."""
+DEFAULT_FPS = 30.0
+"""A frame without a timestamp is stamped index / 30 s."""
+
+
+class StreamClosed(UploadError):
+    """Frames after ``finish`` (or after the session ended): 409."""
+
+    def __init__(self, message: str) -> None:
+        super().__init__(message, status=409)
+
+
+@dataclass(frozen=True)
+class RecordedFrame:
+    """A stream frame read back from the session folder."""
+
+    rgb: np.ndarray
+    """(H, W, 3) float32 in [0, 1]."""
+    depth: np.ndarray
+    """(H, W) float32 metres, 0 = invalid."""
+    K: np.ndarray
+    """(3, 3) float64."""
+    timestamp: float
+
+
+class StreamInput:
+    """Frames of one streamed session, in order; thread-safe (one frame is handled at a time)."""
+
+    def __init__(self, frame_queue, input_dir: Path, *, intrinsics: tuple[float, ...] | None,
+                 depth_scale: float | None, put_timeout_s: float) -> None:
+        self._queue = frame_queue
+        self._input_dir = input_dir
+        self._K = None if intrinsics is None else intrinsics_matrix(*intrinsics[:4])
+        self._depth_scale = depth_scale
+        self._put_timeout_s = put_timeout_s
+        self._lock = threading.Lock()
+        self._count = 0
+        self._closed_reason: str | None = None
+        (input_dir / "color").mkdir(parents=True, exist_ok=True)
+        (input_dir / "depth").mkdir(parents=True, exist_ok=True)
+
+    @property
+    def frames_received(self) -> int:
+        return self._count
+
+    @property
+    def finished(self) -> bool:
+        return self._closed_reason is not None
+
+    def add_frame(self, color: bytes, depth: bytes, *, timestamp: float | str | None = None,
+                  depth_scale: float | str | None = None, intrinsics: str | list | None = None) -> int:
+        """Validate one frame and queue it for the worker; returns its index.
+
+        Raises UploadError: 422 bad frame or missing intrinsics, 409 after finish, 503 when the
+        worker has not taken frames for ``put_timeout_s`` (the client should retry later).
+        """
+        with self._lock:
+            self._check_open()
+            K = self._resolve_intrinsics(intrinsics)
+            scale = self._resolve_depth_scale(depth_scale)
+            stamp = self._count / DEFAULT_FPS if timestamp in (None, "") else _parse_timestamp(timestamp)
+            frame = decode_stream_frame(color, depth, stamp, scale, K)
+            if not self._put(frame):
+                raise UploadError(f"the session has not taken a frame for {self._put_timeout_s:.0f} s "
+                                  f"(its buffer is full); retry later", status=503)
+            index = self._count
+            self._record(index, frame, color, depth)
+            self._K, self._depth_scale = K, scale
+            self._count += 1
+            return index
+
+    def finish(self) -> int:
+        """End the input: the worker finishes after the frames already queued. Returns the count."""
+        from server.worker import END_OF_STREAM
+
+        with self._lock:
+            if self._closed_reason is None:
+                if not self._put(END_OF_STREAM):
+                    raise UploadError("the session's frame buffer stayed full; finish again later", status=503)
+                self._closed_reason = "the stream was finished"
+            return self._count
+
+    def close(self, reason: str) -> None:
+        """Refuse further frames (the session ended or was cancelled). Does not wait for a
+        frame that is waiting for room in the queue: that one gives up within a poll."""
+        if self._closed_reason is None:
+            self._closed_reason = reason
+
+    def release(self, reason: str) -> None:
+        """Close, and let go of the queue (its worker is gone) so its OS resources are freed."""
+        self.close(reason)
+        self._queue = None
+
+    def _check_open(self) -> None:
+        if self._closed_reason is not None:
+            raise StreamClosed(f"the stream does not accept frames: {self._closed_reason}")
+
+    def _put(self, item, poll_s: float = 0.25) -> bool:
+        """Queue ``item``, waiting up to put_timeout_s for room; False on timeout.
+        Raises StreamClosed if the stream is closed meanwhile."""
+        deadline = time.monotonic() + self._put_timeout_s
+        while True:
+            self._check_open()
+            frame_queue = self._queue
+            if frame_queue is None:
+                raise StreamClosed("the stream does not accept frames: the session ended")
+            try:
+                frame_queue.put(item, timeout=poll_s)
+                return True
+            except queue.Full:
+                if time.monotonic() > deadline:
+                    return False
+
+    def _resolve_intrinsics(self, intrinsics: str | list | None) -> np.ndarray:
+        if intrinsics not in (None, ""):
+            K = intrinsics_matrix(*parse_intrinsics(intrinsics))
+            if self._K is not None and not np.allclose(K, self._K):
+                raise UploadError(f"intrinsics: changed mid-stream (was {_k_text(self._K)}, got {_k_text(K)}); "
+                                  f"start a new session for another camera")
+            return K
+        if self._K is None:
+            raise UploadError("intrinsics: required on the first frame (or when creating the session) "
+                              "as 'fx,fy,cx,cy'")
+        return self._K
+
+    def _resolve_depth_scale(self, depth_scale: float | str | None) -> float:
+        if depth_scale not in (None, ""):
+            return parse_depth_scale(depth_scale)
+        return self._depth_scale if self._depth_scale is not None else DEFAULT_DEPTH_SCALE
+
+    def _record(self, index: int, frame: StreamFrame, color: bytes, depth: bytes) -> None:
+        extension = "png" if color.startswith(PNG_SIGNATURE) else "jpg"
+        color_name = f"color/{index:06d}.{extension}"
+        depth_name = f"depth/{index:06d}.png"
+        (self._input_dir / color_name).write_bytes(color)
+        (self._input_dir / depth_name).write_bytes(depth)
+        K = frame.K
+        row = {"index": index, "timestamp": frame.timestamp, "color": color_name, "depth": depth_name,
+               "depth_scale": frame.depth_scale, "K": [K[0, 0], K[1, 1], K[0, 2], K[1, 2]]}
+        with open(self._input_dir / "frames.jsonl", "a") as log:
+            log.write(json.dumps(row) + "\n")
+
+
+def _parse_timestamp(value: float | str) -> float:
+    try:
+        stamp = float(value)
+    except (TypeError, ValueError):
+        raise UploadError(f"timestamp: expected seconds as a number, got {value!r}") from None
+    if not np.isfinite(stamp):
+        raise UploadError(f"timestamp: must be finite, got {value!r}")
+    return stamp
+
+
+def _k_text(K: np.ndarray) -> str:
+    return f"{K[0, 0]:g},{K[1, 1]:g},{K[0, 2]:g},{K[1, 2]:g}"
+
+
+def read_recorded_frame(input_dir: Path, index: int) -> RecordedFrame:
+    """Frame ``index`` of a recorded stream. Raises KeyError when there is no such frame."""
+    log = input_dir / "frames.jsonl"
+    if not log.is_file():
+        raise KeyError(f"no streamed frames recorded in {input_dir}")
+    with open(log) as rows:
+        for line in rows:
+            row = json.loads(line)
+            if row["index"] == index:
+                break
+        else:
+            raise KeyError(f"frame {index} was not streamed to this session")
+    # Names come from our own log, but are still checked to stay inside the input folder.
+    color_path = (input_dir / row["color"]).resolve()
+    depth_path = (input_dir / row["depth"]).resolve()
+    for path in (color_path, depth_path):
+        if input_dir.resolve() not in path.parents:
+            raise KeyError(f"frame {index}: recorded path outside the session folder")
+    rgb = decode_color(color_path.read_bytes()).astype(np.float32) / 255.0
+    depth = decode_depth(depth_path.read_bytes()).astype(np.float32) / np.float32(row["depth_scale"])
+    return RecordedFrame(rgb=rgb, depth=depth, K=intrinsics_matrix(*row["K"]), timestamp=float(row["timestamp"]))

@@ -1,0 +1,285 @@
+"""Untrusted input at the edge: dataset zips and streamed RGB-D frames.
+
+Everything here is checked before any work starts, and every failure is an
+:class:`UploadError` carrying the HTTP status and a message that says what is wrong:
+
+* zips: no absolute paths, no ``..``, no links or devices, at most ``max_entries`` entries and
+  ``max_unzipped_bytes`` uncompressed in total (checked from the directory, then enforced again
+  while writing, so a lying header cannot fill the disk); extraction writes only regular files
+  under the destination, with names rebuilt from validated parts.
+* frames: the colour image decodes, the depth is a single-channel 16-bit PNG of the same size,
+  intrinsics are four positive numbers.
+"""
+
+from __future__ import annotations
+
+import shutil
+import stat
+import struct
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path, PurePosixPath
+
+import cv2
+import numpy as np
+
+# Entries that archivers add and that are never part of a dataset.
+_IGNORED_TOP_LEVEL = {"__MACOSX", ".DS_Store", "Thumbs.db"}
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+MAX_FRAME_SIDE = 4096
+"""Largest streamed image side; bigger headers are refused before decoding (decompression bombs)."""
+
+
+class UploadError(ValueError):
+    """Bad upload; ``status`` is the HTTP status to answer with (400, 413 or 422)."""
+
+    def __init__(self, message: str, status: int = 422) -> None:
+        super().__init__(message)
+        self.status = status
+
+
+# ---------------------------------------------------------------------------------------------
+# zips
+
+
+@dataclass(frozen=True)
+class ZipLimits:
+    max_entries: int
+    max_unzipped_bytes: int
+
+
+def member_path(name: str) -> PurePosixPath | None:
+    """The safe relative path of a zip entry, or None for a directory entry.
+
+    Raises UploadError (422) for absolute paths, drive letters, ``..`` parts and backslashes
+    (Windows archivers write them as separators; we refuse rather than guess).
+    """
+    if "\\" in name:
+        raise UploadError(f"zip entry {name!r}: backslashes in entry names are not allowed")
+    if name.startswith("/") or (len(name) > 1 and name[1] == ":"):
+        raise UploadError(f"zip entry {name!r}: absolute paths are not allowed")
+    parts = [p for p in name.split("/") if p not in ("", ".")]
+    if any(p == ".." for p in parts):
+        raise UploadError(f"zip entry {name!r}: '..' would escape the archive root")
+    if any("\x00" in p for p in parts):
+        raise UploadError(f"zip entry {name!r}: NUL in entry name")
+    if not parts or name.endswith("/"):
+        return None
+    return PurePosixPath(*parts)
+
+
+def _is_link_or_special(info: zipfile.ZipInfo) -> bool:
+    """True for symlinks, devices, fifos (Unix mode in the high 16 bits of external_attr)."""
+    file_type = stat.S_IFMT(info.external_attr >> 16)
+    # 0: no Unix type recorded (Windows archivers, Python's writestr): a plain file.
+    return file_type not in (0, stat.S_IFREG, stat.S_IFDIR)
+
+
+def check_zip(zip_path: Path, limits: ZipLimits) -> list[tuple[zipfile.ZipInfo, PurePosixPath]]:
+    """Validate every entry of the zip at ``zip_path``; return (entry, safe path) for files.
+
+    Raises UploadError: 400 when it is not a zip, 422 for an unsafe entry, 413 when over a limit.
+    """
+    try:
+        archive = zipfile.ZipFile(zip_path)
+    except (zipfile.BadZipFile, OSError) as error:
+        raise UploadError(f"the upload is not a valid zip file ({error})", status=400) from None
+    with archive:
+        infos = archive.infolist()
+    if len(infos) > limits.max_entries:
+        raise UploadError(f"the zip has {len(infos)} entries; the limit is {limits.max_entries}", status=413)
+    files: list[tuple[zipfile.ZipInfo, PurePosixPath]] = []
+    total = 0
+    for info in infos:
+        path = member_path(info.filename)
+        if _is_link_or_special(info):
+            raise UploadError(f"zip entry {info.filename!r}: links and special files are not allowed")
+        if path is None:
+            continue
+        if info.flag_bits & 0x1:
+            raise UploadError(f"zip entry {info.filename!r}: encrypted entries are not supported")
+        total += info.file_size
+        if total > limits.max_unzipped_bytes:
+            raise UploadError(
+                f"the zip unpacks to more than {limits.max_unzipped_bytes // (1024 * 1024)} MiB "
+                f"(the uncompressed-size limit)", status=413)
+        files.append((info, path))
+    if not files:
+        raise UploadError("the zip holds no files")
+    return files
+
+
+def extract_zip(zip_path: Path, dest: Path, limits: ZipLimits) -> Path:
+    """Check, then extract the zip into ``dest`` (created); returns ``dest``.
+
+    Only regular files are written, at paths rebuilt from validated parts, and the bytes
+    actually written are counted against the limit again.
+    """
+    files = check_zip(zip_path, limits)
+    dest.mkdir(parents=True, exist_ok=True)
+    root = dest.resolve()
+    written = 0
+    with zipfile.ZipFile(zip_path) as archive:
+        for info, relative in files:
+            target = root.joinpath(*relative.parts)
+            if root not in target.parents:
+                raise UploadError(f"zip entry {info.filename!r} would be written outside the archive root")
+            target.parent.mkdir(parents=True, exist_ok=True)
+            try:
+                with archive.open(info) as source, open(target, "wb") as sink:
+                    written += _copy_limited(source, sink, limits.max_unzipped_bytes - written, info.filename)
+            except (zipfile.BadZipFile, zipfile.LargeZipFile, EOFError, NotImplementedError) as error:
+                raise UploadError(f"zip entry {info.filename!r} cannot be read ({error})", status=400) from None
+    return dest
+
+
+def _copy_limited(source, sink, budget: int, name: str, chunk: int = 1 << 20) -> int:
+    copied = 0
+    while True:
+        block = source.read(chunk)
+        if not block:
+            return copied
+        copied += len(block)
+        if copied > budget:
+            raise UploadError(f"zip entry {name!r} unpacks past the uncompressed-size limit", status=413)
+        sink.write(block)
+
+
+def dataset_root(extracted: Path) -> Path:
+    """The folder holding the dataset: ``extracted`` itself, or its single top-level folder
+    when the zip was made from a folder (archiver litter such as ``__MACOSX`` is ignored)."""
+    entries = [p for p in extracted.iterdir() if p.name not in _IGNORED_TOP_LEVEL]
+    if len(entries) == 1 and entries[0].is_dir():
+        return entries[0]
+    return extracted
+
+
+def save_upload(source, target: Path, max_bytes: int) -> int:
+    """Copy a file-like upload to ``target``; 413 past ``max_bytes``. Returns the size."""
+    target.parent.mkdir(parents=True, exist_ok=True)
+    with open(target, "wb") as sink:
+        try:
+            return _copy_limited(source, sink, max_bytes, target.name)
+        except UploadError:
+            raise UploadError(f"the upload is larger than {max_bytes // (1024 * 1024)} MiB", status=413) from None
+
+
+def remove_tree(path: Path) -> None:
+    shutil.rmtree(path, ignore_errors=True)
+
+
+# ---------------------------------------------------------------------------------------------
+# streamed frames
+
+
+@dataclass(frozen=True)
+class StreamFrame:
+    """One validated streamed frame, still in its raw units (cheap to pickle to a worker).
+
+    Attributes:
+        timestamp: seconds.
+        rgb: (H, W, 3) uint8 RGB.
+        depth_raw: (H, W) uint16 raw depth units; metres = depth_raw / depth_scale, 0 = invalid.
+        depth_scale: raw units per metre.
+        K: (3, 3) float64 intrinsics.
+    """
+
+    timestamp: float
+    rgb: np.ndarray
+    depth_raw: np.ndarray
+    depth_scale: float
+    K: np.ndarray
+
+
+def parse_intrinsics(text: str | list | tuple, what: str = "intrinsics") -> tuple[float, float, float, float]:
+    """``"fx,fy,cx,cy"`` (or a list of four numbers) -> four floats; fx, fy > 0."""
+    values = text.replace(" ", "").split(",") if isinstance(text, str) else list(text)
+    if len(values) != 4:
+        raise UploadError(f"{what}: expected 'fx,fy,cx,cy' (four numbers), got {text!r}")
+    try:
+        fx, fy, cx, cy = (float(v) for v in values)
+    except (TypeError, ValueError):
+        raise UploadError(f"{what}: expected four numbers 'fx,fy,cx,cy', got {text!r}") from None
+    if not all(np.isfinite([fx, fy, cx, cy])) or fx <= 0 or fy <= 0:
+        raise UploadError(f"{what}: fx and fy must be positive and all values finite, got {text!r}")
+    return fx, fy, cx, cy
+
+
+def intrinsics_matrix(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
+    """(3, 3) float64 pinhole matrix."""
+    return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+
+
+def parse_depth_scale(value: float | str, what: str = "depth_scale") -> float:
+    try:
+        scale = float(value)
+    except (TypeError, ValueError):
+        raise UploadError(f"{what}: expected a number (raw depth units per metre), got {value!r}") from None
+    if not np.isfinite(scale) or scale <= 0:
+        raise UploadError(f"{what}: must be a positive number (raw depth units per metre), got {value!r}")
+    return scale
+
+
+def _png_size(data: bytes) -> tuple[int, int] | None:
+    """(width, height) from a PNG's IHDR chunk, or None when ``data`` is not a PNG."""
+    if len(data) < 24 or not data.startswith(PNG_SIGNATURE):
+        return None
+    return struct.unpack(">II", data[16:24])
+
+
+def _check_side(size: tuple[int, int] | None, what: str) -> None:
+    if size is not None and (max(size) > MAX_FRAME_SIDE or min(size) < 1):
+        raise UploadError(f"{what}: image size {size[0]}x{size[1]} is outside 1..{MAX_FRAME_SIDE} pixels per side",
+                          status=413 if max(size) > MAX_FRAME_SIDE else 422)
+
+
+def decode_color(data: bytes, what: str = "color") -> np.ndarray:
+    """Encoded PNG/JPEG bytes -> (H, W, 3) uint8 RGB. Grey images are repeated, alpha dropped."""
+    if not data:
+        raise UploadError(f"{what}: the image is empty")
+    _check_side(_png_size(data), what)
+    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise UploadError(f"{what}: cannot decode the image (corrupt, truncated, or not PNG/JPEG)")
+    if image.dtype != np.uint8:
+        raise UploadError(f"{what}: colour must be 8 bits per channel, got {image.dtype}")
+    if image.ndim == 2:
+        return np.repeat(image[:, :, None], 3, axis=2)
+    if image.shape[2] == 4:
+        return cv2.cvtColor(image, cv2.COLOR_BGRA2RGB)
+    if image.shape[2] == 3:
+        return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+    raise UploadError(f"{what}: unexpected {image.shape[2]} channels")
+
+
+def decode_depth(data: bytes, what: str = "depth") -> np.ndarray:
+    """16-bit single-channel PNG bytes -> (H, W) uint16 raw depth."""
+    if not data:
+        raise UploadError(f"{what}: the image is empty")
+    size = _png_size(data)
+    if size is None:
+        raise UploadError(f"{what}: depth must be a 16-bit PNG (the data is not a PNG)")
+    _check_side(size, what)
+    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise UploadError(f"{what}: cannot decode the PNG (corrupt or truncated)")
+    if image.ndim != 2:
+        raise UploadError(f"{what}: depth must be single-channel, got {image.shape[2]} channels")
+    if image.dtype != np.uint16:
+        bits = image.dtype.itemsize * 8
+        raise UploadError(f"{what}: depth must be a 16-bit PNG, got {bits}-bit")
+    return image
+
+
+def decode_stream_frame(color: bytes, depth: bytes, timestamp: float, depth_scale: float,
+                        K: np.ndarray) -> StreamFrame:
+    """Decode and cross-check one streamed frame (see :class:`StreamFrame`)."""
+    if not np.isfinite(timestamp):
+        raise UploadError(f"timestamp: must be a finite number, got {timestamp!r}")
+    rgb = decode_color(color)
+    depth_raw = decode_depth(depth)
+    if rgb.shape[:2] != depth_raw.shape:
+        raise UploadError(
+            f"color is {rgb.shape[1]}x{rgb.shape[0]} but depth is {depth_raw.shape[1]}x{depth_raw.shape[0]}: "
+            f"they must have the same size")
+    return StreamFrame(timestamp=float(timestamp), rgb=rgb, depth_raw=depth_raw, depth_scale=depth_scale, K=K)

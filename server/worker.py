@@ -1,0 +1,178 @@
+"""The SLAM worker process of one session (started by ``server.sessions`` with spawn).
+
+The worker opens its source, runs ``slam.runtime.run_slam`` (which starts the mapping process
+itself, so this process is not daemonic) and forwards every runtime event to the API process
+through ``event_queue``, followed by one :class:`WorkerDone`. It puts itself in a new process
+group first, so that a cancel that runs out of patience can kill it together with the mapping
+process it started. Its stdout and stderr (and the mapping process's) go to ``worker.log`` in
+the session folder.
+
+Everything crossing the process boundary is a small frozen dataclass of plain values.
+"""
+
+from __future__ import annotations
+
+import os
+import queue
+import sys
+import traceback
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+
+from slam.data import DataError, Frame
+
+
+@dataclass(frozen=True)
+class SourceSpec:
+    """What a session reads.
+
+    kind: ``dataset`` (a folder, ``path``), ``synthetic`` (``path`` is the generator spec) or
+    ``stream`` (frames arrive on the worker's frame queue).
+    """
+
+    kind: str
+    path: str | None = None
+    format: str = "auto"
+    intrinsics: tuple[float, ...] | None = None
+    depth_scale: float | None = None
+    stride: int = 1
+    max_frames: int | None = None
+
+    def describe(self) -> str:
+        """A short human-readable label for the session list."""
+        if self.kind == "dataset":
+            return f"upload ({self.format})" if self.format != "auto" else "upload"
+        if self.kind == "synthetic":
+            return f"synthetic:{self.path}"
+        return "stream"
+
+
+@dataclass(frozen=True)
+class WorkerJob:
+    session_id: str
+    source: SourceSpec
+    preset: str
+    out_dir: str
+    use_gt_poses: bool = False
+
+
+@dataclass(frozen=True)
+class WorkerStarted:
+    """First message of a worker: it is alive and its process group is ``pid``."""
+
+    pid: int
+
+
+@dataclass(frozen=True)
+class WorkerDone:
+    """Last message of a worker."""
+
+    status: str
+    """finished | failed | cancelled"""
+    error: str | None
+    frames: int = 0
+    keyframes: int = 0
+    maps: int = 0
+    loops: int = 0
+    fps: float = 0.0
+
+
+END_OF_STREAM = None
+"""Put on a stream session's frame queue to end its input."""
+
+
+def open_source(source: SourceSpec, frame_queue, stop_event):
+    """The iterable of frames ``run_slam`` reads for this source."""
+    from slam.data import open_sequence
+
+    if source.kind == "dataset":
+        return open_sequence(source.path, source.format, stride=source.stride, max_frames=source.max_frames,
+                             intrinsics=source.intrinsics, depth_scale=source.depth_scale)
+    if source.kind == "synthetic":
+        return open_sequence(f"synthetic:{source.path}", "synthetic", stride=source.stride,
+                             max_frames=source.max_frames)
+    if source.kind == "stream":
+        return stream_frames(frame_queue, stop_event)
+    raise ValueError(f"unknown source kind {source.kind!r}")
+
+
+def frame_from_stream(index: int, item) -> Frame:
+    """A validated ``server.upload.StreamFrame`` -> the pipeline's float :class:`Frame`."""
+    return Frame(
+        index=index,
+        timestamp=item.timestamp,
+        rgb=item.rgb.astype(np.float32) / 255.0,
+        depth=item.depth_raw.astype(np.float32) / np.float32(item.depth_scale),
+        K=np.asarray(item.K, dtype=np.float64),
+    )
+
+
+def stream_frames(frame_queue, stop_event, poll_s: float = 0.25) -> Iterator[Frame]:
+    """Frames as the API process hands them over, until END_OF_STREAM or a stop request."""
+    index = 0
+    while not stop_event.is_set():
+        try:
+            item = frame_queue.get(timeout=poll_s)
+        except queue.Empty:
+            continue
+        if item is END_OF_STREAM:
+            return
+        yield frame_from_stream(index, item)
+        index += 1
+
+
+def short_error(text: str | None) -> str | None:
+    """The last line of a traceback ("DataError: rgb/5.png: cannot decode"), for the status."""
+    if not text:
+        return text
+    lines = [line.strip() for line in text.strip().splitlines() if line.strip()]
+    if not lines or not lines[0].startswith("Traceback"):
+        return text.strip()
+    kind, sep, message = lines[-1].partition(":")
+    return f"{kind.rsplit('.', 1)[-1]}{sep}{message}" + " (traceback in worker.log)"
+
+
+def _redirect_output(log_path: Path) -> None:
+    """Send this process's (and its children's) stdout/stderr to the session's log file."""
+    log = open(log_path, "ab", buffering=0)
+    os.dup2(log.fileno(), 1)
+    os.dup2(log.fileno(), 2)
+    sys.stdout = open(1, "w", buffering=1, closefd=False)
+    sys.stderr = open(2, "w", buffering=1, closefd=False)
+
+
+def run_worker(job: WorkerJob, stop_event, event_queue, frame_queue) -> None:
+    """Process entry point: run the session, report events, always end with WorkerDone."""
+    os.setpgrp()
+    out_dir = Path(job.out_dir)
+    _redirect_output(out_dir / "worker.log")
+    event_queue.put(WorkerStarted(pid=os.getpid()))
+    try:
+        from slam.config import load_config
+        from slam.runtime import run_slam
+
+        config = load_config(job.preset)
+        if stop_event.is_set():  # cancelled while this process was starting
+            done = WorkerDone(status="cancelled", error=None)
+        else:
+            source = open_source(job.source, frame_queue, stop_event)
+            result = run_slam([source], config, out_dir, use_gt_poses=job.use_gt_poses,
+                              on_event=event_queue.put, stop=stop_event)
+            if result.error:
+                print(result.error, flush=True)  # the whole traceback, for worker.log
+            done = WorkerDone(status=result.status, error=short_error(result.error), frames=result.frames,
+                              keyframes=result.keyframes, maps=result.maps, loops=result.loops,
+                              fps=float(result.fps))
+    except DataError as error:
+        done = WorkerDone(status="failed", error=f"bad input data: {error}")
+    except Exception as error:  # noqa: BLE001 - any crash fails only this session; traceback goes to the log
+        traceback.print_exc()
+        done = WorkerDone(status="failed", error=f"{type(error).__name__}: {error}")
+    print(f"worker done: {done.status} {done.error or ''}", flush=True)
+    event_queue.put(done)
+    # Flush the queue's feeder thread before exiting, so the last messages are not lost.
+    event_queue.close()
+    event_queue.join_thread()

@@ -1,0 +1,488 @@
+// voxfusion page: sessions, upload, viewer embed, render and AR panels. Plain JS, no build step.
+"use strict";
+
+const $ = (id) => document.getElementById(id);
+const PRESETS = ["", "test", "cpu", "paper"];
+
+// ------------------------------------------------------------------ token and API calls
+const token = (() => {
+  const fromUrl = new URLSearchParams(location.search).get("token");
+  if (fromUrl) sessionStorage.setItem("voxfusion_token", fromUrl);
+  return fromUrl || sessionStorage.getItem("voxfusion_token") || "";
+})();
+
+function withToken(url) {
+  if (!token) return url;
+  return url + (url.includes("?") ? "&" : "?") + "token=" + encodeURIComponent(token);
+}
+
+function authHeaders(extra = {}) {
+  return token ? { ...extra, Authorization: "Bearer " + token } : extra;
+}
+
+async function errorText(response) {
+  try {
+    const body = await response.json();
+    if (typeof body.detail === "string") return body.detail;
+    if (Array.isArray(body.detail)) return body.detail.map((d) => `${(d.loc || []).join(".")}: ${d.msg}`).join("; ");
+    return JSON.stringify(body);
+  } catch (_) {
+    return `${response.status} ${response.statusText}`;
+  }
+}
+
+async function api(path, { method = "GET", json, expect = "json" } = {}) {
+  const options = { method, headers: authHeaders() };
+  if (json !== undefined) {
+    options.headers["Content-Type"] = "application/json";
+    options.body = JSON.stringify(json);
+  }
+  const response = await fetch(path, options);
+  if (!response.ok) throw new Error(await errorText(response));
+  if (expect === "json") return response.status === 204 ? null : response.json();
+  if (expect === "text") return response.text();
+  return response.blob();
+}
+
+function say(id, text, kind = "") {
+  const el = $(id);
+  el.textContent = text;
+  el.className = "message " + kind;
+}
+
+// ------------------------------------------------------------------ small 3D maths (row-major 4x4 arrays)
+const deg = (d) => (d * Math.PI) / 180;
+const norm = (v) => { const n = Math.hypot(...v) || 1; return v.map((x) => x / n); };
+const cross = (a, b) => [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]];
+
+function poseLooking(position, yawDeg, pitchDeg) {
+  // Camera at `position` looking along yaw (about world z, from +x) and pitch; world z is up.
+  const yaw = deg(yawDeg), pitch = deg(pitchDeg);
+  const forward = [Math.cos(pitch) * Math.cos(yaw), Math.cos(pitch) * Math.sin(yaw), Math.sin(pitch)];
+  const right = norm(cross(forward, [0, 0, 1]));
+  const down = cross(forward, right);
+  return [
+    [right[0], down[0], forward[0], position[0]],
+    [right[1], down[1], forward[1], position[1]],
+    [right[2], down[2], forward[2], position[2]],
+    [0, 0, 0, 1],
+  ];
+}
+
+function poseFromTum(tx, ty, tz, qx, qy, qz, qw) {
+  const n = Math.hypot(qx, qy, qz, qw) || 1;
+  const [x, y, z, w] = [qx / n, qy / n, qz / n, qw / n];
+  return [
+    [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y), tx],
+    [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x), ty],
+    [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y), tz],
+    [0, 0, 0, 1],
+  ];
+}
+
+function yawPose(position, yawDeg) {
+  const c = Math.cos(deg(yawDeg)), s = Math.sin(deg(yawDeg));
+  return [[c, -s, 0, position[0]], [s, c, 0, position[1]], [0, 0, 1, position[2]], [0, 0, 0, 1]];
+}
+
+function formatMatrix(T) {
+  return "[" + T.map((row) => "[" + row.map((v) => Number(v).toFixed(5)).join(", ") + "]").join(",\n ") + "]";
+}
+
+function readMatrix() {
+  const text = $("cam-matrix").value.trim();
+  let values;
+  try {
+    values = JSON.parse(text).flat();
+  } catch (_) {
+    values = text.split(/[\s,\[\]]+/).filter((s) => s.length).map(Number);
+  }
+  if (values.length !== 16 || values.some((v) => !Number.isFinite(v))) {
+    throw new Error("T_world_cam: enter 16 numbers (a 4x4 matrix)");
+  }
+  return [0, 1, 2, 3].map((r) => values.slice(4 * r, 4 * r + 4));
+}
+
+// ------------------------------------------------------------------ sessions
+let sessions = [];
+let selectedId = null;
+
+function describe(s) {
+  const total = s.frames_total == null ? "" : ` / ${s.frames_total}`;
+  return `${s.frames_done}${total} frames · ${s.fps.toFixed(1)} frames/s · ${s.keyframes} keyframes · ` +
+         `${s.maps} map${s.maps === 1 ? "" : "s"} · ${s.loops} loop${s.loops === 1 ? "" : "s"}`;
+}
+
+// Items are created once per session and updated in place, so that polling never swaps an
+// element out from under a click.
+const sessionItems = new Map();
+
+function createSessionItem(id) {
+  const li = document.createElement("li");
+  li.dataset.id = id;
+  li.innerHTML = `<div class="top"><span class="id"></span><span class="badge"></span></div>
+    <div class="source"></div><progress hidden></progress><div class="stats"></div>
+    <div class="error" hidden></div><div class="actions"></div>`;
+  li.querySelector(".id").textContent = id;
+  li.addEventListener("click", (event) => {
+    if (event.target.closest("a,button")) return;
+    selectSession(id);
+  });
+  return li;
+}
+
+function updateSessionItem(li, s) {
+  li.classList.toggle("selected", s.id === selectedId);
+  const badge = li.querySelector(".badge");
+  badge.className = "badge " + s.status;
+  badge.textContent = s.status;
+  li.querySelector(".source").textContent = `${s.source} · preset ${s.preset}`;
+  const bar = li.querySelector("progress");
+  bar.hidden = !s.frames_total;
+  if (s.frames_total) { bar.max = s.frames_total; bar.value = s.frames_done; }
+  li.querySelector(".stats").textContent = describe(s);
+  const error = li.querySelector(".error");
+  error.hidden = !s.error;
+  error.textContent = s.error || "";
+  const actionsKey = `${s.status}|${s.outputs.mesh}|${s.outputs.trajectory}`;
+  if (li.dataset.actions !== actionsKey) {
+    li.dataset.actions = actionsKey;
+    li.querySelector(".actions").replaceChildren(...sessionActions(s));
+  }
+}
+
+function sessionActions(s) {
+  const actions = [];
+  const base = `/api/sessions/${s.id}`;
+  if (s.outputs.mesh) {
+    for (const fmt of ["ply", "glb", "obj"]) actions.push(link(withToken(`${base}/mesh?format=${fmt}`), fmt.toUpperCase()));
+  }
+  if (s.outputs.trajectory) actions.push(link(withToken(`${base}/trajectory`), "trajectory"));
+  if (s.status === "running" || s.status === "queued") actions.push(button("cancel", () => cancelSession(s.id)));
+  actions.push(button("delete", () => deleteSession(s.id), "danger"));
+  return actions;
+}
+
+function link(href, text) {
+  const a = document.createElement("a");
+  a.href = href;
+  a.textContent = text;
+  a.setAttribute("download", "");
+  return a;
+}
+
+function button(text, onClick, extraClass = "") {
+  const b = document.createElement("button");
+  b.type = "button";
+  b.className = "small " + extraClass;
+  b.textContent = text;
+  b.addEventListener("click", onClick);
+  return b;
+}
+
+function renderSessionList() {
+  const list = $("session-list");
+  if (!sessions.length) {
+    sessionItems.clear();
+    list.replaceChildren(emptyItem());
+  } else {
+    const wanted = sessions.map((s) => {
+      const li = sessionItems.get(s.id) || createSessionItem(s.id);
+      sessionItems.set(s.id, li);
+      updateSessionItem(li, s);
+      return li;
+    });
+    for (const id of [...sessionItems.keys()]) {
+      if (!sessions.some((s) => s.id === id)) sessionItems.delete(id);
+    }
+    const current = [...list.children];
+    if (current.length !== wanted.length || current.some((li, i) => li !== wanted[i])) list.replaceChildren(...wanted);
+  }
+  $("render-session").textContent = selectedId ? `session ${selectedId}` : "(select a session)";
+}
+
+function emptyItem() {
+  const li = document.createElement("li");
+  li.className = "empty";
+  li.textContent = "No sessions yet: upload a dataset or start the synthetic demo.";
+  return li;
+}
+
+async function refreshSessions() {
+  try {
+    sessions = await api("/api/sessions");
+    if (!sessions.some((s) => s.id === selectedId)) selectedId = sessions.length ? sessions[0].id : null;
+    renderSessionList();
+    $("server-note").textContent = "";
+  } catch (error) {
+    $("server-note").textContent = "server unreachable: " + error.message;
+  }
+}
+
+function selectSession(id) {
+  selectedId = id;
+  renderSessionList();
+  api(`/api/viewer/select/${id}`, { method: "POST" }).catch(() => {});
+}
+
+async function cancelSession(id) {
+  try { await api(`/api/sessions/${id}/cancel`, { method: "POST" }); } catch (error) { alert(error.message); }
+  refreshSessions();
+}
+
+async function deleteSession(id) {
+  if (!confirm(`Delete session ${id} and all its results?`)) return;
+  try { await api(`/api/sessions/${id}`, { method: "DELETE" }); } catch (error) { alert(error.message); }
+  if (selectedId === id) selectedId = null;
+  refreshSessions();
+}
+
+// ------------------------------------------------------------------ new sessions
+function fillPresets() {
+  for (const select of document.querySelectorAll("select.preset")) {
+    for (const p of PRESETS) {
+      const option = document.createElement("option");
+      option.value = p;
+      option.textContent = p || "server default";
+      select.appendChild(option);
+    }
+  }
+}
+
+function uploadDataset(event) {
+  event.preventDefault();
+  const file = $("upload-file").files[0];
+  if (!file) return say("upload-message", "Choose a zip first.", "error");
+  const form = new FormData();
+  form.append("file", file);
+  form.append("format", $("upload-format").value);
+  if ($("upload-preset").value) form.append("preset", $("upload-preset").value);
+  if ($("upload-intrinsics").value.trim()) form.append("intrinsics", $("upload-intrinsics").value.trim());
+  if ($("upload-depth-scale").value.trim()) form.append("depth_scale", $("upload-depth-scale").value.trim());
+  const xhr = new XMLHttpRequest();
+  const bar = $("upload-progress");
+  bar.hidden = false;
+  bar.value = 0;
+  $("upload-button").disabled = true;
+  say("upload-message", "Uploading…");
+  xhr.upload.addEventListener("progress", (e) => {
+    if (e.lengthComputable) bar.value = e.loaded / e.total;
+    if (e.loaded === e.total) say("upload-message", "Checking the dataset…");
+  });
+  xhr.addEventListener("loadend", () => {
+    $("upload-button").disabled = false;
+    bar.hidden = true;
+    let body = {};
+    try { body = JSON.parse(xhr.responseText); } catch (_) { /* not JSON */ }
+    if (xhr.status === 201) {
+      say("upload-message", `Session ${body.id} created (${body.status}).`, "ok");
+      selectedId = body.id;
+      refreshSessions().then(() => selectSession(body.id));
+    } else {
+      say("upload-message", `Upload refused: ${body.detail || xhr.statusText || "connection failed"}`, "error");
+    }
+  });
+  xhr.open("POST", "/api/sessions");
+  if (token) xhr.setRequestHeader("Authorization", "Bearer " + token);
+  xhr.send(form);
+}
+
+async function startDemo(event) {
+  event.preventDefault();
+  const spec = `${$("demo-kind").value}?frames=${$("demo-frames").value}&width=320&height=240`;
+  const json = { source: "synthetic", spec };
+  if ($("demo-preset").value) json.preset = $("demo-preset").value;
+  try {
+    const created = await api("/api/sessions", { method: "POST", json });
+    say("demo-message", `Session ${created.id} created (${created.status}).`, "ok");
+    selectedId = created.id;
+    await refreshSessions();
+    selectSession(created.id);
+  } catch (error) {
+    say("demo-message", error.message, "error");
+  }
+}
+
+// ------------------------------------------------------------------ viewer
+async function setUpViewer() {
+  try {
+    const info = await api("/api/viewer");
+    if (!info.enabled) throw new Error("viewer off");
+    $("viewer-frame").src = withToken("/viewer");
+    $("viewer-state").textContent = `(viser, port ${info.port})`;
+  } catch (_) {
+    $("viewer-frame").hidden = true;
+    $("viewer-off").hidden = false;
+  }
+}
+
+// ------------------------------------------------------------------ render panel
+let lastCamera = null;
+
+function currentCamera() {
+  const width = Number($("cam-width").value), height = Number($("cam-height").value);
+  const fov = deg(Number($("cam-fov").value));
+  const f = (0.5 * height) / Math.tan(fov / 2);
+  return { T_world_cam: readMatrix(), intrinsics: { fx: f, fy: f, cx: width / 2, cy: height / 2, width, height } };
+}
+
+async function useViewerCamera() {
+  try {
+    const camera = await api(`/api/viewer/camera?width=${Number($("cam-width").value) || 320}`);
+    $("cam-matrix").value = formatMatrix(camera.T_world_cam);
+    const i = camera.intrinsics;
+    $("cam-width").value = i.width;
+    $("cam-height").value = i.height;
+    $("cam-fov").value = ((2 * Math.atan(i.height / 2 / i.fy) * 180) / Math.PI).toFixed(1);
+    say("render-message", "Camera taken from the viewer.", "ok");
+  } catch (error) {
+    say("render-message", error.message, "error");
+  }
+}
+
+async function useLastPose() {
+  if (!selectedId) return say("render-message", "Select a session first.", "error");
+  try {
+    const text = await api(`/api/sessions/${selectedId}/trajectory`, { expect: "text" });
+    const rows = text.split("\n").filter((l) => l.trim() && !l.startsWith("#"));
+    const v = rows[rows.length - 1].trim().split(/\s+/).map(Number);
+    $("cam-matrix").value = formatMatrix(poseFromTum(v[1], v[2], v[3], v[4], v[5], v[6], v[7]));
+    say("render-message", `Pose of the last tracked frame (t = ${v[0]}).`, "ok");
+  } catch (error) {
+    say("render-message", error.message, "error");
+  }
+}
+
+function poseFromNumbers() {
+  const p = ["cam-x", "cam-y", "cam-z"].map((id) => Number($(id).value));
+  $("cam-matrix").value = formatMatrix(poseLooking(p, Number($("cam-yaw").value), Number($("cam-pitch").value)));
+}
+
+async function renderView() {
+  if (!selectedId) return say("render-message", "Select a session first.", "error");
+  let camera;
+  try { camera = currentCamera(); } catch (error) { return say("render-message", error.message, "error"); }
+  say("render-message", "Rendering…");
+  $("render-button").disabled = true;
+  try {
+    const path = `/api/sessions/${selectedId}/render`;
+    const [color, preview] = await Promise.all([
+      api(path, { method: "POST", json: camera, expect: "blob" }),
+      api(path + "?output=depth_preview", { method: "POST", json: camera, expect: "blob" }),
+    ]);
+    $("render-color").src = URL.createObjectURL(color);
+    $("render-depth").src = URL.createObjectURL(preview);
+    lastCamera = { ...camera, session: selectedId };
+    say("render-message", `Rendered ${camera.intrinsics.width}x${camera.intrinsics.height}.`, "ok");
+  } catch (error) {
+    say("render-message", error.message, "error");
+  } finally {
+    $("render-button").disabled = false;
+  }
+}
+
+async function downloadDepth(event) {
+  event.preventDefault();
+  if (!lastCamera) return say("render-message", "Render a view first.", "error");
+  try {
+    const { session, ...camera } = lastCamera;
+    const blob = await api(`/api/sessions/${session}/render?output=depth`, { method: "POST", json: camera, expect: "blob" });
+    const a = document.createElement("a");
+    a.href = URL.createObjectURL(blob);
+    a.download = `${session}_depth_mm.png`;
+    a.click();
+  } catch (error) {
+    say("render-message", error.message, "error");
+  }
+}
+
+// ------------------------------------------------------------------ AR panel
+let assetId = null;
+
+async function uploadAsset() {
+  const file = $("ar-asset-file").files[0];
+  if (!file) { assetId = null; $("ar-asset-note").textContent = ""; return; }
+  const form = new FormData();
+  form.append("file", file);
+  $("ar-asset-note").textContent = "Uploading…";
+  const response = await fetch("/api/assets", { method: "POST", headers: authHeaders(), body: form });
+  if (!response.ok) {
+    assetId = null;
+    $("ar-asset-note").textContent = "Asset refused: " + (await errorText(response));
+    return;
+  }
+  const body = await response.json();
+  assetId = body.id;
+  $("ar-asset-note").textContent = `Using ${file.name} (${body.faces} faces) instead of the shape.`;
+}
+
+function arObject() {
+  const hex = $("ar-color").value;
+  const color = [1, 3, 5].map((i) => parseInt(hex.slice(i, i + 2), 16) / 255);
+  const position = ["ar-x", "ar-y", "ar-z"].map((id) => Number($(id).value));
+  const object = { T_world_obj: yawPose(position, Number($("ar-yaw").value)), scale: Number($("ar-scale").value) };
+  if (assetId) object.asset = assetId;
+  else { object.shape = $("ar-shape").value; object.color = color; }
+  return object;
+}
+
+async function composite() {
+  if (!selectedId) return say("ar-message", "Select a session first.", "error");
+  const request = { objects: [arObject()] };
+  if ($("ar-background").value === "frame") {
+    request.background = `frame:${Number($("ar-frame").value)}`;
+  } else {
+    try { Object.assign(request, currentCamera()); } catch (error) { return say("ar-message", error.message, "error"); }
+    request.background = "render";
+  }
+  say("ar-message", "Compositing…");
+  try {
+    const image = await api(`/api/sessions/${selectedId}/ar`, { method: "POST", json: request, expect: "blob" });
+    $("ar-image").src = URL.createObjectURL(image);
+    say("ar-message", "Done.", "ok");
+  } catch (error) {
+    say("ar-message", error.message, "error");
+  }
+}
+
+async function pickSurface(event) {
+  if (!lastCamera || !$("ar-place").checked) return;
+  const img = $("render-color");
+  const rect = img.getBoundingClientRect();
+  const u = ((event.clientX - rect.left) / rect.width) * lastCamera.intrinsics.width;
+  const v = ((event.clientY - rect.top) / rect.height) * lastCamera.intrinsics.height;
+  const { session, ...camera } = lastCamera;
+  try {
+    const hit = await api(`/api/sessions/${session}/pick`, { method: "POST", json: { ...camera, u, v } });
+    if (!hit.hit) return say("ar-message", "Nothing of the map under that pixel.", "error");
+    const half = Number($("ar-scale").value) / 2;
+    const centre = hit.point.map((p, i) => p + hit.normal[i] * half);
+    ["ar-x", "ar-y", "ar-z"].forEach((id, i) => { $(id).value = centre[i].toFixed(3); });
+    $("ar-background").value = "render";
+    say("ar-message", `Placed on the surface at ${hit.point.map((p) => p.toFixed(2)).join(", ")}.`, "ok");
+    composite();
+  } catch (error) {
+    say("ar-message", error.message, "error");
+  }
+}
+
+// ------------------------------------------------------------------ start
+function start() {
+  fillPresets();
+  poseFromNumbers();
+  $("upload-form").addEventListener("submit", uploadDataset);
+  $("demo-form").addEventListener("submit", startDemo);
+  $("use-viewer-camera").addEventListener("click", useViewerCamera);
+  $("use-last-pose").addEventListener("click", useLastPose);
+  $("pose-from-numbers").addEventListener("click", poseFromNumbers);
+  $("render-button").addEventListener("click", renderView);
+  $("depth-download").addEventListener("click", downloadDepth);
+  $("render-color").addEventListener("click", pickSurface);
+  $("ar-asset-file").addEventListener("change", uploadAsset);
+  $("ar-button").addEventListener("click", composite);
+  setUpViewer();
+  refreshSessions();
+  setInterval(refreshSessions, 1000);
+}
+
+start();

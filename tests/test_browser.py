@@ -1,0 +1,153 @@
+"""The page in a real browser (Debian chromium driven by playwright) against a real uvicorn:
+it loads, an upload works, the embedded viewer connects and shows the mesh, the render panel
+returns an image."""
+
+from __future__ import annotations
+
+import io
+import socket
+import threading
+import time
+import zipfile
+from pathlib import Path
+from typing import Iterator
+
+import cv2
+import httpx
+import numpy as np
+import pytest
+
+from tests.test_server_api import needs_runtime
+
+CHROMIUM = Path("/usr/bin/chromium")
+CHROMIUM_ARGS = ["--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
+                 "--disable-background-networking"]
+
+pytestmark = [
+    pytest.mark.browser,
+    pytest.mark.skipif(not CHROMIUM.exists(), reason=f"{CHROMIUM} is not installed (scripts/browser-deps.sh)"),
+    needs_runtime,
+]
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def server_url(tmp_path_factory) -> Iterator[str]:
+    """The app under a real uvicorn (the viewer's WebSocket needs a real server) in a thread."""
+    import uvicorn
+
+    from server.main import create_app
+    from server.settings import Settings
+
+    port = free_port()
+    settings = Settings(data_dir=tmp_path_factory.mktemp("browser-data"), viewer_port=0, max_sessions=2)
+    server = uvicorn.Server(uvicorn.Config(create_app(settings), host="127.0.0.1", port=port, log_level="warning"))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 60
+    while not server.started:
+        assert time.monotonic() < deadline and thread.is_alive(), "uvicorn did not start"
+        time.sleep(0.1)
+    yield f"http://127.0.0.1:{port}"
+    server.should_exit = True
+    thread.join(timeout=30)
+
+
+def tum_zip_of_synthetic_frames(frames: int = 8) -> bytes:
+    """A TUM RGB-D layout (rgb.txt, depth.txt, intrinsics.txt, 16-bit depth at 5000/m) in a zip."""
+    from slam.data import open_sequence
+
+    sequence = open_sequence(f"synthetic:orbit?frames={frames}&width=160&height=120")
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w") as archive:
+        rgb_list, depth_list = ["# color images"], ["# depth images"]
+        for frame in sequence:
+            stamp = f"{100.0 + frame.timestamp:.6f}"
+            bgr = cv2.cvtColor(np.round(frame.rgb * 255).astype(np.uint8), cv2.COLOR_RGB2BGR)
+            archive.writestr(f"room/rgb/{stamp}.png", cv2.imencode(".png", bgr)[1].tobytes())
+            depth = np.round(frame.depth * 5000).astype(np.uint16)
+            archive.writestr(f"room/depth/{stamp}.png", cv2.imencode(".png", depth)[1].tobytes())
+            rgb_list.append(f"{stamp} rgb/{stamp}.png")
+            depth_list.append(f"{stamp} depth/{stamp}.png")
+        K = sequence[0].K
+        archive.writestr("room/rgb.txt", "\n".join(rgb_list) + "\n")
+        archive.writestr("room/depth.txt", "\n".join(depth_list) + "\n")
+        archive.writestr("room/intrinsics.txt", f"{K[0, 0]} {K[1, 1]} {K[0, 2]} {K[1, 2]}\n")
+    return buffer.getvalue()
+
+
+def non_background_fraction(png: bytes) -> float:
+    """Share of pixels in the middle of the viewer that are not viser's white background
+    (left of its GUI panel, below its notifications): the mesh fills it, lines alone do not."""
+    image = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
+    h, w = image.shape[:2]
+    middle = image[int(0.4 * h): int(0.9 * h), int(0.35 * w): int(0.65 * w)]
+    return float((middle.min(axis=2) < 235).mean())
+
+
+def test_page_upload_viewer_and_render(server_url, tmp_path):
+    from playwright.sync_api import sync_playwright
+
+    api = httpx.Client(base_url=server_url, timeout=30)
+    session_id = api.post("/api/sessions", json={"source": "synthetic", "preset": "test",
+                                                 "spec": "orbit?frames=12&width=160&height=120"}).json()["id"]
+    deadline = time.monotonic() + 150
+    while api.get(f"/api/sessions/{session_id}").json()["status"] != "finished":
+        assert time.monotonic() < deadline, "synthetic session did not finish"
+        time.sleep(0.5)
+    zip_path = tmp_path / "room.zip"
+    zip_path.write_bytes(tum_zip_of_synthetic_frames())
+
+    with sync_playwright() as playwright:
+        browser = playwright.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
+        page = browser.new_page(viewport={"width": 1400, "height": 1000})
+        errors: list[str] = []
+        page.on("pageerror", lambda error: errors.append(str(error)))
+        page.goto(server_url + "/")
+        assert page.title().startswith("voxfusion")
+        page.wait_for_selector(f"#session-list li[data-id='{session_id}'] .badge.finished", timeout=20_000)
+
+        # Upload a dataset zip through the form (XMLHttpRequest with a progress bar).
+        page.set_input_files("#upload-file", str(zip_path))
+        page.select_option("#upload-preset", "test")
+        page.click("#upload-button")
+        page.wait_for_function("document.getElementById('upload-message').textContent.includes('created')",
+                               timeout=60_000)
+        uploaded = [s for s in api.get("/api/sessions").json() if s["source"].startswith("upload")]
+        assert len(uploaded) == 1, uploaded
+        page.wait_for_selector(f"#session-list li[data-id='{uploaded[0]['id']}']", timeout=10_000)
+        api.post(f"/api/sessions/{uploaded[0]['id']}/cancel")  # frees the CPU for the browser's software WebGL
+
+        # Show the finished synthetic session in the viewer; the viewer connects and draws its mesh.
+        page.click(f"#session-list li[data-id='{session_id}'] .source")
+        deadline = time.monotonic() + 90
+        while api.get("/api/viewer").json()["clients"] < 1:
+            assert time.monotonic() < deadline, "the embedded viewer did not connect"
+            time.sleep(0.5)
+        viewer = page.locator("#viewer-frame")
+        fraction = 0.0
+        while fraction < 0.08:
+            assert time.monotonic() < deadline, f"no mesh in the viewer ({fraction:.3f} of it is not background; " \
+                                                f"see {tmp_path / 'viewer.png'})"
+            time.sleep(2.0)
+            shot = viewer.screenshot(timeout=60_000)
+            (tmp_path / "viewer.png").write_bytes(shot)
+            fraction = non_background_fraction(shot)
+
+        # Render panel: the viewer's camera to a colour and a depth image.
+        page.click("#use-viewer-camera")
+        page.wait_for_function("document.getElementById('render-message').textContent.includes('viewer')",
+                               timeout=20_000)
+        page.click("#render-button")
+        page.wait_for_function("document.getElementById('render-message').textContent.startsWith('Rendered')",
+                               timeout=60_000)
+        sizes = page.evaluate("[document.getElementById('render-color').naturalWidth,"
+                              " document.getElementById('render-depth').naturalWidth]")
+        assert sizes[0] > 0 and sizes[1] > 0
+        assert not errors, errors
+        browser.close()
