@@ -98,14 +98,16 @@ def _subparsers_action(parser: argparse.ArgumentParser):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """The core parser from ``slam.cli`` (when present) plus ``serve`` and ``demo``."""
-    try:
-        from slam.cli import build_parser as build_core_parser
-    except ImportError:
-        parser = argparse.ArgumentParser(prog="voxfusion", description="Vox-Fusion++ neural RGB-D SLAM")
-    else:
-        parser = build_core_parser()
-    add_server_commands(_subparsers_action(parser))
+    """The core parser from ``slam.cli`` plus ``ar`` (from ``ar.cli``), ``serve`` and ``demo``."""
+    from ar.cli import add_ar_arguments, cmd_ar
+    from slam.cli import build_parser as build_core_parser
+
+    parser = build_core_parser()
+    subparsers = _subparsers_action(parser)
+    ar_parser = subparsers.add_parser("ar", help="composite virtual objects into a rendered view of a map")
+    add_ar_arguments(ar_parser)
+    ar_parser.set_defaults(handler=cmd_ar)
+    add_server_commands(subparsers)
     return parser
 
 

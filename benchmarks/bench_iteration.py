@@ -1,0 +1,326 @@
+"""Time of one mapping iteration with 1024 rays on this CPU, broken down as the paper's Table
+(voxel allocation, ray-voxel intersection, point sampling, volume rendering, back-propagation).
+
+A realistic map first: Replica office0 frames 0-3 mapped with GT poses by the ``cpu`` preset
+(the synthetic walk when Replica is absent). Then each timed iteration draws 1024 rays from
+those frames and runs the pure functions of ``slam/render.py`` in the order ``render_rays``
+calls them, with a timer around each stage, then the losses, ``backward`` and the Adam step
+on embeddings and decoder. Before timing, the staged pipeline is checked against
+``render_rays`` on the same rays (same colour and depth), so the breakdown cannot drift
+from the real renderer unnoticed. Two end-to-end rows time the real thing:
+``render_rays`` + losses + backward + step on the same 1024 rays, and one call of
+``Mapper.optimize`` with the preset's window (window_size x num_rays rays, keyframe poses
+optimised). Medians over ``--iterations`` after 3 warm-up iterations, with 1 torch thread and
+with torch's default.
+
+    python benchmarks/bench_iteration.py [--quick] [--rays 1024] [--iterations 20] [--json FILE]
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import (
+    REPLICA,
+    Figure,
+    MissingData,
+    figures_payload,
+    figures_table,
+    load_line,
+    map_with_gt_poses,
+    markdown_table,
+    pipeline_frame,
+    write_json,
+)
+
+from slam.frames import backproject, prepare_frame, sample_pixels
+from slam.losses import LossWeights, compute_losses
+from slam.mapping import training_far
+from slam.render import (
+    RenderOutput,
+    accumulate_along_rays,
+    interpolate_embeddings,
+    ray_voxel_intersections,
+    render_rays,
+    sample_points_from_hits,
+    sdf_weights,
+)
+from slam.voxels import SparseVoxelMap
+
+TARGET_MS = 200.0
+STAGES = ("ray generation", "ray-voxel intersection", "point sampling", "interpolation", "decoder (SDF)",
+          "weights + accumulation", "decoder (colour)", "losses", "back-propagation")
+
+
+class StageTimer:
+    """Wall-clock seconds per stage name for one iteration."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = {}
+        self._name, self._t0 = "", 0.0
+
+    def __call__(self, name: str) -> StageTimer:
+        self._name = name
+        return self
+
+    def __enter__(self) -> None:
+        self._t0 = time.perf_counter()
+
+    def __exit__(self, *exc) -> None:
+        self.seconds[self._name] = self.seconds.get(self._name, 0.0) + time.perf_counter() - self._t0
+
+
+def draw_rays(frames, num_rays: int, generator: torch.Generator):
+    """``num_rays`` rays spread over the frames (map frame = world here). -> o, d, rgb, depth."""
+    per_frame = [num_rays // len(frames) + (i < num_rays % len(frames)) for i in range(len(frames))]
+    origins, dirs, rgb, depth = [], [], [], []
+    for (frame, T), n in zip(frames, per_frame):
+        batch = sample_pixels(frame, n, generator)
+        dirs.append(batch.dirs_cam @ T[:3, :3].T)
+        origins.append(T[:3, 3].expand(n, 3))
+        rgb.append(batch.rgb)
+        depth.append(batch.depth)
+    return torch.cat(origins), torch.cat(dirs), torch.cat(rgb), torch.cat(depth)
+
+
+def staged_render(o, d, view, decoder, *, near, far, step, truncation, max_hits, offsets,
+                  timer: StageTimer, color_weight_eps: float = 1e-5) -> RenderOutput:
+    """``slam.render.render_rays`` stage by stage, each under ``timer``."""
+    num_rays = o.shape[0]
+    with timer("ray-voxel intersection"):
+        hits = ray_voxel_intersections(o, d, near, far, view.voxel_codes, view.voxel_size, max_hits)
+    with timer("point sampling"):
+        samples = sample_points_from_hits(hits, step, offsets)
+        r = samples.ray_index
+        points = o[r] + samples.t[:, None] * d[r]
+    with timer("interpolation"):
+        feats = interpolate_embeddings(points, samples.voxel_index, view)
+    with timer("decoder (SDF)"):
+        sdf, hidden = decoder.sdf_and_hidden(feats)
+    with timer("weights + accumulation"):
+        w = sdf_weights(sdf, samples.t, r, num_rays, truncation)
+        wsum = torch.zeros(num_rays, dtype=w.dtype).index_add(0, r, w)
+        norm = 1.0 / (wsum + 1e-8)
+        depth = torch.zeros_like(wsum).index_add(0, r, w * samples.t) * norm
+        depth_var = torch.zeros_like(wsum).index_add(0, r, w * (samples.t - depth.detach()[r]) ** 2) * norm
+        active = torch.nonzero(w.detach() > color_weight_eps, as_tuple=True)[0]
+    with timer("decoder (colour)"):
+        rgb_active = decoder.color(decoder.feature_from_hidden(hidden[active]))
+    with timer("weights + accumulation"):
+        color = accumulate_along_rays(w[active], rgb_active, r[active], num_rays) * norm[:, None]
+        hit = torch.zeros(num_rays, dtype=torch.bool)
+        hit[r] = True
+    return RenderOutput(color, depth, wsum, hit, depth_var, samples, sdf)
+
+
+class IterationBench:
+    """A mapped submap, its frames and an optimiser, ready for timed iterations."""
+
+    def __init__(self, mapper, frames, num_rays: int, seed: int = 0):
+        self.mapper = mapper
+        self.submap = mapper.current
+        self.config = mapper.config
+        # Rays come from every mapped frame (keyframes or not), at its GT pose.
+        self.frames = [(prepare_frame(f, None, torch.device("cpu"), self.config.voxel.max_depth),
+                        torch.as_tensor(f.T_world_cam, dtype=torch.float32)) for f in frames]
+        self.num_rays = num_rays
+        self.generator = torch.Generator().manual_seed(seed)
+        m = self.config.mapping
+        self.optimizer = torch.optim.Adam([
+            {"params": [self.submap.voxels.embeddings], "lr": m.lr_embed},
+            {"params": list(self.submap.decoder.parameters()), "lr": m.lr_decoder}])
+        c = self.config.loss
+        self.weights = LossWeights(c.rgb_weight, c.depth_weight, c.sdf_weight, c.fs_weight)
+
+    def _render_args(self, d_gt):
+        r = self.config.render
+        n = d_gt.shape[0]
+        return {"near": torch.full((n,), 0.05), "far": training_far(d_gt, r.truncation, r.max_distance),
+                "step": r.step_ratio * self.submap.voxels.voxel_size, "truncation": r.truncation,
+                "max_hits": r.max_hits, "offsets": torch.rand(n, generator=self.generator)}
+
+    def staged_iteration(self) -> dict[str, float]:
+        timer = StageTimer()
+        with timer("ray generation"):
+            o, d, rgb, depth = draw_rays(self.frames, self.num_rays, self.generator)
+        out = staged_render(o, d, self.submap.view(), self.submap.decoder, timer=timer, **self._render_args(depth))
+        with timer("losses"):
+            losses = compute_losses(out, rgb, depth, self.config.render.truncation, self.weights,
+                                    max_depth=self.config.render.max_distance)
+        with timer("back-propagation"):
+            self.optimizer.zero_grad(set_to_none=True)
+            losses.total.backward()
+            self.optimizer.step()
+        timer.seconds["samples"] = float(out.samples.t.numel())
+        return timer.seconds
+
+    def render_rays_iteration(self) -> float:
+        t0 = time.perf_counter()
+        o, d, rgb, depth = draw_rays(self.frames, self.num_rays, self.generator)
+        out = render_rays(o, d, self.submap.view(), self.submap.decoder, **self._render_args(depth))
+        losses = compute_losses(out, rgb, depth, self.config.render.truncation, self.weights,
+                                max_depth=self.config.render.max_distance)
+        self.optimizer.zero_grad(set_to_none=True)
+        losses.total.backward()
+        self.optimizer.step()
+        return time.perf_counter() - t0
+
+    def mapper_iteration(self) -> float:
+        t0 = time.perf_counter()
+        self.mapper.optimize(self.submap, 1)
+        return time.perf_counter() - t0
+
+    def allocation(self) -> float:
+        """Back-projection, keyframe test and allocation of one frame into an empty map."""
+        frame, T = self.frames[-1]
+        v = self.config.voxel
+        vmap = SparseVoxelMap(v.voxel_size, v.embed_dim, v.embed_init_std)
+        t0 = time.perf_counter()
+        tr = self.config.render.truncation
+        points = backproject(frame, T, v.alloc_pixel_stride, (-tr, 0.0, tr))
+        vmap.count_new(points)
+        vmap.allocate(points)
+        return time.perf_counter() - t0
+
+    def check_staged_matches(self) -> float:
+        """Largest |difference| of colour and depth between staged and real rendering."""
+        o, d, _, depth = draw_rays(self.frames, self.num_rays, self.generator)
+        args = self._render_args(depth)
+        with torch.no_grad():
+            real = render_rays(o, d, self.submap.view(), self.submap.decoder, **args)
+            staged = staged_render(o, d, self.submap.view(), self.submap.decoder, timer=StageTimer(), **args)
+        return max(float((real.color - staged.color).abs().max()), float((real.depth - staged.depth).abs().max()))
+
+
+def build_map(config, quick: bool):
+    """office0 frames 0-3 (or the synthetic walk) mapped with GT poses."""
+    from slam.data import open_sequence
+
+    width = config.runtime.input_width
+    if (REPLICA / "office0").is_dir():
+        sequence, label = open_sequence(REPLICA / "office0"), "Replica office0 frames 0-3"
+        frames = [pipeline_frame(sequence[i], width) for i in range(2 if quick else 4)]
+    else:
+        sequence, label = open_sequence("synthetic:walk?frames=100"), "synthetic walk frames 0-19"
+        frames = [pipeline_frame(sequence[i], width) for i in range(10 if quick else 20)]
+    mapper = map_with_gt_poses(frames, config)
+    return mapper, frames, label
+
+
+def median_ms(values: list[float]) -> float:
+    return statistics.median(values) * 1000
+
+
+def run(bench: IterationBench, threads: int, warmup: int, iterations: int) -> dict[str, float]:
+    torch.set_num_threads(threads)
+    for _ in range(warmup):
+        bench.staged_iteration()
+    staged = [bench.staged_iteration() for _ in range(iterations)]
+    result = {name: median_ms([s.get(name, 0.0) for s in staged]) for name in STAGES}
+    result["staged total"] = median_ms([sum(s.get(n, 0.0) for n in STAGES) for s in staged])
+    result["samples per iteration"] = statistics.median(s["samples"] for s in staged)
+    result["voxel allocation (one frame, empty map)"] = median_ms([bench.allocation() for _ in range(5)])
+    for _ in range(warmup):
+        bench.render_rays_iteration()
+    result["render_rays + losses + backward + step"] = median_ms(
+        [bench.render_rays_iteration() for _ in range(iterations)])
+    bench.mapper_iteration()
+    result["Mapper.optimize, one iteration"] = median_ms([bench.mapper_iteration() for _ in range(iterations)])
+    return result
+
+
+def profile_table(bench: IterationBench, iterations: int, rows: int = 15) -> str:
+    """torch.profiler's top operators by self CPU time over a few staged iterations."""
+    from torch.profiler import ProfilerActivity, profile
+
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        for _ in range(iterations):
+            bench.staged_iteration()
+    return prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=rows)
+
+
+def paper_rows(result: dict[str, float]) -> list[tuple[str, float]]:
+    """The paper's Table rows from the measured stages (ms)."""
+    rendering = sum(result[k] for k in ("interpolation", "decoder (SDF)", "weights + accumulation",
+                                        "decoder (colour)"))
+    return [("voxel allocation (per keyframe)", result["voxel allocation (one frame, empty map)"]),
+            ("ray generation", result["ray generation"]),
+            ("ray-voxel intersection", result["ray-voxel intersection"]),
+            ("point sampling", result["point sampling"]),
+            ("volume rendering (interp + decoder + weights)", rendering),
+            ("  interpolation", result["interpolation"]),
+            ("  decoder SDF / colour", result["decoder (SDF)"] + result["decoder (colour)"]),
+            ("  weights + accumulation", result["weights + accumulation"]),
+            ("losses", result["losses"]),
+            ("back-propagation (backward + Adam)", result["back-propagation"]),
+            ("**iteration total (staged, without allocation)**", result["staged total"]),
+            ("render_rays + losses + backward + step (same rays)", result["render_rays + losses + backward + step"]),
+            ("Mapper.optimize, 1 iteration (preset window, poses)", result["Mapper.optimize, one iteration"])]
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="smoke run: smaller map, 3 iterations")
+    parser.add_argument("--preset", default="cpu")
+    parser.add_argument("--rays", type=int, default=1024)
+    parser.add_argument("--iterations", type=int, default=20)
+    parser.add_argument("--profile", action="store_true", help="also print torch.profiler's top operators (1 thread)")
+    parser.add_argument("--json", type=Path, default=None)
+    args = parser.parse_args(argv)
+    from slam.config import preset
+
+    default_threads = torch.get_num_threads()
+    config = preset(args.preset)
+    if args.quick:
+        config = replace(config, mapping=replace(config.mapping, first_frame_iterations=10))
+    iterations = 3 if args.quick else args.iterations
+    print(f"# One mapping iteration, {args.rays} rays, {args.preset} preset\n")
+    print(f"start: {load_line()}")
+    t0 = time.perf_counter()
+    try:
+        mapper, frames, label = build_map(config, args.quick)
+    except MissingData as missing:
+        print(f"skipped: {missing}")
+        return 0
+    bench = IterationBench(mapper, frames, args.rays)
+    mismatch = bench.check_staged_matches()
+    print(f"map: {label}, {mapper.maps.num_voxels()} voxels, built in {time.perf_counter() - t0:.0f} s")
+    print(f"staged vs render_rays: max |difference| {mismatch:.2e}"
+          + ("" if mismatch < 1e-4 else "  WARNING: render_rays changed; update staged_render"))
+    results = {}
+    for threads in sorted({1, default_threads}):
+        results[threads] = run(bench, threads, 1 if args.quick else 3, iterations)
+        print(f"threads {threads}: done, {load_line()}", flush=True)
+    if args.profile:
+        torch.set_num_threads(1)
+        print(profile_table(bench, iterations=5))
+    torch.set_num_threads(default_threads)
+    headers = ["stage (median ms)"] + [f"{t} thread{'s' if t > 1 else ''}" for t in results]
+    names = [name for name, _ in paper_rows(next(iter(results.values())))]
+    rows = [[name] + [f"{dict(paper_rows(r))[name]:.1f}" for r in results.values()] for name in names]
+    rows.append(["samples per iteration"] + [f"{r['samples per iteration']:.0f}" for r in results.values()])
+    print()
+    print(markdown_table(headers, rows))
+    figures = [Figure(f"mapping iteration, {args.rays} rays, {t} thread(s)", r["render_rays + losses + backward + step"],
+                      "ms", f"<= {TARGET_MS:.0f}", f"staged sum {r['staged total']:.0f} ms; Mapper.optimize "
+                      f"({config.mapping.window_size}x{config.mapping.num_rays} rays) {r['Mapper.optimize, one iteration']:.0f} ms")
+               for t, r in results.items()]
+    print()
+    print(figures_table(figures))
+    print(f"\ntotal {time.perf_counter() - t0:.0f} s; end: {load_line()}")
+    write_json(args.json, figures_payload("One mapping iteration (issue 3)", figures, {
+        "map": label, "rays": args.rays, "breakdown_ms": {str(t): r for t, r in results.items()},
+        "table": markdown_table(headers, rows), "staged_mismatch": mismatch}))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
