@@ -234,7 +234,7 @@ def part_timing(mapset, runs: int, render_runs: int) -> list[Figure]:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--part", choices=["all", "synthetic", "replica", "timing"], default="all")
-    parser.add_argument("--quick", action="store_true", help="smoke run: 3 frames, few iterations")
+    parser.add_argument("--quick", action="store_true", help="smoke run: 3 frames, few iterations; its figures mean nothing")
     parser.add_argument("--extra-iterations", type=int, default=None,
                         help="windowed optimisation after the last frame (default 300, --quick 10)")
     parser.add_argument("--threads", type=int, default=1, help="torch threads for mapping (timing always uses 1)")
