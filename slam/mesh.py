@@ -50,17 +50,6 @@ class _BlockSurface:
 
 
 # ------------------------------------------------------------------ decoding
-def _decode_sdf(decoder, emb: torch.Tensor) -> torch.Tensor:
-    """(S, D) embeddings -> (S,) SDF, without computing the colour feature.
-
-    Same numbers as ``decoder.sdf_and_feature(emb)[0]``: only the first output row of the
-    SDF head is applied, which halves the cost of decoding a dense lattice.
-    """
-    hidden = decoder.trunk(emb)
-    head = decoder.sdf_head
-    return torch.nn.functional.linear(hidden, head.weight[:1], head.bias[:1])[:, 0]
-
-
 def _embeddings_at(lattice: torch.Tensor, voxel_index: torch.Tensor, voxel_ijk: torch.Tensor,
                    view: MapView, resolution: int) -> torch.Tensor:
     """Trilinear corner embeddings at lattice coordinates. (S, 3) float64, (S,) -> (S, D).
@@ -100,7 +89,7 @@ def _lattice_sdf(lattice_ids: torch.Tensor, voxel_index: torch.Tensor, view: Map
         rows = view.voxel_corners[voxel_index[first:first + voxels_per_chunk]]
         corners = torch.nn.functional.embedding(rows, view.embeddings)           # (m, 8, D)
         emb = torch.matmul(weights, corners).reshape(-1, corners.shape[-1])      # (m * P, D)
-        out[lo:hi] = _decode_sdf(decoder, emb[lattice_ids[lo:hi] - first * num_pattern])
+        out[lo:hi] = decoder.sdf(emb[lattice_ids[lo:hi] - first * num_pattern])
     return out
 
 
