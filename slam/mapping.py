@@ -59,6 +59,9 @@ class MapSnapshot:
     voxel_corners: np.ndarray
     embeddings: np.ndarray
     decoder_state: dict[str, np.ndarray]
+    corner_updates: np.ndarray | None = None
+    """(Nc,) int32: optimisation steps in which each embedding row received a gradient
+    (None: unknown, every voxel counts as trained)."""
 
 
 @dataclass(frozen=True)
@@ -103,6 +106,8 @@ class Mapper:
         self._seed = seed
         self._kf_codes: dict[int, torch.Tensor] = {}
         """Sorted Morton codes of the voxels observed by each submap's keyframes."""
+        self._corner_updates: dict[int, torch.Tensor] = {}
+        """Per submap, (Nc,) steps in which each embedding row got a gradient."""
 
     # ---------------------------------------------------------------- helpers
     @property
@@ -243,6 +248,7 @@ class Mapper:
             if pose_opt is not None:
                 pose_opt.zero_grad(set_to_none=True)
             losses.total.backward()
+            self._count_corner_updates(submap)
             optimizer.step()
             if pose_opt is not None:
                 pose_opt.step()
@@ -252,6 +258,22 @@ class Mapper:
             for kf, tw in zip(pose_kfs, twists):
                 kf.T_map_cam = kf.T_map_cam @ se3_exp(tw.detach())
         return {} if losses is None else {k: float(v) for k, v in losses.as_floats().items()}
+
+    def corner_updates(self, submap: SubMap) -> torch.Tensor:
+        """(Nc,) int32 optimisation steps in which each embedding row of ``submap`` got a
+        gradient; rows allocated since the last step count zero."""
+        n = submap.voxels.num_corners
+        counts = self._corner_updates.get(submap.map_id, torch.zeros(0, dtype=torch.int32, device=self.device))
+        if counts.numel() < n:
+            counts = torch.cat([counts, counts.new_zeros(n - counts.numel())])
+            self._corner_updates[submap.map_id] = counts
+        return counts
+
+    def _count_corner_updates(self, submap: SubMap) -> None:
+        grad = submap.voxels.embeddings.grad
+        if grad is not None:
+            counts = self.corner_updates(submap)
+            counts += (grad.abs().amax(1) > 0).to(torch.int32)
 
     # --------------------------------------------------------------- outputs
     def snapshot(self) -> MapSnapshot:
@@ -271,6 +293,7 @@ class Mapper:
             voxel_corners=arr(v.voxel_corners),
             embeddings=arr(v.embeddings),
             decoder_state={k: arr(t) for k, t in submap.decoder.state_dict().items()},
+            corner_updates=arr(self.corner_updates(submap)),
         )
 
     def keyframe_poses_world(self, submap: SubMap) -> torch.Tensor:

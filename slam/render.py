@@ -248,20 +248,46 @@ def interpolate_embeddings(points: torch.Tensor, voxel_index: torch.Tensor, view
     return (w[..., None] * feats).sum(1)
 
 
+def trilinear_weights_and_gradients(local: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``trilinear_weights`` (S, 8) and their derivatives (S, 3, 8) along x, y, z of ``local``."""
+    x, y, z = local.unbind(-1)
+    one = torch.ones_like(x)
+    wx, wy, wz = (torch.stack([1 - a, a], -1) for a in (x, y, z))
+    dw = torch.stack([-one, one], -1)
+
+    def corners(ax: torch.Tensor, ay: torch.Tensor, az: torch.Tensor) -> torch.Tensor:
+        return (az[:, :, None, None] * ay[:, None, :, None] * ax[:, None, None, :]).reshape(-1, 8)
+
+    grads = torch.stack([corners(dw, wy, wz), corners(wx, dw, wz), corners(wx, wy, dw)], 1)
+    return corners(wx, wy, wz), grads
+
+
+def interpolate_with_gradient(points: torch.Tensor, voxel_index: torch.Tensor,
+                              view: MapView) -> tuple[torch.Tensor, torch.Tensor]:
+    """TriLerp of corner embeddings and its exact spatial derivative, without autograd.
+
+    points (S, 3) map frame, voxel_index (S,) -> features (S, D), d features / d point
+    (S, 3, D) per metre. ``interpolate_embeddings`` under autograd is the reference.
+    """
+    ijk = view.voxel_coords[voxel_index].to(points.dtype)
+    local = (points / view.voxel_size - ijk).clamp(0.0, 1.0)
+    w, dw = trilinear_weights_and_gradients(local)
+    feats = torch.nn.functional.embedding(view.voxel_corners[voxel_index], view.embeddings)  # (S, 8, D)
+    both = torch.bmm(torch.cat([w[:, None, :], dw / view.voxel_size], 1), feats)  # (S, 4, D)
+    return both[:, 0], both[:, 1:]
+
+
 # ------------------------------------------------------------------ weights
-def sdf_weights(sdf: torch.Tensor, t: torch.Tensor, ray_index: torch.Tensor, num_rays: int,
-                truncation: float) -> torch.Tensor:
-    """w = sigmoid(s/tr) * sigmoid(-s/tr), kept only within tr of the first surface.
+def first_surface_mask(sdf: torch.Tensor, t: torch.Tensor, ray_index: torch.Tensor, num_rays: int,
+                       truncation: float) -> torch.Tensor:
+    """(S,) bool: the sample lies within tr of its ray's first zero crossing.
 
     The paper masks samples more than tr behind the first zero crossing. We also mask those
     more than tr in front of it: while a map is young its free space is not yet at s = 1,
     and those samples drag the rendered depth toward the camera; the tracker then "fixes"
     that by backing the camera away, a drift that compounds (observed on every sequence we
-    tried). Rays without a crossing keep all their weights.
-
-    sdf (S,) in units of tr, t (S,), ray_index (S,) sorted -> (S,) unnormalised weights.
+    tried). Rays without a crossing keep all their samples.
     """
-    w = torch.sigmoid(sdf / truncation) * torch.sigmoid(-sdf / truncation)
     with torch.no_grad():
         same_ray = ray_index[1:] == ray_index[:-1]
         change = (sdf[1:] * sdf[:-1] < 0) & same_ray
@@ -274,8 +300,26 @@ def sdf_weights(sdf: torch.Tensor, t: torch.Tensor, ray_index: torch.Tensor, num
             t_zero = t0 + (t1 - t0) * s0 / (s0 - s1)
             first = first.scatter_reduce(0, ray_index[:-1][change], t_zero, "amin")
         crossing = first[ray_index]
-        keep = (t < crossing + truncation) & ((t > crossing - truncation) | torch.isinf(crossing))
-    return w * keep
+        return (t < crossing + truncation) & ((t > crossing - truncation) | torch.isinf(crossing))
+
+
+def sdf_weights(sdf: torch.Tensor, t: torch.Tensor, ray_index: torch.Tensor, num_rays: int,
+                truncation: float) -> torch.Tensor:
+    """w = sigmoid(s/tr) * sigmoid(-s/tr), kept only within tr of the first surface
+    (``first_surface_mask``). sdf (S,) in units of tr, t (S,), ray_index (S,) sorted -> (S,)."""
+    w = torch.sigmoid(sdf / truncation) * torch.sigmoid(-sdf / truncation)
+    return w * first_surface_mask(sdf, t, ray_index, num_rays, truncation)
+
+
+def sdf_weights_and_slope(sdf: torch.Tensor, t: torch.Tensor, ray_index: torch.Tensor, num_rays: int,
+                          truncation: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """``sdf_weights`` and its derivative dw/ds (S,), the mask held fixed.
+
+    With a = s/tr: dw/da = w (1 - 2 sigmoid(a)), so dw/ds = w (1 - 2 sigmoid(a)) / tr.
+    """
+    sig = torch.sigmoid(sdf / truncation)
+    w = sig * (1.0 - sig) * first_surface_mask(sdf, t, ray_index, num_rays, truncation)
+    return w, w * (1.0 - 2.0 * sig) / truncation
 
 
 def accumulate_along_rays(weights: torch.Tensor, values: torch.Tensor, ray_index: torch.Tensor,

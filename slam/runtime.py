@@ -204,6 +204,15 @@ def _mapper_finish(mapper: Mapper, state: _MapperState) -> list[tuple[str, objec
     return out
 
 
+def _queued(frames: "queue.Queue") -> int:
+    """Items in a multiprocessing queue (1 where the platform cannot count, e.g. macOS:
+    the caller then drains until a get times out)."""
+    try:
+        return frames.qsize()
+    except NotImplementedError:
+        return 1
+
+
 def _mapping_process(config_dict: dict, device_name: str, out_dir: str, emit_meshes: bool,
                      frames: "queue.Queue", replies: "queue.Queue", seed: int) -> None:
     """Entry point of the mapping process: mapper loop until the ``None`` sentinel."""
@@ -235,10 +244,12 @@ def _mapping_process(config_dict: dict, device_name: str, out_dir: str, emit_mes
                 replies.put(("snapshot", mapper.snapshot()))
                 continue
             batch = [msg]
-            # Drain what queued up while we optimised: integrate all, optimise once.
-            while batch[-1] is not None:
+            # Drain what queued up while we optimised: integrate all, optimise once. qsize
+            # counts frames still in the queue's pipe, which get_nowait would miss (it then
+            # took one frame per optimisation while the tracker sat on a full queue).
+            while batch[-1] is not None and _queued(frames) > 0:
                 try:
-                    batch.append(frames.get_nowait())
+                    batch.append(frames.get(timeout=_POLL_SECONDS))
                 except queue.Empty:
                     break
             done = batch[-1] is None

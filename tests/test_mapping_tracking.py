@@ -22,7 +22,9 @@ from slam.losses import LossWeights, compute_losses
 from slam.mapping import Mapper, MapSnapshot, TrackedFrame
 from slam.maps import SubMap
 from slam.render import render_rays
-from slam.tracking import FrozenMap, Tracker, constant_velocity_guess
+from slam.gauss_newton import limit_step, linearise
+from slam.geometry import se3_exp
+from slam.tracking import FrozenMap, Tracker, constant_velocity_guess, tracking_bounds
 
 CPU = torch.device("cpu")
 BASE = preset("test")
@@ -198,8 +200,10 @@ def pose_error(T: torch.Tensor, T_ref: torch.Tensor) -> tuple[float, float]:
     return float(D[:3, 3].norm()), float(torch.rad2deg(torch.acos(cos)))
 
 
-def test_tracking_recovers_a_perturbed_pose(trained, frames):
-    fmap = FrozenMap(trained.mapper.snapshot(), CONFIG, CPU)
+@pytest.mark.parametrize("optimizer", ["adam", "gauss_newton"])
+def test_tracking_recovers_a_perturbed_pose(trained, frames, optimizer):
+    config = replace(CONFIG, tracking=replace(CONFIG.tracking, optimizer=optimizer))
+    fmap = FrozenMap(trained.mapper.snapshot(), config, CPU)
     T_gt = gt_pose(frames[0])
     delta = torch.eye(4)
     delta[:3, :3] = so3_exp(torch.deg2rad(torch.tensor([0.0, 1.0, 0.0])))
@@ -207,10 +211,12 @@ def test_tracking_recovers_a_perturbed_pose(trained, frames):
     T_init = T_gt @ delta
     t0, r0 = pose_error(T_init, T_gt)
     assert t0 == pytest.approx(0.02, abs=1e-6) and r0 == pytest.approx(1.0, abs=1e-2)
-    result = Tracker(CONFIG, CPU).track(frames[0], fmap, T_init)
+    result = Tracker(config, CPU).track(frames[0], fmap, T_init)
     t1, r1 = pose_error(result.T_world_cam, T_gt)
     assert result.ok and not result.reason
     assert t1 < 0.7 * t0 and r1 < 0.7 * r0, (t1, r1)
+    if optimizer == "gauss_newton":  # converges, where Adam only improves
+        assert t1 < 0.01 and r1 < 0.5, (t1, r1)
     assert result.hit_ratio > 0.9 and result.depth_residual < 0.05
     assert 1 <= result.iterations <= CONFIG.tracking.iterations
 
@@ -241,3 +247,77 @@ def test_constant_velocity_guess():
     assert torch.allclose(guess, T2 @ T2, atol=1e-6)
     assert torch.equal(constant_velocity_guess([T1, T2], enabled=False), T2)
     assert torch.equal(constant_velocity_guess([T2], enabled=True), T2)
+
+
+# ------------------------------------------------------ Gauss-Newton tracking
+def _linearisation_inputs(trained, frames, n=128):
+    r = CONFIG.render
+    fmap = FrozenMap(trained.mapper.snapshot(), CONFIG, CPU)
+    batch = sample_pixels(frames[0], n, torch.Generator().manual_seed(7))
+    near, far = tracking_bounds(batch.depth, r.truncation, 2.0, r.max_distance)
+    kwargs = dict(near=near, far=far, step=r.step_ratio * fmap.view.voxel_size, truncation=r.truncation,
+                  max_hits=r.max_hits)
+    c = CONFIG.loss
+    return fmap, batch, kwargs, LossWeights(c.rgb_weight, c.depth_weight, c.sdf_weight, c.fs_weight)
+
+
+def test_linearisation_cost_and_gradient_match_autograd_through_render_rays(trained, frames):
+    """The closed-form model against the reference: the paper's losses on render_rays, and
+    their autograd gradient with respect to the twist (IRLS makes g half of it)."""
+    fmap, batch, kwargs, weights = _linearisation_inputs(trained, frames)
+    T0 = gt_pose(frames[0]) @ se3_exp(torch.tensor([0.01, -0.01, 0.005, 0.01, 0.0, -0.01]))
+    lin = linearise(T0, batch.dirs_cam, batch.rgb, batch.depth, None, fmap.view, fmap.decoder, weights=weights,
+                    eps_depth=1e-12, eps_color=1e-12, **kwargs)
+    xi = torch.zeros(6, requires_grad=True)
+    T = T0 @ se3_exp(xi)
+    n = batch.depth.shape[0]
+    out = render_rays(T[:3, 3].expand(n, 3), batch.dirs_cam @ T[:3, :3].T, fmap.view, fmap.decoder, **kwargs)
+    losses = compute_losses(out, batch.rgb, batch.depth, CONFIG.render.truncation, weights)
+    losses.total.backward()
+    assert lin.cost == pytest.approx(float(losses.total.detach()), rel=1e-4)
+    cos = float(torch.nn.functional.cosine_similarity(2 * lin.g, xi.grad, dim=0))
+    assert cos > 0.99 and float((2 * lin.g).norm() / xi.grad.norm()) == pytest.approx(1.0, abs=0.1), (lin.g, xi.grad)
+    assert torch.allclose(lin.H, lin.H.T, atol=1e-3 * float(lin.H.abs().max()))
+    assert float(torch.linalg.eigvalsh(lin.H.double()).min()) > 0
+
+
+def test_a_ray_that_leaves_the_map_costs_miss_cost(trained, frames):
+    fmap, batch, kwargs, weights = _linearisation_inputs(trained, frames, n=64)
+    T = gt_pose(frames[0])
+    args = (batch.dirs_cam, batch.rgb, batch.depth)
+    keep = torch.ones(64)
+    base = linearise(T, *args, keep, fmap.view, fmap.decoder, weights=weights, miss_cost=10.0, **kwargs)
+    assert bool(base.hit.all())
+    far = T.clone()
+    far[:3, 3] += torch.tensor([50.0, 0.0, 0.0])
+    gone = linearise(far, *args, keep, fmap.view, fmap.decoder, weights=weights, miss_cost=10.0, **kwargs)
+    assert not bool(gone.hit.any()) and gone.cost == pytest.approx(10.0)
+    reference = linearise(far, *args, keep, fmap.view, fmap.decoder, weights=weights, **kwargs)
+    assert reference.cost == 0.0, "without miss_cost a pose off the map looks perfect: why it exists"
+
+
+def test_limit_step_scales_the_whole_twist():
+    delta = torch.tensor([0.3, 0.0, 0.4, 0.0, 0.02, 0.0])
+    out = limit_step(delta, 0.05, 0.05)
+    assert torch.allclose(out, delta * 0.1) and float(out[:3].norm()) == pytest.approx(0.05)
+    small = torch.tensor([0.01, 0.0, 0.0, 0.0, 0.0, 0.01])
+    assert torch.equal(limit_step(small, 0.05, 0.05), small)
+    assert float(limit_step(torch.tensor([0.0, 0, 0, 0.5, 0, 0]), 0.05, 0.05)[3]) == pytest.approx(0.05)
+
+
+def test_tracking_ignores_voxels_the_mapper_never_optimised(trained, frames):
+    snap = trained.mapper.snapshot()
+    full = FrozenMap(snap, CONFIG, CPU)
+    assert snap.corner_updates is not None and int(snap.corner_updates.max()) > 0
+    # After 100 steps nearly every voxel was sampled (a few lie behind surfaces, past every ray).
+    kept = full.view.voxel_codes.numel()
+    assert 0.9 * snap.voxel_codes.size < kept == int((snap.corner_updates[snap.voxel_corners] > 0).all(1).sum())
+    untouched = dataclasses.replace(snap, corner_updates=np.zeros_like(snap.corner_updates))
+    assert FrozenMap(untouched, CONFIG, CPU).view.voxel_codes.numel() == 0
+    one_new = snap.corner_updates.copy()
+    one_new[snap.voxel_corners[3, 0]] = 0
+    expected = int((one_new[snap.voxel_corners] > 0).all(1).sum())
+    partial = FrozenMap(dataclasses.replace(snap, corner_updates=one_new), CONFIG, CPU)
+    assert partial.view.voxel_codes.numel() == expected < snap.voxel_codes.size
+    everything = replace(CONFIG, tracking=replace(CONFIG.tracking, min_corner_updates=0))
+    assert FrozenMap(untouched, everything, CPU).view.voxel_codes.numel() == snap.voxel_codes.size

@@ -19,11 +19,13 @@ from slam.render import (
     accumulate_along_rays,
     camera_rays,
     interpolate_embeddings,
+    interpolate_with_gradient,
     ray_voxel_intersections,
     rays_in_map,
     render_rays,
     sample_points_from_hits,
     sdf_weights,
+    sdf_weights_and_slope,
     trilinear_weights,
 )
 from slam.voxels import CORNER_OFFSETS, SparseVoxelMap, morton_decode, morton_encode
@@ -270,7 +272,33 @@ def test_interpolation_gradcheck_wrt_embeddings_and_points():
     assert torch.autograd.gradcheck(fn, (emb, points), eps=1e-6, atol=1e-6)
 
 
+def test_interpolation_with_gradient_matches_autograd():
+    _, view = two_voxel_view()
+    gen = torch.Generator().manual_seed(5)
+    vidx = torch.tensor([0, 1, 1, 0, 1, 0])
+    local = 0.05 + 0.9 * torch.rand(6, 3, generator=gen, dtype=torch.float64)
+    points = ((view.voxel_coords[vidx].to(torch.float64) + local) * view.voxel_size).requires_grad_(True)
+    feats = interpolate_embeddings(points, vidx, view)
+    fast, dfast = interpolate_with_gradient(points.detach(), vidx, view)
+    assert torch.allclose(fast, feats.detach(), atol=1e-12)
+    for d in range(feats.shape[1]):
+        (g,) = torch.autograd.grad(feats[:, d].sum(), points, retain_graph=True)
+        assert torch.allclose(dfast[:, :, d], g, atol=1e-10), d
+
+
 # ----------------------------------------------------------------- weights
+def test_sdf_weights_slope_is_the_derivative_with_the_mask_held():
+    tr = 0.1
+    t = torch.linspace(0.1, 1.0, 10, dtype=torch.float64)
+    sdf = torch.tensor([0.9, 0.6, 0.3, 0.1, -0.1, -0.3, -0.5, 0.2, 0.4, 0.6], dtype=torch.float64)
+    ray = torch.zeros(10, dtype=torch.int64)
+    s = sdf.clone().requires_grad_(True)
+    w_ref = sdf_weights(s, t, ray, 1, tr)
+    (g,) = torch.autograd.grad(w_ref.sum(), s)
+    w, slope = sdf_weights_and_slope(sdf, t, ray, 1, tr)
+    assert torch.allclose(w, w_ref.detach()) and torch.allclose(slope, g)
+
+
 def test_sdf_weights_formula_and_mask_around_the_first_surface():
     tr = 0.27
     t = torch.arange(1, 11, dtype=torch.float64) * 0.1  # 0.1 .. 1.0

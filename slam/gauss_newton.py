@@ -1,0 +1,228 @@
+"""Tracking's objective linearised in closed form, for Gauss-Newton / Levenberg-Marquardt.
+
+The tracker minimises the paper's four losses over the camera pose only. Adam needs tens of
+steps for that because each of its steps moves about ``lr`` per coordinate whatever the
+gradient says; Gauss-Newton uses the curvature and converges in a handful of steps. Its cost is
+one Jacobian of every residual with respect to the 6-D twist, which we build without autograd:
+
+* every sample's SDF and colour depend only on its own point ``p_i``, so their spatial
+  gradients come from one batched evaluation of the field at ``p_i`` and at ``p_i + h e_k``
+  (k = x, y, z; the shift points into the sample's own voxel so the trilinear lookup stays
+  valid);
+* the renderer's per-ray sums (``D = sum w t / sum w``, ``C = sum w c / sum w`` with
+  ``w = sigmoid(s/tr) sigmoid(-s/tr)``) are differentiated by hand;
+* a sample at camera-frame point ``x`` moves with the right-perturbed pose ``T exp(xi)`` as
+  ``dp/d(rho, phi) = R [I | -[x]_x]``, so a map-frame gradient ``g`` becomes the row
+  ``[R^T g, x x R^T g]``.
+
+The L1 colour and depth terms are handled by iteratively reweighted least squares
+(``|r| ~ r^2 / (2 |r_0|)``), so the quadratic model matches the paper's loss at the current
+pose; ``cost`` is that loss exactly (``slam.losses.compute_losses`` on the same rays is the
+reference it is tested against, and ``render_rays`` under autograd for the Jacobian).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from .losses import LossWeights
+from .render import (
+    MapView,
+    RaySamples,
+    interpolate_with_gradient,
+    ray_voxel_intersections,
+    sample_points_from_hits,
+    sdf_weights_and_slope,
+)
+
+
+@dataclass(frozen=True)
+class Linearisation:
+    """The tracking loss at one pose and its Gauss-Newton model.
+
+    cost: the paper's weighted loss (float). H (6, 6), g (6,): normal equations of the
+    reweighted least-squares model, so the step is ``-(H + damping)^-1 g``.
+    depth (R,) rendered depth, hit (R,) rays with weight, residual (R,) |depth error|.
+    """
+
+    cost: float
+    H: torch.Tensor
+    g: torch.Tensor
+    depth: torch.Tensor
+    hit: torch.Tensor
+    residual: torch.Tensor
+
+
+@dataclass(frozen=True)
+class FieldValues:
+    """sdf (S,) in units of tr and grad_sdf (S, 3) per metre (map frame), plus what the
+    colour pass needs: hidden (4S, H) of the features and their three shifts."""
+
+    sdf: torch.Tensor
+    grad_sdf: torch.Tensor
+    hidden: torch.Tensor
+    step: float
+
+
+def field_with_gradients(points: torch.Tensor, voxel_index: torch.Tensor, view: MapView, decoder,
+                         step: float = 2e-3) -> FieldValues:
+    """SDF at points (S, 3) and its spatial gradient.
+
+    The trilinear features and their spatial derivative are exact
+    (``interpolate_with_gradient``); the decoder is differenced forward in feature space,
+    ``(f(e + h de/dx) - f(e)) / h``, with its four inputs in one batch. The decoder is
+    piecewise linear (ReLU), so this is exact unless a step crosses a kink.
+    """
+    S = points.shape[0]
+    feats, dfeats = interpolate_with_gradient(points, voxel_index, view)
+    batch = torch.cat([feats[None], feats[None] + step * dfeats.transpose(0, 1)]).reshape(4 * S, feats.shape[1])
+    sdf_all, hidden = decoder.sdf_and_hidden(batch)
+    sdf_all = sdf_all.reshape(4, S)
+    grad_sdf = (sdf_all[1:] - sdf_all[:1]).T / step
+    return FieldValues(sdf_all[0], grad_sdf, hidden, step)
+
+
+def color_with_gradients(field: FieldValues, decoder, active: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Colour (A, 3) at the ``active`` samples (A,) and its gradient (A, 3, 3) (channel, axis)."""
+    S = field.sdf.shape[0]
+    rows = torch.cat([active + k * S for k in range(4)])
+    rgb_all = decoder.color(decoder.feature_from_hidden(field.hidden[rows])).reshape(4, -1, 3)
+    grad = (rgb_all[1:] - rgb_all[:1]).permute(1, 2, 0) / field.step
+    return rgb_all[0], grad
+
+
+def twist_rows(grad_map: torch.Tensor, x_cam: torch.Tensor, R: torch.Tensor) -> torch.Tensor:
+    """d(value)/d(xi) (..., 6) from its map-frame spatial gradient (..., 3) at camera-frame
+    points x_cam (broadcastable to (..., 3)), for the pose ``T exp(xi)`` with rotation R."""
+    g_cam = grad_map @ R
+    return torch.cat([g_cam, torch.linalg.cross(x_cam.expand_as(g_cam), g_cam, dim=-1)], -1)
+
+
+def linearise(T_map_cam: torch.Tensor, dirs_cam: torch.Tensor, rgb_gt: torch.Tensor,
+              depth_gt: torch.Tensor, ray_weight: torch.Tensor | None, view: MapView, decoder, *,
+              near: torch.Tensor, far: torch.Tensor, step: float, truncation: float,
+              max_hits: int, weights: LossWeights, max_depth: float = 10.0,
+              color_weight_eps: float = 1e-5, eps_depth: float = 5e-3,
+              eps_color: float = 1e-2, huber: float | None = None,
+              miss_cost: float | None = None) -> Linearisation:
+    """The tracking loss of R rays at pose T_map_cam (4, 4) and its Gauss-Newton model.
+
+    dirs_cam (R, 3) camera-frame directions with z = 1, rgb_gt (R, 3), depth_gt (R,),
+    ray_weight (R,) in {0, 1} (outliers) or None; near, far (R,) sampling bounds.
+    Renders exactly as ``slam.render.render_rays`` (mid-step samples) with no autograd.
+    """
+    with torch.no_grad():
+        return _linearise(T_map_cam, dirs_cam, rgb_gt, depth_gt, ray_weight, view, decoder,
+                          near, far, step, truncation, max_hits, weights, max_depth,
+                          color_weight_eps, eps_depth, eps_color, huber, miss_cost)
+
+
+def _linearise(T, dirs_cam, rgb_gt, depth_gt, ray_weight, view, decoder, near, far, step, tr,
+               max_hits, lw: LossWeights, max_depth, color_eps, eps_depth, eps_color, huber,
+               miss_cost):
+    R_, o = T[:3, :3], T[:3, 3]
+    num_rays = dirs_cam.shape[0]
+    dirs = dirs_cam @ R_.T
+    origins = o.expand(num_rays, 3)
+    hits = ray_voxel_intersections(origins, dirs, near, far, view.voxel_codes, view.voxel_size, max_hits)
+    samples: RaySamples = sample_points_from_hits(hits, step, torch.full((num_rays,), 0.5, device=T.device))
+    r, t = samples.ray_index, samples.t
+    x_cam = t[:, None] * dirs_cam[r]
+    points = origins[r] + t[:, None] * dirs[r]
+
+    field = field_with_gradients(points, samples.voxel_index, view, decoder)
+    s = field.sdf
+    w, dw_ds = sdf_weights_and_slope(s, t, r, num_rays, tr)
+    # The colour head only where a sample has weight, as in render_rays.
+    active = torch.nonzero(w > color_eps, as_tuple=True)[0]
+    rgb, grad_rgb = color_with_gradients(field, decoder, active)
+
+    W = torch.zeros(num_rays, dtype=t.dtype, device=t.device).index_add(0, r, w)
+    inv_W = 1.0 / (W + 1e-8)
+    depth = torch.zeros_like(W).index_add(0, r, w * t) * inv_W
+    ra = r[active]
+    color = torch.zeros(num_rays, 3, dtype=t.dtype, device=t.device).index_add(
+        0, ra, w[active, None] * rgb) * inv_W[:, None]
+    hit = torch.zeros(num_rays, dtype=torch.bool, device=t.device)
+    hit[r] = True
+
+    use = hit if ray_weight is None else hit & (ray_weight > 0)
+    valid = use & (depth_gt > 0.01) & (depth_gt < max_depth)
+    n_use, n_valid = int(use.sum()), int(valid.sum())
+    # Denominators: the rays that hit (as compute_losses), or with ``miss_cost`` the fixed ray
+    # set, each of its rays that misses costing miss_cost. Otherwise a pose that makes the
+    # worst rays leave the map lowers the mean and the optimiser runs off (seen on fr1/rpy).
+    den_use, den_valid = n_use, n_valid
+    cost = 0.0
+    if miss_cost is not None:
+        in_set = torch.ones_like(hit) if ray_weight is None else ray_weight > 0
+        den_use = max(int(in_set.sum()), 1)
+        den_valid = max(int((in_set & (depth_gt > 0.01) & (depth_gt < max_depth)).sum()), 1)
+        cost += miss_cost * int((in_set & ~hit).sum()) / den_use
+
+    # d(ray depth)/d(sample point) = (t - D)/W * dw/ds * grad s; colour adds w/W * grad c.
+    J_s = twist_rows(field.grad_sdf, x_cam, R_)  # (S, 6)
+    a = (t - depth[r]) * inv_W[r] * dw_ds
+    J_depth = torch.zeros(num_rays, 6, dtype=t.dtype, device=t.device).index_add(0, r, a[:, None] * J_s)
+    J_rgb_c = twist_rows(grad_rgb, x_cam[active][:, None, :], R_)  # (A, 3, 6)
+    b = (rgb - color[ra]) * (inv_W[ra] * dw_ds[active])[:, None]  # (A, 3)
+    per_sample = b[..., None] * J_s[active][:, None, :] + (w[active] * inv_W[ra])[:, None, None] * J_rgb_c
+    J_color = torch.zeros(num_rays, 3, 6, dtype=t.dtype, device=t.device).index_add(0, ra, per_sample)
+
+    H = T.new_zeros(6, 6)
+    g = T.new_zeros(6)
+
+    def add(J: torch.Tensor, res: torch.Tensor, omega: torch.Tensor) -> None:
+        nonlocal H, g
+        H = H + (J * omega[:, None]).T @ J
+        g = g + (J * (omega * res)[:, None]).sum(0)
+
+    if n_use:
+        res_c = (color[use] - rgb_gt[use]).reshape(-1)
+        cost += lw.rgb * float(res_c.abs().sum()) / (3 * den_use)
+        omega = lw.rgb / (3 * den_use * 2.0 * res_c.abs().clamp(min=eps_color))
+        add(J_color[use].reshape(-1, 6), res_c, omega)
+    if n_valid:
+        res_d = depth[valid] - depth_gt[valid]
+        cost += lw.depth * float(res_d.abs().sum()) / den_valid
+        omega = lw.depth / (den_valid * 2.0 * res_d.abs().clamp(min=eps_depth))
+        add(J_depth[valid], res_d, omega)
+
+    d = depth_gt[r]
+    ok = valid[r]
+    for mask, res, J, lam in (
+        (ok & (t < d - tr), s - 1.0, J_s, lw.fs),
+        (ok & ((t - d).abs() <= tr), t + s * tr - d, tr * J_s, lw.sdf),
+    ):
+        if not bool(mask.any()):
+            continue
+        counts = torch.zeros(num_rays, dtype=t.dtype, device=t.device).index_add(0, r, mask.to(t.dtype))
+        rays_with = int((counts > 0).sum()) if miss_cost is None else den_valid
+        omega = lam / (rays_with * counts[r][mask])
+        e = res[mask]
+        if huber is not None and lam == lw.sdf:
+            # Huber: quadratic within delta, linear beyond (IRLS weight delta / |e|).
+            a = e.abs()
+            cost += float((omega * torch.where(a <= huber, e ** 2, 2 * huber * a - huber ** 2)).sum())
+            omega = omega * torch.clamp(huber / a.clamp(min=1e-12), max=1.0)
+        else:
+            cost += float((omega * e ** 2).sum())
+        add(J[mask], e, omega)
+    residual = (depth - depth_gt).abs()
+    return Linearisation(cost, H, g, depth, hit & (W > 1e-3), residual)
+
+
+def damped_step(lin: Linearisation, damping: float) -> torch.Tensor:
+    """The Levenberg-Marquardt step (6,): -(H + damping * diag(H))^-1 g."""
+    H = lin.H + damping * torch.diag(torch.diagonal(lin.H)) + 1e-9 * torch.eye(6, dtype=lin.H.dtype)
+    return -torch.linalg.solve(H, lin.g)
+
+
+def limit_step(delta: torch.Tensor, max_m: float, max_rad: float) -> torch.Tensor:
+    """Scale a twist (6,) down so its translation <= max_m and its rotation <= max_rad (a
+    trust region: at frame rate one step never needs to be large, and a far step taken
+    where the linear model is wrong lands where the map cannot say so)."""
+    scale = min(1.0, max_m / max(float(delta[:3].norm()), 1e-12), max_rad / max(float(delta[3:].norm()), 1e-12))
+    return delta * scale
