@@ -106,8 +106,6 @@ class Mapper:
         self._seed = seed
         self._kf_codes: dict[int, torch.Tensor] = {}
         """Sorted Morton codes of the voxels observed by each submap's keyframes."""
-        self._corner_updates: dict[int, torch.Tensor] = {}
-        """Per submap, (Nc,) steps in which each embedding row got a gradient."""
 
     # ---------------------------------------------------------------- helpers
     @property
@@ -121,9 +119,13 @@ class Mapper:
     def _T_map_cam(self, submap: SubMap, T_world_cam: torch.Tensor) -> torch.Tensor:
         return se3_inverse(submap.T_world_map) @ T_world_cam.to(self.device)
 
-    def _points(self, frame: TensorFrame, T_map_cam: torch.Tensor) -> torch.Tensor:
+    def _points(self, frame: TensorFrame, T_map_cam: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Map-frame points at depth - tr, depth, depth + tr (all allocated) and the surface
+        points alone (at the measured depth)."""
         tr = self.config.render.truncation
-        return backproject(frame, T_map_cam, self.config.voxel.alloc_pixel_stride, (-tr, 0.0, tr))
+        points = backproject(frame, T_map_cam, self.config.voxel.alloc_pixel_stride, (-tr, 0.0, tr))
+        n = points.shape[0] // 3  # backproject stacks one block per offset
+        return points, points[n:2 * n]
 
     def _ensure_optimizer(self, submap: SubMap) -> torch.optim.Optimizer:
         if self._optimizer is None:
@@ -156,7 +158,7 @@ class Mapper:
         submap = self.current or self.start_map()
         T_map_cam = self._T_map_cam(submap, tracked.T_world_cam)
         ta = time.perf_counter()
-        points = self._points(tracked.frame, T_map_cam)
+        points, surface = self._points(tracked.frame, T_map_cam)
         observed, new, codes = self._keyframe_coverage(submap, points)
         ratio = new / max(observed, 1)
         m = self.config.mapping
@@ -168,6 +170,7 @@ class Mapper:
             # Every successfully tracked frame allocates (paper: Voxel Allocation), so that the
             # newest frame in the window always has voxels where it looks.
             new_voxels = self._allocate(submap, points)
+            submap.observe_surface(torch.unique(morton_encode(voxel_coords_of(surface, submap.voxels.voxel_size))))
         if is_kf:
             self._kf_codes[submap.map_id] = torch.unique(torch.cat([self._kf_codes.get(submap.map_id, codes), codes]))
             submap.keyframes.append(Keyframe(
@@ -259,20 +262,10 @@ class Mapper:
                 kf.T_map_cam = kf.T_map_cam @ se3_exp(tw.detach())
         return {} if losses is None else {k: float(v) for k, v in losses.as_floats().items()}
 
-    def corner_updates(self, submap: SubMap) -> torch.Tensor:
-        """(Nc,) int32 optimisation steps in which each embedding row of ``submap`` got a
-        gradient; rows allocated since the last step count zero."""
-        n = submap.voxels.num_corners
-        counts = self._corner_updates.get(submap.map_id, torch.zeros(0, dtype=torch.int32, device=self.device))
-        if counts.numel() < n:
-            counts = torch.cat([counts, counts.new_zeros(n - counts.numel())])
-            self._corner_updates[submap.map_id] = counts
-        return counts
-
     def _count_corner_updates(self, submap: SubMap) -> None:
         grad = submap.voxels.embeddings.grad
         if grad is not None:
-            counts = self.corner_updates(submap)
+            counts = submap.updates()
             counts += (grad.abs().amax(1) > 0).to(torch.int32)
 
     # --------------------------------------------------------------- outputs
@@ -293,7 +286,7 @@ class Mapper:
             voxel_corners=arr(v.voxel_corners),
             embeddings=arr(v.embeddings),
             decoder_state={k: arr(t) for k, t in submap.decoder.state_dict().items()},
-            corner_updates=arr(self.corner_updates(submap)),
+            corner_updates=arr(submap.updates()),
         )
 
     def keyframe_poses_world(self, submap: SubMap) -> torch.Tensor:

@@ -16,7 +16,7 @@ from .config import SLAMConfig
 from .decoder import Decoder
 from .frames import TensorFrame
 from .render import MapView
-from .voxels import SparseVoxelMap
+from .voxels import SparseVoxelMap, lookup_sorted
 
 
 @dataclass
@@ -44,6 +44,12 @@ class SubMap:
     decoder: Decoder
     T_world_map: torch.Tensor
     keyframes: list[Keyframe] = field(default_factory=list)
+    corner_updates: torch.Tensor | None = None
+    """(Nc,) int32: mapping steps in which each embedding row got a gradient (None: unknown,
+    e.g. a checkpoint written before it existed; every voxel then counts as optimised)."""
+    surface_codes: torch.Tensor | None = None
+    """Sorted Morton codes of the voxels that held an observed surface point (a depth pixel
+    back-projected with its pose); None: unknown (every voxel may hold surface)."""
 
     @classmethod
     def create(cls, map_id: int, agent: int, config: SLAMConfig, device: torch.device,
@@ -58,6 +64,45 @@ class SubMap:
     def view(self) -> MapView:
         return MapView.of(self.voxels)
 
+    def updates(self) -> torch.Tensor:
+        """``corner_updates`` padded with zeros to the current embedding rows, (Nc,) int32."""
+        n = self.voxels.num_corners
+        device = self.voxels.embeddings.device
+        counts = self.corner_updates if self.corner_updates is not None else torch.zeros(0, dtype=torch.int32, device=device)
+        if counts.numel() < n:
+            counts = torch.cat([counts, counts.new_zeros(n - counts.numel())])
+            self.corner_updates = counts
+        return counts
+
+    def optimised_voxels(self, min_updates: int) -> torch.Tensor:
+        """(Nv,) bool: voxels whose 8 corners got a gradient in >= min_updates mapping steps.
+        A freshly allocated voxel holds random embeddings whose SDF means nothing yet."""
+        if self.corner_updates is None or min_updates <= 0:
+            return torch.ones(self.voxels.num_voxels, dtype=torch.bool, device=self.voxels.voxel_codes.device)
+        return (self.updates()[self.voxels.voxel_corners] >= min_updates).all(1)
+
+    def observe_surface(self, codes: torch.Tensor) -> None:
+        """Record the Morton codes (N,) of voxels holding observed surface points."""
+        old = self.surface_codes if self.surface_codes is not None else codes.new_zeros(0)
+        self.surface_codes = torch.unique(torch.cat([old, codes]))
+
+    def surface_voxels(self) -> torch.Tensor:
+        """(Nv,) bool: the voxel held an observed surface point (all True when unknown)."""
+        if self.surface_codes is None:
+            return torch.ones(self.voxels.num_voxels, dtype=torch.bool, device=self.voxels.voxel_codes.device)
+        return lookup_sorted(self.surface_codes, self.voxels.voxel_codes) >= 0
+
+    def optimised_view(self, min_updates: int, surface_only: bool = False) -> MapView:
+        """The map restricted to ``optimised_voxels`` and, with ``surface_only``, to the
+        ``surface_voxels`` (embedding rows unchanged)."""
+        keep = self.optimised_voxels(min_updates)
+        if surface_only:
+            keep = keep & self.surface_voxels()
+        v = self.voxels
+        if bool(keep.all()):
+            return self.view()
+        return MapView(v.voxel_codes[keep], v.voxel_corners[keep], v.embeddings, v.voxel_size)
+
     def memory_bytes(self) -> tuple[int, int]:
         """(embeddings + voxel index bytes, decoder bytes)."""
         return self.voxels.nbytes(), self.decoder.num_bytes()
@@ -69,6 +114,8 @@ class SubMap:
             "voxels": self.voxels.state_dict(),
             "decoder": {k: v.detach().cpu() for k, v in self.decoder.state_dict().items()},
             "T_world_map": self.T_world_map.detach().cpu(),
+            "corner_updates": None if self.corner_updates is None else self.corner_updates.cpu(),
+            "surface_codes": None if self.surface_codes is None else self.surface_codes.cpu(),
             "keyframes": [
                 {"frame_index": kf.frame_index, "timestamp": kf.timestamp,
                  "T_map_cam": kf.T_map_cam.detach().cpu(), "K": kf.K.detach().cpu()}
@@ -84,6 +131,10 @@ class SubMap:
         decoder.to(device)
         submap = cls(int(state["map_id"]), int(state["agent"]), voxels, decoder,
                      state["T_world_map"].to(device))
+        if state.get("corner_updates") is not None:
+            submap.corner_updates = state["corner_updates"].to(device)
+        if state.get("surface_codes") is not None:
+            submap.surface_codes = state["surface_codes"].to(device)
         # Keyframe images are not stored in checkpoints; only their poses.
         for kf in state.get("keyframes", []):
             submap.keyframes.append(Keyframe(kf["frame_index"], kf["timestamp"], None,

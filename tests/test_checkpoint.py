@@ -26,6 +26,9 @@ def mapset() -> MapSet:
     second = exact_submap(patch(-2, 2), plane_z(0.07), map_id=1, T_world_map=T)
     second.keyframes.append(Keyframe(frame_index=7, timestamp=0.25, frame=None,
                                      K=torch.from_numpy(K).float(), T_map_cam=translation(y=0.1)))
+    # The second map knows which voxels were optimised and held surface; the first does not.
+    second.corner_updates = torch.arange(second.voxels.num_corners, dtype=torch.int32) % 5 + 1
+    second.observe_surface(second.voxels.voxel_codes[:10])
     return MapSet(CONFIG, [first, second])
 
 
@@ -39,6 +42,10 @@ def test_round_trip_renders_and_meshes_identically(mapset, tmp_path):
     for before, after in zip(mapset.maps, loaded.maps):
         assert torch.equal(before.voxels.embeddings, after.voxels.embeddings)
         assert torch.equal(before.T_world_map, after.T_world_map)
+        for name in ("corner_updates", "surface_codes"):
+            a, b = getattr(before, name), getattr(after, name)
+            assert (a is None and b is None) or torch.equal(a, b), name
+    assert loaded.maps[1].surface_codes.numel() == 10
     keyframe = loaded.maps[1].keyframes[0]
     assert keyframe.frame_index == 7 and torch.equal(keyframe.T_map_cam, translation(y=0.1))
 

@@ -98,6 +98,14 @@ def test_mapping_with_gt_poses_reduces_the_losses(trained):
     assert a["sdf"] < b["sdf"] and a["fs"] < b["fs"], (b, a)
 
 
+def test_mapping_records_the_voxels_that_held_observed_surface(trained):
+    submap = trained.mapper.current
+    surface = submap.surface_voxels()
+    # Allocation covers depth +- tr: the surface voxels are a strict, non-empty part of it.
+    assert 0 < int(surface.sum()) < surface.numel()
+    assert torch.equal(submap.surface_codes, torch.unique(submap.surface_codes))
+
+
 def test_keyframe_selection(frames):
     config = replace(BASE, mapping=replace(BASE.mapping, keyframe_max_interval=1000))
     mapper = Mapper(config, CPU)

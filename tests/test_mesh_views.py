@@ -133,6 +133,31 @@ def test_plane_mesh_is_exact_and_only_inside_allocated_voxels():
     assert (mesh.face_normals[:, 2] < -0.99).all()
 
 
+def test_no_surface_in_voxels_the_mapper_never_optimised():
+    submap = exact_submap(patch(0, 3), plane_z(0.13))
+    full_area = extract_submap_mesh(submap, 4).area
+    counts = torch.ones(submap.voxels.num_corners, dtype=torch.int32)
+    v = submap.voxels
+    # Voxel 0 is (0, 0, 0), the patch's corner: its corner 0 belongs to no other voxel.
+    assert morton_decode(v.voxel_codes[:1]).tolist() == [[0, 0, 0]]
+    counts[v.voxel_corners[0, 0]] = 0
+    submap.corner_updates = counts
+    lost = int((~submap.optimised_voxels(1)).sum())
+    assert lost == 1
+    assert extract_submap_mesh(submap, 4).area == pytest.approx(full_area * 8 / 9, rel=1e-5)
+    assert extract_submap_mesh(submap, 4, min_corner_updates=0).area == pytest.approx(full_area, rel=1e-6)
+
+
+def test_surface_only_keeps_the_voxels_that_held_observed_depth():
+    submap = exact_submap(patch(0, 3), plane_z(0.13))
+    full_area = extract_submap_mesh(submap, 4).area
+    v = submap.voxels
+    submap.observe_surface(v.voxel_codes[:4])
+    assert bool(submap.surface_voxels()[:4].all()) and not bool(submap.surface_voxels()[4:].any())
+    assert extract_submap_mesh(submap, 4).area == pytest.approx(full_area * 4 / 9, rel=1e-5)
+    assert extract_submap_mesh(submap, 4, surface_only=False).area == pytest.approx(full_area, rel=1e-6)
+
+
 def test_no_surface_across_an_unallocated_gap():
     # The zero crossing x = 0.3 lies in voxel (1, 0, 0), which is not allocated: a dense
     # marching cubes over the bounding box would put a wall there.
