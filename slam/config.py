@@ -128,6 +128,10 @@ class TrackingConfig:
     sdf_weight: float = 5000.0
     fs_weight: float = 10.0
 
+    def __post_init__(self) -> None:
+        if self.optimizer not in ("adam", "gauss_newton"):
+            raise ConfigError(f"tracking.optimizer must be 'adam' or 'gauss_newton', got {self.optimizer!r}")
+
 
 @dataclass(frozen=True)
 class MappingConfig:

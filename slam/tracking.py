@@ -3,10 +3,14 @@
 The map and decoder are frozen; only the camera pose is optimised, as a twist
 ``xi in se(3)`` applied on the right of the initial guess (``T = T_init exp(xi)``, i.e. in
 the camera frame, which keeps rotation and translation well conditioned far from the map
-origin). Each iteration samples ``N_t`` fresh pixels with valid depth, renders them, drops
-rays whose depth residual exceeds ``outlier_factor`` times the median, and takes an Adam step
-on the four losses. The pose with the lowest loss is returned. Tracking reports failure when
-too few rays hit the map or the median depth residual stays too large.
+origin), on the paper's four losses over ``N_t`` pixels with valid depth. Rays whose depth
+residual exceeds ``outlier_factor`` times the median are dropped.
+
+Two optimisers: ``adam`` (the paper's; new pixels each iteration if ``resample_rays``, the
+lowest-loss pose is returned) and ``gauss_newton`` (Levenberg-Marquardt on the same loss with
+the closed-form model of ``slam.gauss_newton``; one ray set, steps accepted only when the
+loss falls). Tracking reports failure when too few rays hit the map, the median depth
+residual stays too large or the estimate jumped implausibly far (then the guess is returned).
 """
 
 from __future__ import annotations

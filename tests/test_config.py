@@ -134,3 +134,9 @@ def test_none_fields_accept_values_and_none():
     assert base.runtime.input_width is None
     assert apply_overrides(base, {"runtime": {"input_width": 320}}).runtime.input_width == 320
     assert apply_overrides(preset("cpu"), {"runtime": {"input_width": None}}).runtime.input_width is None
+
+
+def test_unknown_tracking_optimizer_is_a_config_error():
+    with pytest.raises(ConfigError, match="gauss_newton"):
+        apply_overrides(preset("cpu"), {"tracking": {"optimizer": "sgd"}})
+    assert apply_overrides(preset("cpu"), {"tracking": {"optimizer": "adam"}}).tracking.optimizer == "adam"
