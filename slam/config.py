@@ -257,7 +257,7 @@ def _test() -> SLAMConfig:
         preset="test",
         decoder=DecoderConfig(hidden_dim=32, feature_dim=32, color_hidden_dim=32),
         render=RenderConfig(step_ratio=0.2, max_hits=8, truncation=0.1, chunk_rays=2048),
-        tracking=TrackingConfig(num_rays=128, iterations=4),
+        tracking=TrackingConfig(optimizer="gauss_newton", num_rays=128, iterations=4),
         mapping=MappingConfig(num_rays=128, iterations=2, window_size=3, first_frame_iterations=10),
         loop=LoopConfig(inter_map_iterations=5, intra_map_iterations=3, geometry_rays=64),
         mesh=MeshConfig(resolution=4, update_every_keyframes=2),
