@@ -81,9 +81,6 @@ class TrackingConfig:
     optimizer: str = "adam"
     """``adam`` (the paper) or ``gauss_newton`` (Levenberg-Marquardt on the same loss with
     closed-form Jacobians, ``slam.gauss_newton``: converges in a few steps)."""
-    sdf_huber: float | None = None
-    """Huber threshold (metres) on the SDF residuals in Gauss-Newton tracking (None: the
-    paper's squared loss)."""
     min_corner_updates: int = 1
     """Track only against voxels whose corners got a gradient in at least this many mapping
     steps (0: every allocated voxel)."""

@@ -105,23 +105,23 @@ def linearise(T_map_cam: torch.Tensor, dirs_cam: torch.Tensor, rgb_gt: torch.Ten
               near: torch.Tensor, far: torch.Tensor, step: float, truncation: float,
               max_hits: int, weights: LossWeights, max_depth: float = 10.0,
               color_weight_eps: float = 1e-5, eps_depth: float = 5e-3,
-              eps_color: float = 1e-2, huber: float | None = None,
-              miss_cost: float | None = None) -> Linearisation:
+              eps_color: float = 1e-2, miss_cost: float | None = None) -> Linearisation:
     """The tracking loss of R rays at pose T_map_cam (4, 4) and its Gauss-Newton model.
 
     dirs_cam (R, 3) camera-frame directions with z = 1, rgb_gt (R, 3), depth_gt (R,),
     ray_weight (R,) in {0, 1} (outliers) or None; near, far (R,) sampling bounds.
+    ``eps_depth`` / ``eps_color`` floor the residuals in the IRLS weights of the L1 terms;
+    ``miss_cost``: see the denominators below (None: the losses exactly as compute_losses).
     Renders exactly as ``slam.render.render_rays`` (mid-step samples) with no autograd.
     """
     with torch.no_grad():
         return _linearise(T_map_cam, dirs_cam, rgb_gt, depth_gt, ray_weight, view, decoder,
                           near, far, step, truncation, max_hits, weights, max_depth,
-                          color_weight_eps, eps_depth, eps_color, huber, miss_cost)
+                          color_weight_eps, eps_depth, eps_color, miss_cost)
 
 
 def _linearise(T, dirs_cam, rgb_gt, depth_gt, ray_weight, view, decoder, near, far, step, tr,
-               max_hits, lw: LossWeights, max_depth, color_eps, eps_depth, eps_color, huber,
-               miss_cost):
+               max_hits, lw: LossWeights, max_depth, color_eps, eps_depth, eps_color, miss_cost):
     R_, o = T[:3, :3], T[:3, 3]
     num_rays = dirs_cam.shape[0]
     dirs = dirs_cam @ R_.T
@@ -201,15 +201,8 @@ def _linearise(T, dirs_cam, rgb_gt, depth_gt, ray_weight, view, decoder, near, f
         counts = torch.zeros(num_rays, dtype=t.dtype, device=t.device).index_add(0, r, mask.to(t.dtype))
         rays_with = int((counts > 0).sum()) if miss_cost is None else den_valid
         omega = lam / (rays_with * counts[r][mask])
-        e = res[mask]
-        if huber is not None and lam == lw.sdf:
-            # Huber: quadratic within delta, linear beyond (IRLS weight delta / |e|).
-            a = e.abs()
-            cost += float((omega * torch.where(a <= huber, e ** 2, 2 * huber * a - huber ** 2)).sum())
-            omega = omega * torch.clamp(huber / a.clamp(min=1e-12), max=1.0)
-        else:
-            cost += float((omega * e ** 2).sum())
-        add(J[mask], e, omega)
+        cost += float((omega * res[mask] ** 2).sum())
+        add(J[mask], res[mask], omega)
     residual = (depth - depth_gt).abs()
     return Linearisation(cost, H, g, depth, hit & (W > 1e-3), residual)
 

@@ -123,8 +123,7 @@ class Tracker:
                              fmap.decoder, near=near, far=far,
                              step=r.step_ratio * fmap.view.voxel_size, truncation=r.truncation,
                              max_hits=r.max_hits, weights=self.weights, max_depth=r.max_distance,
-                             color_weight_eps=c.color_weight_eps, huber=c.sdf_huber,
-                             miss_cost=miss_cost)
+                             color_weight_eps=c.color_weight_eps, miss_cost=miss_cost)
 
         first = linearise_at(T0_map, None)
         if not bool(first.hit.any()):
