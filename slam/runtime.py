@@ -381,6 +381,7 @@ class _ProcessMapper:
 class _RunState:
     poses: list[np.ndarray] = field(default_factory=list)
     timestamps: list[float] = field(default_factory=list)
+    frame_indices: list[int] = field(default_factory=list)
     gt_poses: list[np.ndarray | None] = field(default_factory=list)
     tracking_failures: int = 0
     tracking_busy: float = 0.0
@@ -470,6 +471,7 @@ def run_slam(sources: list[Iterable[Frame]], config: SLAMConfig, out_dir: str | 
             T, ok = _estimate_pose(frame, run, tracker, channel, config, device, use_gt_poses, emit)
             run.poses.append(T)
             run.timestamps.append(float(frame.timestamp))
+            run.frame_indices.append(int(frame.index))
             run.gt_poses.append(raw.T_world_cam)
             emit(PoseEvent(0, frame.index, float(frame.timestamp), T.astype(np.float64),
                            run.snapshot.map_id if run.snapshot else 0, ok,
@@ -503,6 +505,9 @@ def run_slam(sources: list[Iterable[Frame]], config: SLAMConfig, out_dir: str | 
         finally:
             channel.close()
     elapsed = time.perf_counter() - started
+    if not use_gt_poses and run.mapper_stats is not None and run.poses:
+        run.poses = list(refine_with_keyframes(np.stack(run.poses), run.frame_indices,
+                                               run.mapper_stats.keyframe_poses))
     result = _write_outputs(out, config, run, status, error, elapsed, total)
     emit(_stats_event(run, total, result.fps, started))
     emit(FinishedEvent(status, error))
@@ -575,6 +580,26 @@ def _stats_event(run: _RunState, total: int | None, fps: float, started: float) 
         voxels=stats.voxels if stats else (len(run.snapshot.voxel_codes) if run.snapshot else 0),
         tracking_busy=min(1.0, run.tracking_busy / wall),
         mapping_busy=min(1.0, stats.busy_seconds / wall) if stats else 0.0)
+
+
+def refine_with_keyframes(poses: np.ndarray, frame_indices: list[int],
+                          keyframe_poses: dict[int, list[float]]) -> np.ndarray:
+    """Tracked world poses (N, 4, 4) moved by bundle adjustment's keyframe corrections.
+
+    Each frame takes the correction ``T_kf_BA T_kf_tracked^-1`` of the latest keyframe at or
+    before it (so keyframes get their bundle-adjusted pose and the frames tracked against them
+    follow); frames before the first keyframe are unchanged. ``keyframe_poses``: frame index ->
+    the keyframe's optimised T_world_cam as 16 row-major numbers (``run.json``'s form).
+    """
+    out = np.array(poses, dtype=np.float64, copy=True)
+    correction = None
+    for i, index in enumerate(frame_indices):
+        refined = keyframe_poses.get(index)
+        if refined is not None:
+            correction = np.asarray(refined, np.float64).reshape(4, 4) @ np.linalg.inv(poses[i])
+        if correction is not None:
+            out[i] = correction @ poses[i]
+    return out
 
 
 def _write_outputs(out: Path, config: SLAMConfig, run: _RunState, status: str, error: str | None,

@@ -149,6 +149,32 @@ def test_run_json_fields(run):
     assert "ate_rmse_m" in info and info["ate_rmse_m"] is not None, "synthetic frames carry GT"
 
 
+def test_trajectory_carries_the_bundle_adjusted_keyframe_poses(run, frames):
+    traj = read_tum(run.out / "trajectory.txt")
+    for index, pose in run.info["keyframe_poses"].items():
+        np.testing.assert_allclose(traj.poses[int(index)], np.reshape(pose, (4, 4)), atol=1e-5)
+
+
+def test_refine_with_keyframes_moves_each_frame_with_its_keyframe():
+    def pose(x: float, yaw: float = 0.0) -> np.ndarray:
+        T = np.eye(4)
+        T[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
+        T[0, 3] = x
+        return T
+
+    tracked = np.stack([pose(0.0), pose(0.1), pose(0.2, 0.1), pose(0.3, 0.1), pose(0.4, 0.2)])
+    ba_kf2 = pose(0.25, 0.12)
+    refined = runtime.refine_with_keyframes(tracked, [5, 6, 7, 8, 9], {5: pose(0.0).ravel().tolist(),
+                                                                      7: ba_kf2.ravel().tolist()})
+    np.testing.assert_allclose(refined[:2], tracked[:2], atol=1e-12)  # keyframe 5 did not move
+    np.testing.assert_allclose(refined[2], ba_kf2, atol=1e-12)
+    # Frames after keyframe 7 keep their motion relative to it.
+    for i in (3, 4):
+        np.testing.assert_allclose(np.linalg.inv(refined[2]) @ refined[i],
+                                   np.linalg.inv(tracked[2]) @ tracked[i], atol=1e-12)
+    assert np.array_equal(runtime.refine_with_keyframes(tracked, [0, 1, 2, 3, 4], {}), tracked)
+
+
 def test_events_arrive_in_order(run, frames):
     ev = run.events
     poses = [e for e in ev if isinstance(e, PoseEvent)]
