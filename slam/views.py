@@ -92,7 +92,8 @@ def _render_submap_chunk(submap, T_map_cam: torch.Tensor, dirs_cam: torch.Tensor
     step = render.step_ratio * submap.voxels.voxel_size
     origins, dirs = rays_in_map(T_map_cam, dirs_cam)
     num_rays = dirs.shape[0]
-    out = render_rays(origins, dirs, submap.view(), submap.decoder,
+    # Voxels the mapper never optimised hold random embeddings: they render nothing.
+    out = render_rays(origins, dirs, submap.optimised_view(1), submap.decoder,
                       near=torch.full((num_rays,), near, device=dirs.device),
                       far=torch.full((num_rays,), render.max_distance, device=dirs.device),
                       step=step, truncation=render.truncation, max_hits=render.max_hits,
