@@ -36,6 +36,13 @@ class Keyframe:
     descriptor: np.ndarray | None = None
 
 
+def optimised_voxel_mask(corner_updates: torch.Tensor, voxel_corners: torch.Tensor,
+                         min_updates: int) -> torch.Tensor:
+    """(Nv,) bool: every corner of the voxel got a gradient in >= min_updates mapping steps.
+    corner_updates (Nc,) int, voxel_corners (Nv, 8) rows into it."""
+    return (corner_updates[voxel_corners] >= min_updates).all(1)
+
+
 @dataclass
 class SubMap:
     map_id: int
@@ -79,7 +86,7 @@ class SubMap:
         A freshly allocated voxel holds random embeddings whose SDF means nothing yet."""
         if self.corner_updates is None or min_updates <= 0:
             return torch.ones(self.voxels.num_voxels, dtype=torch.bool, device=self.voxels.voxel_codes.device)
-        return (self.updates()[self.voxels.voxel_corners] >= min_updates).all(1)
+        return optimised_voxel_mask(self.updates(), self.voxels.voxel_corners, min_updates)
 
     def observe_surface(self, codes: torch.Tensor) -> None:
         """Record the Morton codes (N,) of voxels holding observed surface points."""

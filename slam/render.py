@@ -222,16 +222,26 @@ def sample_points_from_hits(hits: VoxelHits, step: float, offsets: torch.Tensor)
 
 
 # ------------------------------------------------------------- interpolation
+def _corner_products(ax: torch.Tensor, ay: torch.Tensor, az: torch.Tensor) -> torch.Tensor:
+    """(S, 2) factors per axis -> (S, 8) products, corner c at (c & 1, (c >> 1) & 1, (c >> 2) & 1)."""
+    return (az[:, :, None, None] * ay[:, None, :, None] * ax[:, None, None, :]).reshape(-1, 8)
+
+
 def trilinear_weights(local: torch.Tensor) -> torch.Tensor:
     """(S, 3) position inside the voxel in [0, 1]^3 -> (S, 8) corner weights.
 
     Corner c sits at offset (c & 1, (c >> 1) & 1, (c >> 2) & 1); weights sum to one.
     """
-    x, y, z = local.unbind(-1)
-    wx = torch.stack([1 - x, x], -1)
-    wy = torch.stack([1 - y, y], -1)
-    wz = torch.stack([1 - z, z], -1)
-    return (wz[:, :, None, None] * wy[:, None, :, None] * wx[:, None, None, :]).reshape(-1, 8)
+    wx, wy, wz = (torch.stack([1 - a, a], -1) for a in local.unbind(-1))
+    return _corner_products(wx, wy, wz)
+
+
+def _local_and_corner_embeddings(points: torch.Tensor, voxel_index: torch.Tensor,
+                                 view: MapView) -> tuple[torch.Tensor, torch.Tensor]:
+    """Position inside each sample's voxel (S, 3) in [0, 1] and its 8 corner rows (S, 8, D)."""
+    ijk = view.voxel_coords[voxel_index].to(points.dtype)
+    local = (points / view.voxel_size - ijk).clamp(0.0, 1.0)
+    return local, torch.nn.functional.embedding(view.voxel_corners[voxel_index], view.embeddings)
 
 
 def interpolate_embeddings(points: torch.Tensor, voxel_index: torch.Tensor, view: MapView) -> torch.Tensor:
@@ -240,26 +250,18 @@ def interpolate_embeddings(points: torch.Tensor, voxel_index: torch.Tensor, view
     Differentiable with respect to both the embeddings and the points (tracking needs the
     latter).
     """
-    ijk = view.voxel_coords[voxel_index].to(points.dtype)
-    local = (points / view.voxel_size - ijk).clamp(0.0, 1.0)
-    w = trilinear_weights(local)
-    corner_rows = view.voxel_corners[voxel_index]
-    feats = torch.nn.functional.embedding(corner_rows, view.embeddings)  # (S, 8, D)
-    return (w[..., None] * feats).sum(1)
+    local, feats = _local_and_corner_embeddings(points, voxel_index, view)
+    return (trilinear_weights(local)[..., None] * feats).sum(1)
 
 
 def trilinear_weights_and_gradients(local: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """``trilinear_weights`` (S, 8) and their derivatives (S, 3, 8) along x, y, z of ``local``."""
-    x, y, z = local.unbind(-1)
-    one = torch.ones_like(x)
-    wx, wy, wz = (torch.stack([1 - a, a], -1) for a in (x, y, z))
+    wx, wy, wz = (torch.stack([1 - a, a], -1) for a in local.unbind(-1))
+    one = torch.ones_like(local[:, 0])
     dw = torch.stack([-one, one], -1)
-
-    def corners(ax: torch.Tensor, ay: torch.Tensor, az: torch.Tensor) -> torch.Tensor:
-        return (az[:, :, None, None] * ay[:, None, :, None] * ax[:, None, None, :]).reshape(-1, 8)
-
-    grads = torch.stack([corners(dw, wy, wz), corners(wx, dw, wz), corners(wx, wy, dw)], 1)
-    return corners(wx, wy, wz), grads
+    grads = torch.stack([_corner_products(dw, wy, wz), _corner_products(wx, dw, wz),
+                         _corner_products(wx, wy, dw)], 1)
+    return _corner_products(wx, wy, wz), grads
 
 
 def interpolate_with_gradient(points: torch.Tensor, voxel_index: torch.Tensor,
@@ -269,10 +271,8 @@ def interpolate_with_gradient(points: torch.Tensor, voxel_index: torch.Tensor,
     points (S, 3) map frame, voxel_index (S,) -> features (S, D), d features / d point
     (S, 3, D) per metre. ``interpolate_embeddings`` under autograd is the reference.
     """
-    ijk = view.voxel_coords[voxel_index].to(points.dtype)
-    local = (points / view.voxel_size - ijk).clamp(0.0, 1.0)
+    local, feats = _local_and_corner_embeddings(points, voxel_index, view)
     w, dw = trilinear_weights_and_gradients(local)
-    feats = torch.nn.functional.embedding(view.voxel_corners[voxel_index], view.embeddings)  # (S, 8, D)
     both = torch.bmm(torch.cat([w[:, None, :], dw / view.voxel_size], 1), feats)  # (S, 4, D)
     return both[:, 0], both[:, 1:]
 

@@ -27,6 +27,7 @@ from .gauss_newton import Linearisation, damped_step, limit_step, linearise
 from .geometry import se3_exp, se3_inverse, se3_log
 from .losses import LossWeights, compute_losses
 from .mapping import MapSnapshot, training_far
+from .maps import optimised_voxel_mask
 from .render import MapView, render_rays
 
 
@@ -59,8 +60,7 @@ class FrozenMap:
             # Only voxels whose eight corners the mapper has optimised: a freshly allocated
             # voxel holds random embeddings whose SDF means nothing yet, and rays landing in
             # one (the new border of a turning camera) would pull the pose anywhere.
-            trained = t(snapshot.corner_updates) >= config.tracking.min_corner_updates
-            keep = trained[corners].all(1)
+            keep = optimised_voxel_mask(t(snapshot.corner_updates), corners, config.tracking.min_corner_updates)
             codes, corners = codes[keep], corners[keep]
         self.view = MapView(codes, corners, t(snapshot.embeddings), snapshot.voxel_size)
         self.decoder = Decoder(config.decoder, config.voxel.embed_dim).to(device)
@@ -166,14 +166,15 @@ class Tracker:
         step = r.step_ratio * fmap.view.voxel_size
         it = 0
         batch = sample_pixels(frame, c.num_rays, self._gen)
+        near, far = tracking_bounds(batch.depth, r.truncation, c.sample_band, r.max_distance)
         for it in range(1, c.iterations + 1):
             T = T0_map @ se3_exp(torch.cat([rho, phi]))
             if c.resample_rays and it > 1:
                 batch = sample_pixels(frame, c.num_rays, self._gen)
+                near, far = tracking_bounds(batch.depth, r.truncation, c.sample_band, r.max_distance)
             n = batch.depth.shape[0]
             dirs = batch.dirs_cam @ T[:3, :3].T
             origins = T[:3, 3].expand(n, 3)
-            near, far = tracking_bounds(batch.depth, r.truncation, c.sample_band, r.max_distance)
             out = render_rays(origins, dirs, fmap.view, fmap.decoder, near=near, far=far,
                               step=step, truncation=r.truncation, max_hits=r.max_hits,
                               color_weight_eps=c.color_weight_eps)
