@@ -151,6 +151,11 @@ class MappingConfig:
     """N: a keyframe is forced after this many frames without one."""
     map_every: int = 1
     """Map every k-th tracked frame (1 = every frame)."""
+    final_iterations: int = 0
+    """Global bundle adjustment at the end of a sequence: iterations over all keyframes of the
+    current submap (paper: intra-map optimisation), before the mesh and trajectory are written."""
+    final_rays: int = 2048
+    """Rays per global bundle-adjustment iteration, spread evenly over the keyframes."""
 
 
 @dataclass(frozen=True)

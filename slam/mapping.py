@@ -210,35 +210,55 @@ class Mapper:
                  current: tuple[TensorFrame, torch.Tensor] | None = None) -> dict[str, float]:
         """Joint optimisation over the window; ``current`` adds the newest non-keyframe with a
         fixed pose. Returns the last iteration's losses."""
-        m, r = self.config.mapping, self.config.render
+        m = self.config.mapping
         window = self._window(submap)
         if current is not None:
             window = window[-(m.window_size - 1):] if m.window_size > 1 else []
-        frames = [(kf, kf.T_map_cam) for kf in window]
+        fixed = [] if current is None else [current]
+        return self._joint_optimisation(submap, window, fixed, iterations, m.num_rays)
+
+    def global_bundle_adjustment(self, submap: SubMap, iterations: int, num_rays: int) -> dict[str, float]:
+        """The paper's intra-map optimisation: embeddings, decoder and the poses of *all*
+        keyframes of ``submap`` (the first fixed), ``num_rays`` rays per iteration spread evenly
+        over the keyframes. The windowed mapper only ever sees N_kf keyframes at once; this
+        pass makes every keyframe agree with one map. Returns the last iteration's losses."""
+        kfs = submap.keyframes
+        if not kfs or iterations <= 0:
+            return {}
+        per_frame = max(num_rays // len(kfs), 16)
+        return self._joint_optimisation(submap, list(kfs), [], iterations, per_frame)
+
+    def _joint_optimisation(self, submap: SubMap, keyframes: list[Keyframe],
+                            fixed: list[tuple[TensorFrame, torch.Tensor]], iterations: int,
+                            rays_per_frame: int) -> dict[str, float]:
+        """Adam on embeddings and decoder (and, with ``optimize_poses``, a twist per keyframe
+        but the submap's first) over ``rays_per_frame`` rays of every keyframe and of every
+        ``fixed`` (frame, T_map_cam). Keyframe poses take their twists at the end."""
+        m, r = self.config.mapping, self.config.render
         optimizer = self._ensure_optimizer(submap)
+        sources = [kf.frame for kf in keyframes] + [frame for frame, _ in fixed]
+        T_start = torch.stack([kf.T_map_cam for kf in keyframes] + [T for _, T in fixed])  # (S, 4, 4)
         first_kf = submap.keyframes[0]
-        pose_kfs = [kf for kf in window if m.optimize_poses and kf is not first_kf]
-        twists = [torch.zeros(6, device=self.device, requires_grad=True) for _ in pose_kfs]
-        pose_opt = torch.optim.Adam(twists, lr=m.lr_pose) if twists else None
+        free = [i for i, kf in enumerate(keyframes) if m.optimize_poses and kf is not first_kf]
+        free_rows = torch.tensor(free, dtype=torch.long, device=self.device)
+        # One (P, 6) tensor for all free poses: Adam is per coordinate, so this is the same
+        # update as one optimiser per keyframe, at one batched exp map per iteration.
+        twists = torch.zeros(len(free), 6, device=self.device, requires_grad=True)
+        pose_opt = torch.optim.Adam([twists], lr=m.lr_pose) if free else None
         weights = self._loss_weights()
         losses: Losses | None = None
         for _ in range(iterations):
             tq = time.perf_counter()
-            origins, dirs, rgb, depth = [], [], [], []
-            twist_of = {id(kf): tw for kf, tw in zip(pose_kfs, twists)}
-            sources = [(kf.frame, pose) for kf, pose in frames]
-            if current is not None:
-                sources.append(current)
-            for i, (frame, T_map_cam) in enumerate(sources):
-                batch = sample_pixels(frame, m.num_rays, self._gen)
-                T = T_map_cam
-                if i < len(frames) and id(frames[i][0]) in twist_of:
-                    T = T_map_cam @ se3_exp(twist_of[id(frames[i][0])])
-                dirs.append(batch.dirs_cam @ T[:3, :3].T)
-                origins.append(T[:3, 3].expand(batch.dirs_cam.shape[0], 3))
-                rgb.append(batch.rgb)
-                depth.append(batch.depth)
-            o, d, c_gt, d_gt = torch.cat(origins), torch.cat(dirs), torch.cat(rgb), torch.cat(depth)
+            batches = [sample_pixels(frame, rays_per_frame, self._gen) for frame in sources]
+            T = T_start
+            if free:
+                xi = torch.zeros(len(sources), 6, device=self.device).index_copy(0, free_rows, twists)
+                T = T_start @ se3_exp(xi)
+            dirs_cam = torch.stack([b.dirs_cam for b in batches])  # (S, R, 3)
+            d = (dirs_cam @ T[:, :3, :3].transpose(1, 2)).reshape(-1, 3)
+            o = T[:, None, :3, 3].expand(-1, rays_per_frame, 3).reshape(-1, 3)
+            c_gt = torch.cat([b.rgb for b in batches])
+            d_gt = torch.cat([b.depth for b in batches])
             n = o.shape[0]
             out = render_rays(o, d, submap.view(), submap.decoder,
                               near=torch.full((n,), 0.05, device=self.device),
@@ -257,9 +277,11 @@ class Mapper:
                 pose_opt.step()
             self.timer.add("render", tb - tq)
             self.timer.add("backward", time.perf_counter() - tb)
-        with torch.no_grad():
-            for kf, tw in zip(pose_kfs, twists):
-                kf.T_map_cam = kf.T_map_cam @ se3_exp(tw.detach())
+        if free:
+            with torch.no_grad():
+                moved = T_start[free_rows] @ se3_exp(twists.detach())
+                for i, T_new in zip(free, moved):
+                    keyframes[i].T_map_cam = T_new
         return {} if losses is None else {k: float(v) for k, v in losses.as_floats().items()}
 
     def _count_corner_updates(self, submap: SubMap) -> None:

@@ -194,6 +194,12 @@ def _mapper_finish(mapper: Mapper, state: _MapperState) -> list[tuple[str, objec
 
     out: list[tuple[str, object]] = []
     if mapper.current is not None:
+        m = mapper.config.mapping
+        t0 = time.perf_counter()
+        mapper.global_bundle_adjustment(mapper.current, m.final_iterations, m.final_rays)
+        mapper.version += 1
+        state.busy += time.perf_counter() - t0
+        mapper.timer.add("final_bundle_adjustment", time.perf_counter() - t0)
         t0 = time.perf_counter()
         _save_map(mapper, state.out_dir)
         export_mesh(extract_mesh(mapper.maps), state.out_dir / "mesh.ply")

@@ -168,6 +168,23 @@ def test_bundle_adjustment_moves_keyframes_but_not_the_first(frames):
     assert world.shape == (2, 4, 4) and torch.allclose(world[1], after[1])
 
 
+def test_global_bundle_adjustment_moves_every_keyframe_but_the_first():
+    seq = open_sequence(SPEC, max_frames=4)
+    frames = [prepare_frame(f, None, CPU, BASE.voxel.max_depth) for f in seq]
+    m = replace(BASE.mapping, keyframe_max_interval=1, lr_pose=1e-2, window_size=2)
+    mapper = Mapper(replace(BASE, mapping=m), CPU)
+    for f in frames:
+        mapper.process(TrackedFrame(f, gt_pose(f)), optimize=False)
+    submap = mapper.current
+    before = [kf.T_map_cam.clone() for kf in submap.keyframes]
+    assert len(before) == 4, "a window of 2 could not reach all of them"
+    mapper.global_bundle_adjustment(submap, 2, num_rays=256)
+    after = [kf.T_map_cam for kf in submap.keyframes]
+    assert torch.equal(after[0], before[0])
+    assert all(float((a - b).abs().max()) > 1e-4 for a, b in zip(after[1:], before[1:]))
+    assert mapper.global_bundle_adjustment(submap, 0, num_rays=256) == {}
+
+
 def test_without_pose_optimisation_no_keyframe_moves(frames):
     mapper = _ba_mapper(frames, optimize_poses=False)
     submap = mapper.current
