@@ -293,16 +293,19 @@ def pipeline_frame(frame, width: int | None):
 
 def map_with_gt_poses(frames: Sequence, config, *, extra_iterations: int = 0,
                       on_frame: Callable[[int], None] | None = None):
-    """Map ``frames`` (already at pipeline size) with their GT poses, as the runtime's inline
-    mapper does (``Mapper.process`` on every frame), then ``extra_iterations`` more iterations
+    """Map ``frames`` (already at pipeline size) with their GT poses as ``--gt-poses`` runs do:
+    ``Mapper.process`` on every frame with keyframe poses fixed, then the end-of-sequence global
+    bundle adjustment (``mapping.final_iterations``). ``extra_iterations`` adds more iterations
     of the windowed optimisation, in rounds of ``mapping.iterations`` over a fresh random
     keyframe window each. Returns the ``Mapper``."""
     import torch
 
     from slam.frames import prepare_frame
     from slam.mapping import Mapper, TrackedFrame
+    from slam.runtime import with_given_poses
 
     device = torch.device("cpu")
+    config = with_given_poses(config)
     torch.manual_seed(config.runtime.seed)
     mapper = Mapper(config, device, seed=config.runtime.seed)
     for i, frame in enumerate(frames):
@@ -312,6 +315,8 @@ def map_with_gt_poses(frames: Sequence, config, *, extra_iterations: int = 0,
         mapper.process(TrackedFrame(tf, torch.as_tensor(frame.T_world_cam, dtype=torch.float32)))
         if on_frame is not None:
             on_frame(i)
+    m = config.mapping
+    mapper.global_bundle_adjustment(mapper.current, m.final_iterations, m.final_rays)
     # Extra rounds re-draw the keyframe window each time, as mapping more frames would.
     rounds, rest = divmod(extra_iterations, max(config.mapping.iterations, 1))
     for n in [config.mapping.iterations] * rounds + ([rest] if rest else []):

@@ -220,12 +220,14 @@ class Mapper:
     def global_bundle_adjustment(self, submap: SubMap, iterations: int, num_rays: int) -> dict[str, float]:
         """The paper's intra-map optimisation: embeddings, decoder and the poses of *all*
         keyframes of ``submap`` (the first fixed), ``num_rays`` rays per iteration spread evenly
-        over the keyframes. The windowed mapper only ever sees N_kf keyframes at once; this
+        over the keyframes (at least 4 each). The windowed mapper only ever sees N_kf keyframes at once; this
         pass makes every keyframe agree with one map. Returns the last iteration's losses."""
         kfs = submap.keyframes
         if not kfs or iterations <= 0:
             return {}
-        per_frame = max(num_rays // len(kfs), 16)
+        # At least a few rays per keyframe: long sequences cost a little more per iteration
+        # rather than leaving keyframes out.
+        per_frame = max(num_rays // len(kfs), 4)
         return self._joint_optimisation(submap, list(kfs), [], iterations, per_frame)
 
     def _joint_optimisation(self, submap: SubMap, keyframes: list[Keyframe],

