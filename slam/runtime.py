@@ -42,6 +42,10 @@ from .mapping import Mapper, MapSnapshot, TrackedFrame
 from .tracking import FrozenMap, Tracker, constant_velocity_guess
 
 _POLL_SECONDS = 0.2
+_END = None
+"""Frame-queue sentinel: the sequence ended; refine globally, then write the outputs."""
+_END_NOW = "end-now"
+"""Frame-queue sentinel: the run was stopped; write the outputs without the refinement."""
 _STARTUP_TIMEOUT = 300.0
 
 
@@ -188,15 +192,16 @@ def _mapper_stats(mapper: Mapper, state: _MapperState) -> _MapperStats:
                         map_bytes, dec_bytes, state.busy, dict(mapper.timer.totals), kf_poses)
 
 
-def _mapper_finish(mapper: Mapper, state: _MapperState) -> list[tuple[str, object]]:
-    """Final outputs of the mapper: checkpoint and mesh, then the statistics."""
+def _mapper_finish(mapper: Mapper, state: _MapperState, refine: bool) -> list[tuple[str, object]]:
+    """Final outputs of the mapper: the global bundle adjustment (``refine``; a stopped run
+    skips it to stop promptly), checkpoint and mesh, then the statistics."""
     from .mesh import export_mesh, extract_mesh
 
     out: list[tuple[str, object]] = []
     if mapper.current is not None:
         m = mapper.config.mapping
         t0 = time.perf_counter()
-        mapper.global_bundle_adjustment(mapper.current, m.final_iterations, m.final_rays)
+        mapper.global_bundle_adjustment(mapper.current, m.final_iterations if refine else 0, m.final_rays)
         mapper.version += 1
         state.busy += time.perf_counter() - t0
         mapper.timer.add("final_bundle_adjustment", time.perf_counter() - t0)
@@ -253,20 +258,20 @@ def _mapping_process(config_dict: dict, device_name: str, out_dir: str, emit_mes
             # Drain what queued up while we optimised: integrate all, optimise once. qsize
             # counts frames still in the queue's pipe, which get_nowait would miss (it then
             # took one frame per optimisation while the tracker sat on a full queue).
-            while batch[-1] is not None and _queued(frames) > 0:
+            while batch[-1] not in (_END, _END_NOW) and _queued(frames) > 0:
                 try:
                     batch.append(frames.get(timeout=_POLL_SECONDS))
                 except queue.Empty:
                     break
-            done = batch[-1] is None
-            work = [m for m in batch if m is not None]
+            done = batch[-1] in (_END, _END_NOW)
+            work = [m for m in batch if m not in (_END, _END_NOW)]
             for i, m in enumerate(work):
                 for reply in _mapper_handle(mapper, state, m, optimize=(i == len(work) - 1)):
                     replies.put(reply)
             if work:
                 replies.put(("snapshot", mapper.snapshot()))
             if done:
-                for reply in _mapper_finish(mapper, state):
+                for reply in _mapper_finish(mapper, state, refine=batch[-1] is _END):
                     replies.put(reply)
                 return
     except BaseException:  # noqa: BLE001 - reported to the tracking side, which fails the run
@@ -290,8 +295,8 @@ class _InlineMapper:
         out, self.pending = self.pending, []
         return out
 
-    def finish(self) -> list[tuple[str, object]]:
-        return self.poll() + _mapper_finish(self.mapper, self.state)
+    def finish(self, refine: bool = True) -> list[tuple[str, object]]:
+        return self.poll() + _mapper_finish(self.mapper, self.state, refine)
 
     def close(self) -> None:
         pass
@@ -358,8 +363,8 @@ class _ProcessMapper:
             except queue.Empty:
                 return out
 
-    def finish(self) -> list[tuple[str, object]]:
-        self.submit(None)  # type: ignore[arg-type]
+    def finish(self, refine: bool = True) -> list[tuple[str, object]]:
+        self.submit(_END if refine else _END_NOW)  # type: ignore[arg-type]
         out: list[tuple[str, object]] = list(self._early)
         self._early = []
         while True:
@@ -373,7 +378,7 @@ class _ProcessMapper:
     def close(self) -> None:
         if self.process.is_alive():
             try:  # a mapper still waiting for frames (the run failed early) gets its sentinel
-                self.frames.put_nowait(None)
+                self.frames.put_nowait(_END_NOW)
             except queue.Full:
                 pass
         self.process.join(timeout=10)
@@ -510,7 +515,7 @@ def run_slam(sources: list[Iterable[Frame]], config: SLAMConfig, out_dir: str | 
     if channel is not None:
         try:
             if status != "failed" or run.snapshot is not None:
-                _handle_replies(channel.finish(), run, emit, config, device)
+                _handle_replies(channel.finish(refine=status == "finished"), run, emit, config, device)
         except KeyboardInterrupt:
             status = "cancelled"
         except Exception:  # noqa: BLE001

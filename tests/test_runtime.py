@@ -234,6 +234,14 @@ def test_stop_after_two_frames_cancels_and_still_writes(frames, tmp_path):
     assert load_checkpoint(tmp_path / "map.pt").num_voxels() > 0
     assert (tmp_path / "mesh.ply").is_file()
     assert isinstance(events[-1], FinishedEvent) and events[-1].status == "cancelled"
+    assert info["timings_s"]["mapping_final_bundle_adjustment"] < 0.05, "a stopped run skips the refinement"
+
+
+def test_a_finished_run_refines_globally_in_the_mapping_process(frames, tmp_path):
+    cfg = replace(FAST, mapping=replace(FAST.mapping, final_iterations=3))
+    done = do_run([frames], config(True, cfg), tmp_path)
+    assert done.result.status == "finished"
+    assert done.info["timings_s"]["mapping_final_bundle_adjustment"] > 0
 
 
 def raising_source(frames, good: int):
