@@ -220,8 +220,9 @@ class Mapper:
     def global_bundle_adjustment(self, submap: SubMap, iterations: int, num_rays: int) -> dict[str, float]:
         """The paper's intra-map optimisation: embeddings, decoder and the poses of *all*
         keyframes of ``submap`` (the first fixed), ``num_rays`` rays per iteration spread evenly
-        over the keyframes (at least 4 each). The windowed mapper only ever sees N_kf keyframes at once; this
-        pass makes every keyframe agree with one map. Returns the last iteration's losses."""
+        over the keyframes (at least 4 each). The windowed mapper only ever sees N_kf keyframes
+        at once; this pass makes every keyframe agree with one map. Returns the last
+        iteration's losses."""
         kfs = submap.keyframes
         if not kfs or iterations <= 0:
             return {}
