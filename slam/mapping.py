@@ -10,7 +10,9 @@ For every tracked frame the mapper
    starve keyframe selection;
 3. jointly optimises embeddings, decoder and the poses of the keyframes in a window of
    ``window_size`` frames (random earlier keyframes plus the newest frame; the first keyframe
-   is fixed to remove the gauge freedom).
+   is fixed to remove the gauge freedom);
+4. at the end of a sequence, ``global_bundle_adjustment`` does the same over every keyframe
+   of the submap (the paper's intra-map optimisation).
 
 The ``Mapper`` is plain state with no process code; ``slam.runtime`` runs it in its own process.
 """
