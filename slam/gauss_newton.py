@@ -31,6 +31,7 @@ from .losses import LossWeights
 from .render import (
     MapView,
     RaySamples,
+    Segments,
     interpolate_with_gradient,
     ray_voxel_intersections,
     sample_points_from_hits,
@@ -67,7 +68,7 @@ class FieldValues:
 
 
 def field_with_gradients(points: torch.Tensor, voxel_index: torch.Tensor, view: MapView, decoder,
-                         step: float = 2e-3) -> FieldValues:
+                         step: float = 2e-3, segments: Segments | None = None) -> FieldValues:
     """SDF at points (S, 3) and its spatial gradient.
 
     The trilinear features and their spatial derivative are exact
@@ -76,7 +77,7 @@ def field_with_gradients(points: torch.Tensor, voxel_index: torch.Tensor, view: 
     piecewise linear (ReLU), so this is exact unless a step crosses a kink.
     """
     S = points.shape[0]
-    feats, dfeats = interpolate_with_gradient(points, voxel_index, view)
+    feats, dfeats = interpolate_with_gradient(points, voxel_index, view, segments)
     batch = torch.cat([feats[None], feats[None] + step * dfeats.transpose(0, 1)]).reshape(4 * S, feats.shape[1])
     sdf_all, hidden = decoder.sdf_and_hidden(batch)
     sdf_all = sdf_all.reshape(4, S)
@@ -132,7 +133,7 @@ def _linearise(T, dirs_cam, rgb_gt, depth_gt, ray_weight, view, decoder, near, f
     x_cam = t[:, None] * dirs_cam[r]
     points = origins[r] + t[:, None] * dirs[r]
 
-    field = field_with_gradients(points, samples.voxel_index, view, decoder)
+    field = field_with_gradients(points, samples.voxel_index, view, decoder, segments=samples.segments)
     s = field.sdf
     w, dw_ds = sdf_weights_and_slope(s, t, r, num_rays, tr)
     # The colour head only where a sample has weight, as in render_rays.

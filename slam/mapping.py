@@ -27,7 +27,15 @@ import numpy as np
 import torch
 
 from .config import SLAMConfig
-from .frames import TensorFrame, backproject, sample_pixels
+from .frames import (
+    FrameStack,
+    PixelBatch,
+    TensorFrame,
+    backproject,
+    sample_pixels,
+    sample_stacked_pixels,
+    stack_frames,
+)
 from .geometry import se3_exp, se3_inverse
 from .losses import LossWeights, Losses, compute_losses
 from .maps import Keyframe, MapSet, SubMap
@@ -251,19 +259,19 @@ class Mapper:
         twists = torch.zeros(len(free), 6, device=self.device, requires_grad=True)
         pose_opt = torch.optim.Adam([twists], lr=m.lr_pose) if free else None
         weights = self._loss_weights()
+        stack = stack_frames(sources)
         losses: Losses | None = None
         for _ in range(iterations):
             tq = time.perf_counter()
-            batches = [sample_pixels(frame, rays_per_frame, self._gen) for frame in sources]
+            batch = self._sample(sources, stack, rays_per_frame)
             T = T_start
             if free:
                 xi = torch.zeros(len(sources), 6, device=self.device).index_copy(0, free_rows, twists)
                 T = T_start @ se3_exp(xi)
-            dirs_cam = torch.stack([b.dirs_cam for b in batches])  # (S, R, 3)
+            dirs_cam = batch.dirs_cam.reshape(len(sources), rays_per_frame, 3)
             d = (dirs_cam @ T[:, :3, :3].transpose(1, 2)).reshape(-1, 3)
             o = T[:, None, :3, 3].expand(-1, rays_per_frame, 3).reshape(-1, 3)
-            c_gt = torch.cat([b.rgb for b in batches])
-            d_gt = torch.cat([b.depth for b in batches])
+            c_gt, d_gt = batch.rgb, batch.depth
             n = o.shape[0]
             out = render_rays(o, d, submap.view(), submap.decoder,
                               near=torch.full((n,), 0.05, device=self.device),
@@ -288,6 +296,14 @@ class Mapper:
                 for i, T_new in zip(free, moved):
                     keyframes[i].T_map_cam = T_new
         return {} if losses is None else {k: float(v) for k, v in losses.as_floats().items()}
+
+    def _sample(self, sources: list[TensorFrame], stack: FrameStack | None, num: int) -> PixelBatch:
+        """``num`` pixels of each source frame, frame by frame."""
+        if stack is not None:
+            return sample_stacked_pixels(stack, num, self._gen)
+        batches = [sample_pixels(frame, num, self._gen) for frame in sources]
+        return PixelBatch(torch.cat([b.dirs_cam for b in batches]), torch.cat([b.rgb for b in batches]),
+                          torch.cat([b.depth for b in batches]))
 
     def _count_corner_updates(self, submap: SubMap) -> None:
         grad = submap.voxels.embeddings.grad

@@ -62,11 +62,28 @@ class VoxelHits:
 
 @dataclass(frozen=True)
 class RaySamples:
-    """Flat samples: ray_index (S,) int64, t (S,) z-depth, voxel_index (S,) int64."""
+    """Flat samples: ray_index (S,) int64, t (S,) z-depth, voxel_index (S,) int64.
+
+    ``segments``: when the samples come from ``VoxelHits``, which hit each sample lies in,
+    (S,) int64, and the voxel of each hit, (H,) int64 (see ``interpolate_embeddings``).
+    """
 
     ray_index: torch.Tensor
     t: torch.Tensor
     voxel_index: torch.Tensor
+    segments: Segments | None = None
+
+
+@dataclass(frozen=True)
+class Segments:
+    """Samples grouped by the stretch of a ray inside one voxel (about ten samples each).
+
+    sample_segment (S,) int64 into segment_voxel (H,) int64; segment_voxel[sample_segment]
+    is the samples' voxel_index.
+    """
+
+    sample_segment: torch.Tensor
+    segment_voxel: torch.Tensor
 
 
 @dataclass(frozen=True)
@@ -218,7 +235,7 @@ def sample_points_from_hits(hits: VoxelHits, step: float, offsets: torch.Tensor)
     first = torch.cumsum(counts, 0) - counts
     j = torch.arange(total, device=counts.device) - first[seg]
     t = (k0[seg] + j + u[seg]) * step
-    return RaySamples(hits.ray_index[seg], t, hits.voxel_index[seg])
+    return RaySamples(hits.ray_index[seg], t, hits.voxel_index[seg], Segments(seg, hits.voxel_index))
 
 
 # ------------------------------------------------------------- interpolation
@@ -236,25 +253,44 @@ def trilinear_weights(local: torch.Tensor) -> torch.Tensor:
     return _corner_products(wx, wy, wz)
 
 
-def _local_and_corner_embeddings(points: torch.Tensor, voxel_index: torch.Tensor,
-                                 view: MapView) -> tuple[torch.Tensor, torch.Tensor]:
-    """Position inside each sample's voxel (S, 3) in [0, 1] and its 8 corner rows (S, 8, D)."""
+def _local_and_corner_embeddings(points: torch.Tensor, voxel_index: torch.Tensor, view: MapView,
+                                 segments: Segments | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Position inside each sample's voxel (S, 3) in [0, 1] and its 8 corner rows (S, 8, D).
+
+    With ``segments`` the corner rows are gathered once per segment and then copied to its
+    samples as one 8 D-wide row each: the same numbers, but the backward scatters H x 8
+    rows into the embeddings instead of S x 8 (S ~ 10 H), which roughly halves the cost of
+    interpolation's backward on CPU.
+    """
+    D = view.embeddings.shape[1]
     ijk = view.voxel_coords[voxel_index].to(points.dtype)
     local = (points / view.voxel_size - ijk).clamp(0.0, 1.0)
-    corners = view.voxel_corners[voxel_index]  # (S, 8)
+    if segments is None:
+        rows = _corner_rows(voxel_index, view)
+    else:
+        per_segment = _corner_rows(segments.segment_voxel, view).reshape(-1, 8 * D)
+        rows = per_segment.index_select(0, segments.sample_segment)
+    return local, rows.reshape(-1, 8, D)
+
+
+def _corner_rows(voxel_index: torch.Tensor, view: MapView) -> torch.Tensor:
+    """The 8 corner embeddings of voxels (N,) -> (N, 8, D)."""
+    corners = view.voxel_corners[voxel_index]  # (N, 8)
     # index_select, not F.embedding: the same values, and its backward (index_add) takes
     # two thirds of embedding's dense backward on CPU (240k rows: 24 ms against 36 ms).
     rows = view.embeddings.index_select(0, corners.reshape(-1))
-    return local, rows.reshape(*corners.shape, view.embeddings.shape[1])
+    return rows.reshape(*corners.shape, view.embeddings.shape[1])
 
 
-def interpolate_embeddings(points: torch.Tensor, voxel_index: torch.Tensor, view: MapView) -> torch.Tensor:
+def interpolate_embeddings(points: torch.Tensor, voxel_index: torch.Tensor, view: MapView,
+                           segments: Segments | None = None) -> torch.Tensor:
     """TriLerp of corner embeddings. points (S, 3) map frame, voxel_index (S,) -> (S, D).
 
     Differentiable with respect to both the embeddings and the points (tracking needs the
-    latter).
+    latter). ``segments`` (from ``RaySamples``) only changes how corner rows are gathered;
+    without it is the reference.
     """
-    local, feats = _local_and_corner_embeddings(points, voxel_index, view)
+    local, feats = _local_and_corner_embeddings(points, voxel_index, view, segments)
     return (trilinear_weights(local)[..., None] * feats).sum(1)
 
 
@@ -268,14 +304,14 @@ def trilinear_weights_and_gradients(local: torch.Tensor) -> tuple[torch.Tensor, 
     return _corner_products(wx, wy, wz), grads
 
 
-def interpolate_with_gradient(points: torch.Tensor, voxel_index: torch.Tensor,
-                              view: MapView) -> tuple[torch.Tensor, torch.Tensor]:
+def interpolate_with_gradient(points: torch.Tensor, voxel_index: torch.Tensor, view: MapView,
+                              segments: Segments | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """TriLerp of corner embeddings and its exact spatial derivative, without autograd.
 
     points (S, 3) map frame, voxel_index (S,) -> features (S, D), d features / d point
     (S, 3, D) per metre. ``interpolate_embeddings`` under autograd is the reference.
     """
-    local, feats = _local_and_corner_embeddings(points, voxel_index, view)
+    local, feats = _local_and_corner_embeddings(points, voxel_index, view, segments)
     w, dw = trilinear_weights_and_gradients(local)
     both = torch.bmm(torch.cat([w[:, None, :], dw / view.voxel_size], 1), feats)  # (S, 4, D)
     return both[:, 0], both[:, 1:]
@@ -350,7 +386,7 @@ def render_rays(origins: torch.Tensor, dirs: torch.Tensor, view: MapView, decode
     samples = sample_points_from_hits(hits, step, offsets)
     r = samples.ray_index
     points = origins[r] + samples.t[:, None] * dirs[r]
-    feats = interpolate_embeddings(points, samples.voxel_index, view)
+    feats = interpolate_embeddings(points, samples.voxel_index, view, samples.segments)
     sdf, hidden = decoder.sdf_and_hidden(feats)
     w = sdf_weights(sdf, samples.t, r, num_rays, truncation)
     wsum = torch.zeros(num_rays, device=w.device, dtype=w.dtype).index_add(0, r, w)

@@ -286,6 +286,33 @@ def test_interpolation_with_gradient_matches_autograd():
         assert torch.allclose(dfast[:, :, d], g, atol=1e-10), d
 
 
+def test_segment_gather_matches_the_per_sample_reference():
+    """Corner rows gathered per ray segment (render_rays' fast path) give the same features,
+    the same embedding gradients and the same point gradients as gathering per sample."""
+    vmap = SparseVoxelMap(0.25, 4, init_std=0.5, seed=8)
+    vmap.allocate(torch.rand(300, 3, generator=torch.Generator().manual_seed(9)) * 1.5)
+    gen = torch.Generator().manual_seed(10)
+    origins = torch.zeros(40, 3) - 0.3
+    dirs = torch.rand(40, 3, generator=gen) + 0.2
+    hits = ray_voxel_intersections(origins, dirs, torch.zeros(40), torch.full((40,), 3.0),
+                                   vmap.voxel_codes, vmap.voxel_size, 0)
+    samples = sample_points_from_hits(hits, 0.03, torch.rand(40, generator=gen))
+    assert samples.segments is not None and samples.t.numel() > 2 * hits.ray_index.numel()
+    assert torch.equal(samples.segments.segment_voxel[samples.segments.sample_segment], samples.voxel_index)
+    r = samples.ray_index
+    results = []
+    for segs in (None, samples.segments):
+        emb = vmap.embeddings.detach().clone().requires_grad_(True)
+        pts = (origins[r] + samples.t[:, None] * dirs[r]).requires_grad_(True)
+        view = MapView(vmap.voxel_codes, vmap.voxel_corners, emb, vmap.voxel_size)
+        feats = interpolate_embeddings(pts, samples.voxel_index, view, segs)
+        (feats * torch.linspace(-1, 1, feats.numel()).reshape(feats.shape)).sum().backward()
+        fast, dfast = interpolate_with_gradient(pts.detach(), samples.voxel_index, view, segs)
+        results.append((feats.detach(), emb.grad, pts.grad, fast, dfast))
+    for ref, got in zip(*results):
+        assert torch.allclose(ref, got, atol=1e-6, rtol=1e-5)
+
+
 # ----------------------------------------------------------------- weights
 def test_sdf_weights_slope_is_the_derivative_with_the_mask_held():
     tr = 0.1
