@@ -192,6 +192,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="smoke run: few frames, few mesh samples")
     parser.add_argument("--preset", default="cpu")
+    parser.add_argument("--config", type=Path, default=None, help="JSON overrides of the preset (as voxfusion run)")
     parser.add_argument("--extra-iterations", type=int, default=0,
                         help="optimisation iterations after the single pass over the frames")
     parser.add_argument("--scenes", default=",".join(SCENES), help=f"comma list of {SCENES}")
@@ -204,9 +205,9 @@ def main(argv: list[str] | None = None) -> int:
 
     torch.set_num_threads(args.threads)
 
-    from slam.config import preset
+    from slam.config import load_config
 
-    config = preset(args.preset)
+    config = load_config(args.preset, args.config)
     config = replace(config, runtime=replace(config.runtime, device="cpu", processes=False))
     if args.quick:  # a smoke run: the figures mean nothing, the code paths are the same
         config = replace(config, mapping=replace(config.mapping, first_frame_iterations=20))
