@@ -249,11 +249,12 @@ def _cpu() -> SLAMConfig:
         # ATE 0.39 cm at 0.36 s/frame against 1.02 cm at 0.81 s/frame with Adam x 20).
         tracking=TrackingConfig(optimizer="gauss_newton", num_rays=512, iterations=6),
         # The end-of-sequence global bundle adjustment gives every keyframe iterations the
-        # window never had (Replica room0, 10 frames, 3 held-out views: 21.4 dB; 23.4 with
-        # 100 x 2048 rays; 24.0 with 300 x 512: iterations count more than rays). 150 x 512
-        # costs about 17 s on fr1/rpy's 55 keyframes.
+        # window never had. Replica room0, 10 frames mapped, 10 held-out views: 21.4 dB
+        # without it; 23.3 with 150 x 512 rays, 23.8-24.0 with 300-400, 24.2-24.35 with 500
+        # (two seeds); iterations count more than rays (250 x 768: 24.0). 500 x 512 takes
+        # about 30 s on fr1/rpy's 55 keyframes with both cores (the tracker is done by then).
         mapping=MappingConfig(num_rays=384, iterations=6, window_size=4, first_frame_iterations=100,
-                              final_iterations=150, final_rays=512),
+                              final_iterations=500, final_rays=512),
         mesh=MeshConfig(resolution=6),
         runtime=RuntimeConfig(device="auto", input_width=320),
     )
