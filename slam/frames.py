@@ -139,10 +139,8 @@ def sample_stacked_pixels(stack: FrameStack, num: int, generator: torch.Generato
     pixel = flat % (stack.height * stack.width)
     v = torch.div(pixel, stack.width, rounding_mode="floor")
     u = pixel - v * stack.width
-    K = stack.K.repeat_interleave(num, 0)  # (F * num, 3, 3)
-    x = (u.to(torch.float32) - K[:, 0, 2]) / K[:, 0, 0]
-    y = (v.to(torch.float32) - K[:, 1, 2]) / K[:, 1, 1]
-    dirs = torch.stack([x, y, torch.ones_like(x)], -1)
+    uv = torch.stack([u, v], -1).to(torch.float32)
+    dirs = camera_rays(stack.K.repeat_interleave(num, 0), uv)  # one K per row
     return PixelBatch(dirs, stack.rgb[flat], stack.depth[flat])
 
 

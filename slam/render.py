@@ -106,14 +106,15 @@ class RenderOutput:
 
 # --------------------------------------------------------------------- rays
 def camera_rays(K: torch.Tensor, pixels_uv: torch.Tensor) -> torch.Tensor:
-    """Camera-frame directions with z = 1. K (3, 3), pixels_uv (R, 2) float -> (R, 3).
+    """Camera-frame directions with z = 1. K (3, 3) or one per pixel (R, 3, 3), pixels_uv
+    (R, 2) float -> (R, 3).
 
     OpenCV convention: the centre of pixel (u, v) is at the integer coordinates (u, v), so
     callers pass integer pixel indices as floats for pixel centres (the readers scale K with
     the same convention).
     """
-    x = (pixels_uv[:, 0] - K[0, 2]) / K[0, 0]
-    y = (pixels_uv[:, 1] - K[1, 2]) / K[1, 1]
+    x = (pixels_uv[:, 0] - K[..., 0, 2]) / K[..., 0, 0]
+    y = (pixels_uv[:, 1] - K[..., 1, 2]) / K[..., 1, 1]
     return torch.stack([x, y, torch.ones_like(x)], -1)
 
 
