@@ -199,7 +199,8 @@ class RuntimeConfig:
     queue_size: int = 2
     """Bounded queue between tracking and mapping. The mapper is the slower process, so a
     longer queue buys no throughput; it only lets the tracker run ahead against an older map
-    (fr1/rpy, 150 frames: 5.3 and 5.4 cm ATE with 2, 5.0-9.0 cm with 8)."""
+    (fr1/rpy, 150 frames, 6 x 384 mapping rays: 5.3 and 5.4 cm ATE with 2, 5.0-9.0 cm with 8;
+    the run-to-run spread is about as large, so this is a direction, not a proof)."""
     input_width: int | None = None
     """Resize input frames to this width inside the pipeline (intrinsics scaled)."""
     checkpoint_every_keyframes: int = 10
