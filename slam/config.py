@@ -149,8 +149,6 @@ class MappingConfig:
     """p_kf threshold: new-voxel / observed-voxel ratio that makes a keyframe."""
     keyframe_max_interval: int = 50
     """N: a keyframe is forced after this many frames without one."""
-    map_every: int = 1
-    """Map every k-th tracked frame (1 = every frame)."""
     final_iterations: int = 0
     """Global bundle adjustment at the end of a sequence: iterations over all keyframes of the
     current submap (paper: intra-map optimisation), before the mesh and trajectory are written."""
@@ -322,6 +320,13 @@ def _check_type(name: str, hint: Any, value: Any) -> Any:
     raise ConfigError(f"{name} must be {names}, got {type(value).__name__} {value!r}")
 
 
+RETIRED_FIELDS = {
+    ("mapping", "map_every"): "it never changed anything: every tracked frame is mapped, and the "
+                              "mapper optimises once over the frames that queued up",
+}
+"""Fields that configs written by earlier versions (checkpoints, run.json) may still hold."""
+
+
 def apply_overrides(config: SLAMConfig, overrides: dict[str, Any]) -> SLAMConfig:
     """Return ``config`` with ``{"section": {"field": value}}`` overrides applied.
 
@@ -340,6 +345,9 @@ def apply_overrides(config: SLAMConfig, overrides: dict[str, Any]) -> SLAMConfig
         clean: dict[str, Any] = {}
         for key, value in values.items():
             if key not in known:
+                retired = RETIRED_FIELDS.get((section, key))
+                if retired is not None:
+                    raise ConfigError(f"{section}.{key} was removed: {retired}")
                 raise ConfigError(f"unknown field {section}.{key}; known: {sorted(known)}")
             clean[key] = _check_type(f"{section}.{key}", hints[key], value)
         values = clean
@@ -364,6 +372,9 @@ def load_config(preset_name: str, path: str | Path | None = None) -> SLAMConfig:
 
 def config_from_dict(data: dict[str, Any]) -> SLAMConfig:
     """Rebuild a config from ``SLAMConfig.to_dict()`` output (checkpoints, run.json)."""
-    data = dict(data)
+    data = {k: dict(v) if isinstance(v, dict) else v for k, v in data.items()}
     base = preset(data.pop("preset", "cpu"))
+    for section, key in RETIRED_FIELDS:
+        if isinstance(data.get(section), dict):
+            data[section].pop(key, None)
     return apply_overrides(base, data)

@@ -73,6 +73,14 @@ def test_round_trip_keeps_changed_fields_and_the_preset_base():
     assert again == changed and again.mapping.iterations == 7 and again.runtime.input_width is None
 
 
+def test_saved_configs_with_a_retired_field_still_load_but_config_files_are_told():
+    saved = preset("cpu").to_dict()
+    saved["mapping"]["map_every"] = 1  # as checkpoints and run.json of earlier versions hold it
+    assert config_from_dict(saved) == preset("cpu")
+    with pytest.raises(ConfigError, match=r"mapping\.map_every was removed: it never changed anything"):
+        apply_overrides(preset("cpu"), {"mapping": {"map_every": 2}})
+
+
 def test_json_file_overrides_field_by_field(tmp_path):
     path = write(tmp_path, {"preset": "ignored", "mapping": {"iterations": 3, "lr_embed": 1},
                             "runtime": {"processes": False}})
