@@ -33,9 +33,11 @@ DEFAULT = Path(__file__).resolve().parents[2] / "shared" / "data" / "rgbd_datase
 
 def rotation_deg(R: np.ndarray) -> np.ndarray:
     """Rotation vector (3,) in degrees of a (3, 3) rotation."""
-    from scipy.spatial.transform import Rotation
+    import torch
 
-    return np.degrees(Rotation.from_matrix(R).as_rotvec())
+    from slam.geometry import so3_log
+
+    return np.degrees(so3_log(torch.as_tensor(R, dtype=torch.float64)).numpy())
 
 
 def rotation_ratio(estimate: np.ndarray, gt: np.ndarray, min_deg: float = 1.0) -> float:
