@@ -283,14 +283,56 @@ def _corner_rows(voxel_index: torch.Tensor, view: MapView) -> torch.Tensor:
     return rows.reshape(*corners.shape, view.embeddings.shape[1])
 
 
+class _WeightedCornerSum(torch.autograd.Function):
+    """sum_c weights[s, c] * embeddings[corners[s, c]]: (Nc, D), (S, 8) int64, (S, 8) -> (S, D).
+
+    The forward is ``embedding_bag`` (one fused gather-and-sum, no (S, 8, D) intermediate).
+    Its built-in backward for the table sorts all S x 8 indices, which costs more than the
+    rest of the interpolation on CPU; eight ``index_add_`` calls, one per corner, do the
+    same sum without sorting. Reference: ``interpolate_embeddings_reference``.
+    """
+
+    @staticmethod
+    def forward(ctx, embeddings: torch.Tensor, corners: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+        ctx.save_for_backward(embeddings, corners, weights)
+        return torch.nn.functional.embedding_bag(corners, embeddings, mode="sum", per_sample_weights=weights)
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):
+        embeddings, corners, weights = ctx.saved_tensors
+        grad_embeddings = grad_weights = None
+        if ctx.needs_input_grad[0]:
+            grad_embeddings = torch.zeros_like(embeddings)
+            for c in range(corners.shape[1]):
+                grad_embeddings.index_add_(0, corners[:, c], grad * weights[:, c:c + 1])
+        if ctx.needs_input_grad[2]:
+            rows = embeddings.index_select(0, corners.reshape(-1)).reshape(*corners.shape, -1)
+            grad_weights = torch.bmm(rows, grad[:, :, None])[..., 0]
+        return grad_embeddings, None, grad_weights
+
+
 def interpolate_embeddings(points: torch.Tensor, voxel_index: torch.Tensor, view: MapView,
                            segments: Segments | None = None) -> torch.Tensor:
     """TriLerp of corner embeddings. points (S, 3) map frame, voxel_index (S,) -> (S, D).
 
     Differentiable with respect to both the embeddings and the points (tracking needs the
-    latter). ``segments`` (from ``RaySamples``) only changes how corner rows are gathered;
-    without it is the reference.
+    latter). The fused path of ``_WeightedCornerSum``; ``interpolate_embeddings_reference``
+    is the plain one it is tested against. ``segments`` (from ``RaySamples``) only saves
+    gathering each sample's corner indices.
     """
+    ijk = view.voxel_coords[voxel_index].to(points.dtype)
+    local = (points / view.voxel_size - ijk).clamp(0.0, 1.0)
+    if segments is None:
+        corners = view.voxel_corners[voxel_index]
+    else:
+        corners = view.voxel_corners[segments.segment_voxel].index_select(0, segments.sample_segment)
+    return _WeightedCornerSum.apply(view.embeddings, corners, trilinear_weights(local))
+
+
+def interpolate_embeddings_reference(points: torch.Tensor, voxel_index: torch.Tensor, view: MapView,
+                                     segments: Segments | None = None) -> torch.Tensor:
+    """``interpolate_embeddings`` in plain autograd: every sample's 8 corner rows gathered,
+    weighted and summed."""
     local, feats = _local_and_corner_embeddings(points, voxel_index, view, segments)
     return (trilinear_weights(local)[..., None] * feats).sum(1)
 

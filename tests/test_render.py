@@ -19,6 +19,7 @@ from slam.render import (
     accumulate_along_rays,
     camera_rays,
     interpolate_embeddings,
+    interpolate_embeddings_reference,
     interpolate_with_gradient,
     ray_voxel_intersections,
     rays_in_map,
@@ -286,9 +287,10 @@ def test_interpolation_with_gradient_matches_autograd():
         assert torch.allclose(dfast[:, :, d], g, atol=1e-10), d
 
 
-def test_segment_gather_matches_the_per_sample_reference():
-    """Corner rows gathered per ray segment (render_rays' fast path) give the same features,
-    the same embedding gradients and the same point gradients as gathering per sample."""
+def test_fused_interpolation_matches_the_plain_reference():
+    """``interpolate_embeddings`` (embedding_bag forward, per-corner index_add backward), with
+    and without the segment gather, gives the reference's features, embedding gradients and
+    point gradients; ``interpolate_with_gradient`` agrees too."""
     vmap = SparseVoxelMap(0.25, 4, init_std=0.5, seed=8)
     vmap.allocate(torch.rand(300, 3, generator=torch.Generator().manual_seed(9)) * 1.5)
     gen = torch.Generator().manual_seed(10)
@@ -301,16 +303,32 @@ def test_segment_gather_matches_the_per_sample_reference():
     assert torch.equal(samples.segments.segment_voxel[samples.segments.sample_segment], samples.voxel_index)
     r = samples.ray_index
     results = []
-    for segs in (None, samples.segments):
+    for interpolate, segs in ((interpolate_embeddings_reference, None), (interpolate_embeddings, None),
+                              (interpolate_embeddings, samples.segments)):
         emb = vmap.embeddings.detach().clone().requires_grad_(True)
         pts = (origins[r] + samples.t[:, None] * dirs[r]).requires_grad_(True)
         view = MapView(vmap.voxel_codes, vmap.voxel_corners, emb, vmap.voxel_size)
-        feats = interpolate_embeddings(pts, samples.voxel_index, view, segs)
+        feats = interpolate(pts, samples.voxel_index, view, segs)
         (feats * torch.linspace(-1, 1, feats.numel()).reshape(feats.shape)).sum().backward()
         fast, dfast = interpolate_with_gradient(pts.detach(), samples.voxel_index, view, segs)
         results.append((feats.detach(), emb.grad, pts.grad, fast, dfast))
-    for ref, got in zip(*results):
-        assert torch.allclose(ref, got, atol=1e-6, rtol=1e-5)
+    assert results[0][1].abs().sum() > 0 and results[0][2].abs().sum() > 0
+    for got_set in results[1:]:
+        for ref, got in zip(results[0], got_set):
+            assert torch.allclose(ref, got, atol=1e-6, rtol=1e-5)
+
+
+def test_fused_interpolation_without_samples_or_without_point_gradients():
+    _, view = two_voxel_view()
+    none = interpolate_embeddings(torch.zeros(0, 3, dtype=torch.float64), torch.zeros(0, dtype=torch.long), view)
+    assert none.shape == (0, 3)
+    emb = view.embeddings.clone().requires_grad_(True)
+    points = torch.tensor([[0.1, 0.2, 0.3], [0.5, 0.1, 0.1]], dtype=torch.float64)
+    feats = interpolate_embeddings(points, torch.tensor([0, 1]),
+                                   MapView(view.voxel_codes, view.voxel_corners, emb, view.voxel_size))
+    feats.sum().backward()
+    # Every sample's trilinear weights sum to one, so each sample hands out exactly D units.
+    assert torch.isclose(emb.grad.sum(), torch.tensor(2.0 * 3, dtype=torch.float64))
 
 
 # ----------------------------------------------------------------- weights
