@@ -60,6 +60,9 @@ def main() -> None:
     parser.add_argument("--config", type=Path, default=None, help="JSON overrides of the preset")
     parser.add_argument("--every", type=int, default=5, help="print every k-th frame")
     parser.add_argument("--at", type=int, default=45, help="frame for the accumulated rotation")
+    parser.add_argument("--optimize-every", type=int, default=1,
+                        help="optimise after every k-th frame only (all are integrated), as the process-mode "
+                             "mapper does when k - 1 frames queued up while it optimised")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--quick", action="store_true", help="smoke run: 8 frames")
     args = parser.parse_args()
@@ -96,7 +99,7 @@ def main() -> None:
             T = torch.as_tensor(frame.T_world_cam, dtype=torch.float32)
         else:
             T = tracker.track(tf, FrozenMap(mapper.snapshot(), config, device), poses[-1]).T_world_cam
-        step = mapper.process(TrackedFrame(tf, T))
+        step = mapper.process(TrackedFrame(tf, T), optimize=(i == 0 or (i + 1) % args.optimize_every == 0))
         poses.append(T)
         gt.append(np.asarray(frame.T_world_cam, np.float64))
         error = np.linalg.inv(gt[-1]) @ T.double().numpy()
