@@ -114,6 +114,7 @@ class Mapper:
         self._gen = torch.Generator().manual_seed(seed)
         self._optimizer: torch.optim.Optimizer | None = None
         self._seed = seed
+        self._keyframe_pending = False
         self._kf_codes: dict[int, torch.Tensor] = {}
         """Sorted Morton codes of the voxels observed by each submap's keyframes."""
 
@@ -191,8 +192,12 @@ class Mapper:
             self.frames_since_keyframe += 1
         self.timer.add("voxel_allocation", time.perf_counter() - ta)
         losses: dict[str, float] = {}
+        self._keyframe_pending = self._keyframe_pending or is_kf
         if optimize:
             iters = m.first_frame_iterations if first else m.iterations
+            if not first and self._keyframe_pending and m.keyframe_iterations > 0:
+                iters = m.keyframe_iterations
+            self._keyframe_pending = False
             current = None if is_kf or not tracked.tracking_ok else (tracked.frame, T_map_cam)
             losses = self.optimize(submap, iters, current)
         self.version += 1

@@ -379,3 +379,22 @@ def test_tracking_ignores_voxels_the_mapper_never_optimised(trained, frames):
     assert partial.view.voxel_codes.numel() == expected < snap.voxel_codes.size
     everything = replace(CONFIG, tracking=replace(CONFIG.tracking, min_corner_updates=0))
     assert FrozenMap(untouched, everything, CPU).view.voxel_codes.numel() == snap.voxel_codes.size
+
+
+def test_keyframes_get_keyframe_iterations_also_when_batched(frames, monkeypatch):
+    """A batch of frames optimised once (the process-mode mapper) gets ``keyframe_iterations``
+    when any frame of it became a keyframe, not only when the last one did."""
+    config = replace(BASE, mapping=replace(BASE.mapping, iterations=2, keyframe_iterations=7,
+                                           first_frame_iterations=3, keyframe_max_interval=1000))
+    mapper = Mapper(config, CPU)
+    calls: list[int] = []
+    monkeypatch.setattr(mapper, "optimize", lambda submap, iterations, current=None: calls.append(iterations) or {})
+    f, T = frames[0], gt_pose(frames[0])
+    moved = T.clone()
+    moved[:3, 3] += torch.tensor([1.5, 0.0, 0.0])
+    mapper.process(TrackedFrame(f, T))                       # first frame
+    mapper.process(TrackedFrame(f, T))                       # nothing new: not a keyframe
+    assert mapper.process(TrackedFrame(f, moved), optimize=False).is_keyframe
+    assert not mapper.process(TrackedFrame(f, moved)).is_keyframe   # batch of two, one keyframe
+    mapper.process(TrackedFrame(f, moved))
+    assert calls == [3, 2, 7, 2]
