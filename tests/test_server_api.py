@@ -185,7 +185,10 @@ def test_ar_composites_with_render_and_frame_backgrounds(client, synthetic_sessi
     assert pick["hit"], pick
     point = np.array(pick["point"])
     T_obj = np.eye(4)
-    T_obj[:3, 3] = point + 0.1 * np.array(pick["normal"])
+    # The picked point lies inside the cube (0.05 m from its centre, half-size 0.1 m), so
+    # the picked pixel sees the cube whatever the normal's angle to the view; a cube whose
+    # face passed through the point covered only part of the pixels around it.
+    T_obj[:3, 3] = point + 0.05 * np.array(pick["normal"])
     objects = [{"shape": "cube", "T_world_obj": T_obj.tolist(), "scale": 0.2, "color": [1.0, 0.0, 0.0]}]
     background = decode_png(client.post(f"{url}/render", json=camera).content)
     composite = client.post(f"{url}/ar", json={"background": "render", **camera, "objects": objects})
