@@ -102,7 +102,7 @@ def staged_render(o, d, view, decoder, *, near, far, step, truncation, max_hits,
         r = samples.ray_index
         points = o[r] + samples.t[:, None] * d[r]
     with timer("interpolation"):
-        feats = interpolate_embeddings(points, samples.voxel_index, view, samples.segments)
+        feats = interpolate_embeddings(points, samples.voxel_index, view)
     with timer("decoder (SDF)"):
         sdf, hidden = decoder.sdf_and_hidden(feats)
     with timer("weights + accumulation"):

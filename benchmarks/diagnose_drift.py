@@ -66,6 +66,8 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--quick", action="store_true", help="smoke run: 8 frames")
     args = parser.parse_args()
+    if args.optimize_every < 1:
+        parser.error("--optimize-every must be at least 1")
 
     import torch
 

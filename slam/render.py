@@ -311,22 +311,17 @@ class _WeightedCornerSum(torch.autograd.Function):
         return grad_embeddings, None, grad_weights
 
 
-def interpolate_embeddings(points: torch.Tensor, voxel_index: torch.Tensor, view: MapView,
-                           segments: Segments | None = None) -> torch.Tensor:
+def interpolate_embeddings(points: torch.Tensor, voxel_index: torch.Tensor, view: MapView) -> torch.Tensor:
     """TriLerp of corner embeddings. points (S, 3) map frame, voxel_index (S,) -> (S, D).
 
     Differentiable with respect to both the embeddings and the points (tracking needs the
-    latter). The fused path of ``_WeightedCornerSum``; ``interpolate_embeddings_reference``
-    is the plain one it is tested against. ``segments`` (from ``RaySamples``) only saves
-    gathering each sample's corner indices.
+    latter). The fused path of ``_WeightedCornerSum``, which gathers rows inside
+    ``embedding_bag`` and so needs no per-segment gather; ``interpolate_embeddings_reference``
+    is the plain one it is tested against.
     """
     ijk = view.voxel_coords[voxel_index].to(points.dtype)
     local = (points / view.voxel_size - ijk).clamp(0.0, 1.0)
-    if segments is None:
-        corners = view.voxel_corners[voxel_index]
-    else:
-        corners = view.voxel_corners[segments.segment_voxel].index_select(0, segments.sample_segment)
-    return _WeightedCornerSum.apply(view.embeddings, corners, trilinear_weights(local))
+    return _WeightedCornerSum.apply(view.embeddings, view.voxel_corners[voxel_index], trilinear_weights(local))
 
 
 def interpolate_embeddings_reference(points: torch.Tensor, voxel_index: torch.Tensor, view: MapView,
@@ -429,7 +424,7 @@ def render_rays(origins: torch.Tensor, dirs: torch.Tensor, view: MapView, decode
     samples = sample_points_from_hits(hits, step, offsets)
     r = samples.ray_index
     points = origins[r] + samples.t[:, None] * dirs[r]
-    feats = interpolate_embeddings(points, samples.voxel_index, view, samples.segments)
+    feats = interpolate_embeddings(points, samples.voxel_index, view)
     sdf, hidden = decoder.sdf_and_hidden(feats)
     w = sdf_weights(sdf, samples.t, r, num_rays, truncation)
     wsum = torch.zeros(num_rays, device=w.device, dtype=w.dtype).index_add(0, r, w)

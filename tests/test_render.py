@@ -288,9 +288,9 @@ def test_interpolation_with_gradient_matches_autograd():
 
 
 def test_fused_interpolation_matches_the_plain_reference():
-    """``interpolate_embeddings`` (embedding_bag forward, per-corner index_add backward), with
-    and without the segment gather, gives the reference's features, embedding gradients and
-    point gradients; ``interpolate_with_gradient`` agrees too."""
+    """``interpolate_embeddings`` (embedding_bag forward, per-corner index_add backward) and
+    the reference's segment gather give the per-sample reference's features, embedding
+    gradients and point gradients; ``interpolate_with_gradient`` agrees too."""
     vmap = SparseVoxelMap(0.25, 4, init_std=0.5, seed=8)
     vmap.allocate(torch.rand(300, 3, generator=torch.Generator().manual_seed(9)) * 1.5)
     gen = torch.Generator().manual_seed(10)
@@ -303,8 +303,9 @@ def test_fused_interpolation_matches_the_plain_reference():
     assert torch.equal(samples.segments.segment_voxel[samples.segments.sample_segment], samples.voxel_index)
     r = samples.ray_index
     results = []
-    for interpolate, segs in ((interpolate_embeddings_reference, None), (interpolate_embeddings, None),
-                              (interpolate_embeddings, samples.segments)):
+    fused = lambda p, v, view, segs: interpolate_embeddings(p, v, view)  # noqa: E731
+    for interpolate, segs in ((interpolate_embeddings_reference, None), (interpolate_embeddings_reference, samples.segments),
+                              (fused, None)):
         emb = vmap.embeddings.detach().clone().requires_grad_(True)
         pts = (origins[r] + samples.t[:, None] * dirs[r]).requires_grad_(True)
         view = MapView(vmap.voxel_codes, vmap.voxel_corners, emb, vmap.voxel_size)
