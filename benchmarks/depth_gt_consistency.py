@@ -11,7 +11,7 @@ says, and a tracker that follows the images under-rotates by that much.
 
 PATH defaults to TUM fr1/rpy in ../shared/data. Frames are read as the pipeline reads them
 (``slam.data.open_sequence``: undistorted, full resolution; each frame takes the nearest
-ground-truth pose). This is plain numpy and needs no map.
+ground-truth pose). It needs no map: numpy, and slam.geometry for rotations.
 
 For a TUM folder, ``--lag-ms`` and ``--regular-stamps`` test the sensor's timing instead:
 ground truth is then interpolated (from ``groundtruth.txt``) at each frame's timestamp plus
@@ -35,22 +35,21 @@ DEFAULT = Path(__file__).resolve().parents[2] / "shared" / "data" / "rgbd_datase
 
 
 def rotvec(R: np.ndarray) -> np.ndarray:
-    """(3, 3) rotation -> (3,) rotation vector in radians (angles below pi)."""
-    angle = np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))
-    if angle < 1e-12:
-        return np.zeros(3)
-    axis = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / (2.0 * np.sin(angle))
-    return axis * angle
+    """(3, 3) rotation -> (3,) rotation vector in radians (``slam.geometry.so3_log``)."""
+    import torch
+
+    from slam.geometry import so3_log
+
+    return so3_log(torch.as_tensor(R, dtype=torch.float64)).numpy()
 
 
 def rotation(v: np.ndarray) -> np.ndarray:
-    """(3,) rotation vector -> (3, 3) rotation (Rodrigues)."""
-    angle = np.linalg.norm(v)
-    if angle < 1e-12:
-        return np.eye(3)
-    k = v / angle
-    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
+    """(3,) rotation vector -> (3, 3) rotation (``slam.geometry.so3_exp``)."""
+    import torch
+
+    from slam.geometry import so3_exp
+
+    return so3_exp(torch.as_tensor(v, dtype=torch.float64)).numpy()
 
 
 def interpolated_poses(groundtruth: Path, stamps: np.ndarray) -> np.ndarray:
