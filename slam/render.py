@@ -65,7 +65,8 @@ class RaySamples:
     """Flat samples: ray_index (S,) int64, t (S,) z-depth, voxel_index (S,) int64.
 
     ``segments``: when the samples come from ``VoxelHits``, which hit each sample lies in,
-    (S,) int64, and the voxel of each hit, (H,) int64 (see ``interpolate_embeddings``).
+    (S,) int64, and the voxel of each hit, (H,) int64 (read by ``interpolate_with_gradient``
+    and ``interpolate_embeddings_reference``; the fused ``interpolate_embeddings`` needs none).
     """
 
     ray_index: torch.Tensor
