@@ -74,6 +74,7 @@ def main() -> None:
     from slam.config import apply_overrides, load_config
     from slam.data import open_sequence
     from slam.eval import Trajectory, ate
+    from slam.features import FeatureOdometry
     from slam.frames import prepare_frame
     from slam.mapping import Mapper, TrackedFrame
     from slam.tracking import FrozenMap, Tracker
@@ -92,15 +93,24 @@ def main() -> None:
     started = time.perf_counter()
     print("| frame | position error x, y, z (cm, GT camera frame) | rotation error (deg) | keyframe |")
     print("| --- | --- | --- | --- |")
+    c = config.tracking
+    features = (FeatureOdometry(c.feature_count, config.voxel.max_depth, c.feature_ransac_px, c.feature_min_inliers)
+                if c.feature_count > 0 else None)
     for i in range(len(sequence)):
-        frame = pipeline_frame(sequence[i], config.runtime.input_width)
+        raw = sequence[i]
+        frame = pipeline_frame(raw, config.runtime.input_width)
         if frame.T_world_cam is None:
             raise SystemExit(f"{path}: frame {i} has no ground-truth pose")
         tf = prepare_frame(frame, None, device, config.voxel.max_depth)
+        matches = features.correspondences(raw) if features is not None else None
         if i == 0:
             T = torch.as_tensor(frame.T_world_cam, dtype=torch.float32)
+            ok = True
         else:
-            T = tracker.track(tf, FrozenMap(mapper.snapshot(), config, device), poses[-1]).T_world_cam
+            result = tracker.track(tf, FrozenMap(mapper.snapshot(), config, device), poses[-1], matches)
+            T, ok = result.T_world_cam, result.ok
+        if features is not None:
+            features.remember(T.double().numpy() if ok else None)
         step = mapper.process(TrackedFrame(tf, T), optimize=(i == 0 or (i + 1) % args.optimize_every == 0))
         poses.append(T)
         gt.append(np.asarray(frame.T_world_cam, np.float64))

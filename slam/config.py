@@ -124,8 +124,22 @@ class TrackingConfig:
     depth_weight: float = 1.0
     sdf_weight: float = 5000.0
     fs_weight: float = 10.0
+    feature_count: int = 0
+    """ORB features per frame matched to the previous frame (``slam.features``): their
+    reprojection error joins the loss and a RANSAC PnP on them gives the initial pose (0: off,
+    the paper's tracker). Features are detected on the frame as read, before any resizing."""
+    feature_weight: float = 0.003
+    """Weight of one match's Huber reprojection cost (milliradians squared) against the
+    paper's losses (which are means over rays)."""
+    feature_huber_px: float = 2.0
+    feature_ransac_px: float = 2.0
+    """RANSAC PnP inlier threshold (pixels): only its inliers enter the loss."""
+    feature_min_inliers: int = 20
+    """Fewer PnP inliers than this: the frame is tracked without features."""
 
     def __post_init__(self) -> None:
+        if self.feature_count < 0 or self.feature_weight < 0 or self.feature_huber_px <= 0:
+            raise ConfigError("tracking.feature_count and feature_weight must be >= 0 and feature_huber_px > 0")
         if self.optimizer not in ("adam", "gauss_newton"):
             raise ConfigError(f"tracking.optimizer must be 'adam' or 'gauss_newton', got {self.optimizer!r}")
 

@@ -39,6 +39,7 @@ from .events import (Event, FinishedEvent, KeyframeEvent, MapUpdateEvent, PoseEv
                      SubmapEvent)
 from .frames import prepare_frame
 from .mapping import Mapper, MapSnapshot, TrackedFrame
+from .features import FeatureOdometry
 from .tracking import FrozenMap, Tracker, constant_velocity_guess
 
 _POLL_SECONDS = 0.2
@@ -404,6 +405,7 @@ class _RunState:
     snapshot: MapSnapshot | None = None
     frozen: FrozenMap | None = None
     mapper_stats: _MapperStats | None = None
+    features: FeatureOdometry | None = None
 
 
 def _pipeline_frame(frame: Frame, width: int | None) -> Frame:
@@ -490,7 +492,7 @@ def run_slam(sources: list[Iterable[Frame]], config: SLAMConfig, out_dir: str | 
                 status = "cancelled"
                 break
             frame = _pipeline_frame(raw, config.runtime.input_width)
-            T, ok = _estimate_pose(frame, run, tracker, channel, config, device, use_gt_poses, emit)
+            T, ok = _estimate_pose(frame, raw, run, tracker, channel, config, device, use_gt_poses, emit)
             run.poses.append(T)
             run.timestamps.append(float(frame.timestamp))
             run.frame_indices.append(int(frame.index))
@@ -536,17 +538,27 @@ def run_slam(sources: list[Iterable[Frame]], config: SLAMConfig, out_dir: str | 
     return result
 
 
-def _estimate_pose(frame: Frame, run: _RunState, tracker: Tracker, channel, config: SLAMConfig,
+def _estimate_pose(frame: Frame, raw: Frame, run: _RunState, tracker: Tracker, channel, config: SLAMConfig,
                    device: torch.device, use_gt_poses: bool,
                    emit: Callable[[Event], None]) -> tuple[np.ndarray, bool]:
-    """The frame's world pose: GT (``--gt-poses``), the first frame's GT or identity, or tracked."""
+    """The frame's world pose: GT (``--gt-poses``), the first frame's GT or identity, or tracked.
+
+    ``frame`` is ``raw`` resized to the pipeline's width; sparse features use ``raw``.
+    """
     if use_gt_poses:
         if frame.T_world_cam is None:
             raise ValueError(f"--gt-poses: frame {frame.index} has no ground-truth pose")
         return np.asarray(frame.T_world_cam, np.float64), True
+    if run.features is None and config.tracking.feature_count > 0:
+        c = config.tracking
+        run.features = FeatureOdometry(c.feature_count, config.voxel.max_depth, c.feature_ransac_px,
+                                       c.feature_min_inliers)
     if not run.poses:
         first = np.asarray(frame.T_world_cam if frame.T_world_cam is not None else np.eye(4), np.float64)
         run.good_poses.append(first)
+        if run.features is not None:
+            run.features.correspondences(raw)
+            run.features.remember(first)
         return first, True
     while run.snapshot is None:  # the map is initialised from the first frame
         _handle_replies(channel.poll(block=True), run, emit, config, device)
@@ -557,9 +569,12 @@ def _estimate_pose(frame: Frame, run: _RunState, tracker: Tracker, channel, conf
     # would compound the error frame after frame.
     good = run.good_poses[-2:] if run.last_ok else run.good_poses[-1:]
     history = [torch.from_numpy(p).float().to(device) for p in good]
-    result = tracker.track(tf, fmap, constant_velocity_guess(history, config.tracking.constant_velocity))
-    run.tracking_busy += time.perf_counter() - t0
+    matches = run.features.correspondences(raw) if run.features is not None else None
+    result = tracker.track(tf, fmap, constant_velocity_guess(history, config.tracking.constant_velocity), matches)
     T = result.T_world_cam.detach().cpu().numpy().astype(np.float64)
+    if run.features is not None:
+        run.features.remember(T if result.ok else None)
+    run.tracking_busy += time.perf_counter() - t0
     run.last_ok = result.ok
     if result.ok:
         run.good_poses.append(T)

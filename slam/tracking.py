@@ -15,13 +15,14 @@ residual stays too large or the estimate jumped implausibly far (then the guess 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
 
 from .config import SLAMConfig
 from .decoder import Decoder
+from .features import Correspondences, reprojection_cost, reprojection_terms
 from .frames import TensorFrame, sample_pixels
 from .gauss_newton import Linearisation, damped_step, limit_step, linearise
 from .geometry import se3_exp, se3_inverse, se3_log
@@ -68,6 +69,35 @@ class FrozenMap:
         self.decoder.requires_grad_(False)
 
 
+@dataclass(frozen=True)
+class _SparseTerm:
+    """Feature correspondences in the map frame: points (M, 3), pixels (M, 2), sigmas (M,), K (3, 3)."""
+
+    points_map: torch.Tensor
+    pixels: torch.Tensor
+    sigmas: torch.Tensor
+    K: torch.Tensor
+    weight: float
+    huber_px: float
+
+    @staticmethod
+    def in_map(matches: Correspondences, T_map_world: torch.Tensor, c) -> "_SparseTerm":
+        dtype, device = T_map_world.dtype, T_map_world.device
+        points = torch.as_tensor(matches.points_world, dtype=dtype, device=device)
+        points = points @ T_map_world[:3, :3].T + T_map_world[:3, 3]
+        return _SparseTerm(points, torch.as_tensor(matches.pixels, dtype=dtype, device=device),
+                           torch.as_tensor(matches.sigmas, dtype=dtype, device=device),
+                           torch.as_tensor(matches.K, dtype=dtype, device=device),
+                           c.feature_weight, c.feature_huber_px)
+
+    def cost(self, T_map_cam: torch.Tensor) -> torch.Tensor:
+        return reprojection_cost(T_map_cam, self.points_map, self.pixels, self.sigmas, self.K, self.weight, self.huber_px)
+
+    def added_to(self, lin: Linearisation, T_map_cam: torch.Tensor) -> Linearisation:
+        cost, H, g = reprojection_terms(T_map_cam, self.points_map, self.pixels, self.sigmas, self.K, self.weight, self.huber_px)
+        return replace(lin, cost=lin.cost + cost, H=lin.H + H, g=lin.g + g)
+
+
 def tracking_bounds(depth: torch.Tensor, truncation: float, band: float,
                     max_distance: float) -> tuple[torch.Tensor, torch.Tensor]:
     """near, far (R,) of tracking rays from their observed depth (R,).
@@ -100,16 +130,36 @@ class Tracker:
         c = config.tracking
         self.weights = LossWeights(c.rgb_weight, c.depth_weight, c.sdf_weight, c.fs_weight)
 
-    def track(self, frame: TensorFrame, fmap: FrozenMap, T_init: torch.Tensor) -> TrackingResult:
-        """Optimise the pose of ``frame`` against the frozen map from ``T_init`` (4, 4) world."""
-        T0_map = fmap.T_map_world @ T_init.to(self.device)
+    def track(self, frame: TensorFrame, fmap: FrozenMap, T_init: torch.Tensor,
+              matches: Correspondences | None = None) -> TrackingResult:
+        """Optimise the pose of ``frame`` against the frozen map from ``T_init`` (4, 4) world.
+
+        ``matches``: sparse correspondences of this frame (``slam.features``); when given,
+        their PnP pose replaces ``T_init`` and their reprojection cost joins the loss.
+        """
+        T_init = T_init.to(self.device)
+        sparse = None
+        if matches is not None and self._plausible(matches, T_init):
+            T_init = torch.as_tensor(matches.T_world_cam_pnp, dtype=T_init.dtype, device=self.device)
+            sparse = _SparseTerm.in_map(matches, fmap.T_map_world, self.config.tracking)
+        T0_map = fmap.T_map_world @ T_init
         if self.config.tracking.optimizer == "gauss_newton":
-            it, loss, T_best_map, hit_ratio, residual_med = self._levenberg_marquardt(frame, fmap, T0_map)
+            it, loss, T_best_map, hit_ratio, residual_med = self._levenberg_marquardt(frame, fmap, T0_map, sparse)
         else:
-            it, loss, T_best_map, hit_ratio, residual_med = self._adam(frame, fmap, T0_map)
+            it, loss, T_best_map, hit_ratio, residual_med = self._adam(frame, fmap, T0_map, sparse)
         return self._result(fmap, T0_map, T_best_map, it, loss, hit_ratio, residual_med)
 
-    def _levenberg_marquardt(self, frame: TensorFrame, fmap: FrozenMap, T0_map: torch.Tensor):
+    def _plausible(self, matches: Correspondences, T_init: torch.Tensor) -> bool:
+        """Whether the matches' PnP pose lies within the tracker's jump limits of the guess:
+        RANSAC can agree on a wrong pose (repeated texture), and a far start would hand the
+        dense loss a pose it cannot correct."""
+        c = self.config.tracking
+        T_pnp = torch.as_tensor(matches.T_world_cam_pnp, dtype=T_init.dtype, device=T_init.device)
+        jump = se3_log(se3_inverse(T_init) @ T_pnp)
+        return float(jump[:3].norm()) <= c.max_jump_m and float(jump[3:].norm()) <= c.max_jump_rad
+
+    def _levenberg_marquardt(self, frame: TensorFrame, fmap: FrozenMap, T0_map: torch.Tensor,
+                             sparse: _SparseTerm | None):
         """Damped Gauss-Newton on the paper's loss (``slam.gauss_newton``): one set of rays,
         outliers fixed at the initial pose, a step accepted only if it lowers the loss."""
         c, r = self.config.tracking, self.config.render
@@ -119,11 +169,12 @@ class Tracker:
         miss_cost = self.weights.depth * r.truncation + self.weights.sdf * r.truncation ** 2
 
         def linearise_at(T: torch.Tensor, ray_weight: torch.Tensor | None) -> Linearisation:
-            return linearise(T, batch.dirs_cam, batch.rgb, batch.depth, ray_weight, fmap.view,
-                             fmap.decoder, near=near, far=far,
-                             step=r.step_ratio * fmap.view.voxel_size, truncation=r.truncation,
-                             max_hits=r.max_hits, weights=self.weights, max_depth=r.max_distance,
-                             color_weight_eps=c.color_weight_eps, miss_cost=miss_cost)
+            lin = linearise(T, batch.dirs_cam, batch.rgb, batch.depth, ray_weight, fmap.view,
+                            fmap.decoder, near=near, far=far,
+                            step=r.step_ratio * fmap.view.voxel_size, truncation=r.truncation,
+                            max_hits=r.max_hits, weights=self.weights, max_depth=r.max_distance,
+                            color_weight_eps=c.color_weight_eps, miss_cost=miss_cost)
+            return lin if sparse is None else sparse.added_to(lin, T)
 
         first = linearise_at(T0_map, None)
         if not bool(first.hit.any()):
@@ -152,7 +203,7 @@ class Tracker:
         residual_med = float(best.residual[best.hit].median()) if bool(best.hit.any()) else float("inf")
         return it, best.cost, T, hit_ratio, residual_med
 
-    def _adam(self, frame: TensorFrame, fmap: FrozenMap, T0_map: torch.Tensor):
+    def _adam(self, frame: TensorFrame, fmap: FrozenMap, T0_map: torch.Tensor, sparse: _SparseTerm | None):
         """The paper's optimiser: Adam on the twist, new rays every iteration if configured."""
         c, r = self.config.tracking, self.config.render
         rho = torch.zeros(3, device=self.device, requires_grad=True)
@@ -187,11 +238,12 @@ class Tracker:
             inlier = hit & (residual <= c.outlier_factor * med + 1e-6)
             losses = compute_losses(out, batch.rgb, batch.depth, r.truncation, self.weights,
                                     ray_weight=inlier.float(), max_depth=r.max_distance)
-            loss = float(losses.total.detach())
+            total = losses.total if sparse is None else losses.total + sparse.cost(T)
+            loss = float(total.detach())
             if loss < best[0]:
                 best = (loss, T.detach().clone(), hit_ratio, float(med))
             opt.zero_grad(set_to_none=True)
-            losses.total.backward()
+            total.backward()
             prev = torch.cat([rho, phi]).detach().clone()
             opt.step()
             sched.step()

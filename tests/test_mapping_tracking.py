@@ -16,6 +16,7 @@ import torch
 
 from slam.config import preset
 from slam.data import open_sequence
+from slam.features import Correspondences
 from slam.frames import TensorFrame, pixels_at, prepare_frame, sample_pixels, sample_stacked_pixels, stack_frames
 from slam.geometry import se3_inverse, so3_exp
 from slam.losses import LossWeights, compute_losses
@@ -379,6 +380,54 @@ def test_tracking_ignores_voxels_the_mapper_never_optimised(trained, frames):
     assert partial.view.voxel_codes.numel() == expected < snap.voxel_codes.size
     everything = replace(CONFIG, tracking=replace(CONFIG.tracking, min_corner_updates=0))
     assert FrozenMap(untouched, everything, CPU).view.voxel_codes.numel() == snap.voxel_codes.size
+
+
+def _exact_matches(frame: TensorFrame, T_guess: torch.Tensor, n: int = 60) -> Correspondences:
+    """n pixels of ``frame`` with their GT world points: what a perfect feature matcher gives."""
+    pick = frame.valid[torch.randperm(frame.valid.numel(), generator=torch.Generator().manual_seed(5))[:n]]
+    v, u = pick // frame.width, pick % frame.width
+    z = frame.depth.reshape(-1)[pick].double()
+    K = frame.K.double()
+    x_cam = torch.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], -1)
+    T_gt = gt_pose(frame).double()
+    points = x_cam @ T_gt[:3, :3].T + T_gt[:3, 3]
+    return Correspondences(points.numpy(), torch.stack([u, v], -1).double().numpy(), K.numpy(),
+                           np.ones(n), T_guess.double().numpy())
+
+
+def _offset(T: torch.Tensor, metres: float, degrees: float) -> torch.Tensor:
+    delta = torch.eye(4)
+    delta[:3, :3] = so3_exp(torch.deg2rad(torch.tensor([0.0, degrees, 0.0])))
+    delta[:3, 3] = torch.tensor([metres, 0.0, 0.0])
+    return T @ delta
+
+
+@pytest.mark.parametrize("optimizer", ["adam", "gauss_newton"])
+def test_feature_matches_start_tracking_at_their_pnp_pose_and_pull_it_to_them(trained, frames, optimizer):
+    config = replace(CONFIG, tracking=replace(CONFIG.tracking, optimizer=optimizer, feature_weight=0.02))
+    fmap = FrozenMap(trained.mapper.snapshot(), config, CPU)
+    T_gt = gt_pose(frames[0])
+    T_near = _offset(T_gt, 0.02, 1.0)
+    # The PnP pose replaces a guess the dense loss alone would not come back from ...
+    with_matches = Tracker(config, CPU).track(frames[0], fmap, _offset(T_gt, 0.2, 10.0),
+                                              _exact_matches(frames[0], T_near))
+    assert with_matches.ok, with_matches.reason
+    # ... and exact correspondences pull the estimate closer to GT than the map alone does.
+    without = Tracker(config, CPU).track(frames[0], fmap, T_near)
+    t1, r1 = pose_error(with_matches.T_world_cam, T_gt)
+    t0, r0 = pose_error(without.T_world_cam, T_gt)
+    assert t1 < 0.6 * t0 and t1 < 0.006, (t1, t0, r1, r0)
+
+
+def test_feature_matches_with_an_implausible_pnp_pose_are_ignored(trained, frames):
+    config = replace(CONFIG, tracking=replace(CONFIG.tracking, feature_weight=0.02))
+    fmap = FrozenMap(trained.mapper.snapshot(), config, CPU)
+    T_near = _offset(gt_pose(frames[0]), 0.02, 1.0)
+    far_away = T_near.clone()
+    far_away[:3, 3] += 50.0  # RANSAC agreed on a wrong pose
+    result = Tracker(config, CPU).track(frames[0], fmap, T_near, _exact_matches(frames[0], far_away))
+    without = Tracker(config, CPU).track(frames[0], fmap, T_near)
+    assert result.ok and torch.allclose(result.T_world_cam, without.T_world_cam)
 
 
 def test_keyframes_get_keyframe_iterations_also_when_batched(frames, monkeypatch):
