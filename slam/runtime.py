@@ -84,8 +84,12 @@ def _set_threads(device: torch.device, processes: bool) -> None:
     """Two busy processes on a small CPU: give each its share of cores (oversubscribed torch
     threads spin and slow everything down several times)."""
     if device.type == "cpu":
+        import cv2
+
         n = os.cpu_count() or 1
-        torch.set_num_threads(max(1, n // 2) if processes else n)
+        threads = max(1, n // 2) if processes else n
+        torch.set_num_threads(threads)
+        cv2.setNumThreads(threads)  # the tracker's ORB matching (slam.features)
 
 
 # ----------------------------------------------------------------- messages
@@ -241,7 +245,10 @@ def _mapping_process(config_dict: dict, device_name: str, out_dir: str, emit_mes
         parent = mp.parent_process()
         while True:
             if parent is not None and not parent.is_alive():
-                return  # the tracking side was killed: nobody will read our outputs
+                # The tracking side was killed: nobody will read our outputs, and flushing
+                # the reply pipe at exit would block this process forever.
+                replies.cancel_join_thread()
+                return
             try:
                 msg = frames.get(timeout=0 if mapper.current is not None else _POLL_SECONDS)
             except queue.Empty:
