@@ -271,7 +271,12 @@ def _cpu() -> SLAMConfig:
         loss=LossConfig(rgb_weight=10.0),
         # Gauss-Newton: 6 steps reach what 40 Adam steps do not (synthetic walk, 60 frames:
         # ATE 0.39 cm at 0.36 s/frame against 1.02 cm at 0.81 s/frame with Adam x 20).
-        tracking=TrackingConfig(optimizer="gauss_newton", num_rays=512, iterations=6),
+        # ORB matches to the previous frame join the loss: on real Kinect data the depth-led
+        # loss under-rotates in fast turns (fr1/rpy 150 frames, process mode: 4.2-4.9 cm ATE
+        # over 5 runs against 5-9 cm without; per-match weights from 0.001 to 0.0045 all gave
+        # 4.1-4.8 cm; slam.features and benchmarks/README.md).
+        tracking=TrackingConfig(optimizer="gauss_newton", num_rays=512, iterations=6,
+                                feature_count=1000, feature_weight=0.003),
         # The end-of-sequence global bundle adjustment gives every keyframe iterations the
         # window never had. Replica room0, 10 frames mapped, 10 held-out views: 21.4 dB
         # without it; 23.3 with 150 x 512 rays, 23.8-24.0 with 300-400, 24.2-24.35 with 500
