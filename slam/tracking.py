@@ -11,6 +11,10 @@ lowest-loss pose is returned) and ``gauss_newton`` (Levenberg-Marquardt on the s
 the closed-form model of ``slam.gauss_newton``; one ray set, steps accepted only when the
 loss falls). Tracking reports failure when too few rays hit the map, the median depth
 residual stays too large or the estimate jumped implausibly far (then the guess is returned).
+
+Optionally (``tracking.feature_count`` > 0, the ``cpu`` preset) sparse ORB correspondences
+to the previous frame (``slam.features``) start the optimisation at their PnP pose and add
+their reprojection cost to the loss, for either optimiser.
 """
 
 from __future__ import annotations
@@ -20,7 +24,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 import torch
 
-from .config import SLAMConfig
+from .config import SLAMConfig, TrackingConfig
 from .decoder import Decoder
 from .features import Correspondences, reprojection_cost, reprojection_terms
 from .frames import TensorFrame, sample_pixels
@@ -81,7 +85,7 @@ class _SparseTerm:
     huber_px: float
 
     @staticmethod
-    def in_map(matches: Correspondences, T_map_world: torch.Tensor, c) -> "_SparseTerm":
+    def in_map(matches: Correspondences, T_map_world: torch.Tensor, c: TrackingConfig) -> "_SparseTerm":
         dtype, device = T_map_world.dtype, T_map_world.device
         points = torch.as_tensor(matches.points_world, dtype=dtype, device=device)
         points = points @ T_map_world[:3, :3].T + T_map_world[:3, 3]
