@@ -280,6 +280,22 @@ def cache_sequence(sequence, folder: Path) -> CachedSequence:
 
 
 # ------------------------------------------------------- mapping, GT poses
+def frames_with_gt(path: str, max_frames: int | None, script: str) -> list:
+    """Every frame of the sequence at ``path`` (at most ``max_frames``), each with its GT pose;
+    a missing folder, unreadable data or a frame without GT ends ``script`` with a clear message."""
+    from slam.data import open_sequence
+    from slam.data.frame import DataError
+
+    try:
+        sequence = open_sequence(str(require(Path(path))), max_frames=max_frames)
+        frames = [sequence[i] for i in range(len(sequence))]
+    except (DataError, MissingData) as err:
+        raise SystemExit(f"{script}: {err}") from None
+    if any(f.T_world_cam is None for f in frames):
+        raise SystemExit(f"{path}: every frame needs a ground-truth pose")
+    return frames
+
+
 def pipeline_frame(frame, width: int | None):
     """A reader frame at the pipeline width, as ``slam.runtime`` resizes it."""
     from slam.data.frame import Frame

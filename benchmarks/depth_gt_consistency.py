@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import require  # noqa: E402
+from common import frames_with_gt  # noqa: E402
 
 DEFAULT = Path(__file__).resolve().parents[2] / "shared" / "data" / "rgbd_dataset_freiburg1_rpy"
 
@@ -118,19 +118,10 @@ def main() -> None:
     if args.gap < 1:
         parser.error("--gap must be at least 1")
 
-    from slam.data import open_sequence
-    from slam.data.frame import DataError
-
     started = time.perf_counter()
     frames = 12 if args.quick else args.frames
     scales = [1.0, 0.95] if args.quick else [float(s) for s in args.scales.split(",")]
-    try:
-        sequence = open_sequence(str(require(Path(args.path))), max_frames=frames)
-        loaded = [sequence[i] for i in range(len(sequence))]
-    except DataError as err:
-        raise SystemExit(f"depth_gt_consistency.py: {err}") from None
-    if any(f.T_world_cam is None for f in loaded):
-        raise SystemExit(f"{args.path}: every frame needs a ground-truth pose")
+    loaded = frames_with_gt(args.path, frames, "depth_gt_consistency.py")
     gt_poses = np.stack([f.T_world_cam for f in loaded])
     timing = "nearest ground-truth pose to each frame's stamp"
     if args.lag_ms is not None or args.regular_stamps:

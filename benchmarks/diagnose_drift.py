@@ -93,9 +93,7 @@ def main() -> None:
     started = time.perf_counter()
     print("| frame | position error x, y, z (cm, GT camera frame) | rotation error (deg) | keyframe |")
     print("| --- | --- | --- | --- |")
-    c = config.tracking
-    features = (FeatureOdometry(c.feature_count, config.voxel.max_depth, c.feature_ransac_px, c.feature_min_inliers)
-                if c.feature_count > 0 else None)
+    features = FeatureOdometry.from_config(config)
     for i in range(len(sequence)):
         raw = sequence[i]
         frame = pipeline_frame(raw, config.runtime.input_width)

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import TUM_RPY, require  # noqa: E402
+from common import TUM_RPY, frames_with_gt  # noqa: E402
 
 
 def chain_orb_pnp(frames: list, count: int = 1000) -> np.ndarray:
@@ -89,17 +89,8 @@ def main() -> None:
     args = parser.parse_args()
     first, last = (int(v) for v in args.segment.split(","))
 
-    from slam.data import open_sequence
-    from slam.data.frame import DataError
-
     started = time.perf_counter()
-    try:
-        sequence = open_sequence(str(require(Path(args.path))), max_frames=12 if args.quick else args.frames)
-        frames = [sequence[i] for i in range(len(sequence))]
-    except DataError as err:
-        raise SystemExit(f"odometry_baselines.py: {err}") from None
-    if any(f.T_world_cam is None for f in frames):
-        raise SystemExit(f"{args.path}: every frame needs a ground-truth pose")
+    frames = frames_with_gt(args.path, 12 if args.quick else args.frames, "odometry_baselines.py")
     gt = np.stack([f.T_world_cam for f in frames])
     estimators = {"orb-pnp": chain_orb_pnp}
     if not args.quick:

@@ -29,6 +29,7 @@ import cv2
 import numpy as np
 import torch
 
+from .config import SLAMConfig
 from .data.frame import Frame
 
 
@@ -223,6 +224,14 @@ class FeatureOdometry:
         self._orb = cv2.ORB_create(count)
         self._previous: tuple[FrameFeatures, np.ndarray] | None = None
         self._current: FrameFeatures | None = None
+
+    @staticmethod
+    def from_config(config: SLAMConfig) -> "FeatureOdometry | None":
+        """The tracker's feature odometry as ``config.tracking`` sets it (None when off)."""
+        c = config.tracking
+        if c.feature_count <= 0:
+            return None
+        return FeatureOdometry(c.feature_count, config.voxel.max_depth, c.feature_ransac_px, c.feature_min_inliers)
 
     def correspondences(self, frame: Frame) -> Correspondences | None:
         """Inlier matches of ``frame`` against the remembered frame, or None (first frame,

@@ -556,11 +556,8 @@ def _estimate_pose(frame: Frame, raw: Frame, run: _RunState, tracker: Tracker, c
         if frame.T_world_cam is None:
             raise ValueError(f"--gt-poses: frame {frame.index} has no ground-truth pose")
         return np.asarray(frame.T_world_cam, np.float64), True
-    if run.features is None and config.tracking.feature_count > 0:
-        c = config.tracking
-        run.features = FeatureOdometry(c.feature_count, config.voxel.max_depth, c.feature_ransac_px,
-                                       c.feature_min_inliers)
     if not run.poses:
+        run.features = FeatureOdometry.from_config(config)
         first = np.asarray(frame.T_world_cam if frame.T_world_cam is not None else np.eye(4), np.float64)
         run.good_poses.append(first)
         if run.features is not None:
