@@ -1,0 +1,1 @@
+"""Loop closure: keyframe database, geometric verification, pose graph, loop closer."""
