@@ -5,9 +5,14 @@ The embedded default of the demo and of most tests. A spec string names what to 
     synthetic:orbit
     synthetic:walk?frames=200&seed=3&width=320&height=240&noise=1
     synthetic:agents?agent=1&agents=3
+    synthetic:laps?width=160&height=120&noise=1&blank=300-330
+    synthetic:laps?size=large&noise=1
     loop                                   (the ``synthetic:`` prefix is optional)
 
-World frame: metres, z up, origin at the floor centre of a 6 x 5 x 3 m room (see
+The kind names the trajectory; the scene is the one that trajectory is made for
+(``TRAJECTORY_SCENES``): the 6 x 5 x 3 m ``room`` for all but ``laps``, which walks the
+``hall`` of its ``size``: ``compact`` (default; 4.4 x 3.6 x 3 m, about 18 m in 780 frames) or
+``large`` (10 x 8 x 3 m, about 51 m in 2200 frames). World frame: metres, z up, origin at the floor centre (see
 ``synthetic_scene``); poses are camera-to-world with OpenCV camera axes. Frames are rendered
 lazily by a numpy ray caster (``synthetic_render``), exact unless ``noise=1`` adds Kinect-like
 depth noise and holes; ``gt_mesh()`` gives the matching coloured mesh (``synthetic_mesh``).
@@ -17,6 +22,7 @@ This module re-exports the pieces so callers need one import.
 
 from __future__ import annotations
 
+import re
 from collections import OrderedDict
 from dataclasses import dataclass, replace
 from typing import Iterator
@@ -37,32 +43,48 @@ from slam.data.synthetic_render import (
     render_rgbd,
     render_view,
 )
-from slam.data.synthetic_scene import SCENE_KINDS, Scene, make_scene
+from slam.data.synthetic_scene import HALL_LAYOUTS, HALL_SIZES, SCENE_KINDS, Scene, make_scene
 from slam.data.synthetic_trajectory import (
+    LAPS_NOMINAL_FRAMES,
     NOMINAL_FRAMES,
     TRAJECTORY_KINDS,
+    TRAJECTORY_SCENES,
     look_at,
     make_agent_trajectories,
     make_trajectory,
+    nominal_frames,
 )
 
 __all__ = [
-    "DepthNoiseModel", "RayHits", "RenderedView", "SCENE_KINDS", "Scene", "SyntheticSequence",
-    "SyntheticSpec", "NOMINAL_FRAMES", "TRAJECTORY_KINDS", "add_depth_noise", "cast_rays",
-    "default_intrinsics", "gt_mesh", "look_at", "make_agent_trajectories", "make_scene",
-    "make_trajectory", "open_synthetic", "parse_synthetic_spec", "render_rgbd", "render_view",
+    "DepthNoiseModel", "HALL_LAYOUTS", "HALL_SIZES", "LAPS_NOMINAL_FRAMES", "RayHits", "RenderedView",
+    "SCENE_KINDS", "Scene", "SyntheticSequence", "SyntheticSpec", "NOMINAL_FRAMES", "TRAJECTORY_KINDS",
+    "TRAJECTORY_SCENES", "add_depth_noise", "cast_rays", "default_intrinsics", "gt_mesh", "look_at",
+    "make_agent_trajectories", "make_scene", "make_trajectory", "nominal_frames", "open_synthetic",
+    "parse_synthetic_spec", "render_rgbd", "render_view",
 ]
 
 SPEC_PREFIX = "synthetic:"
 FPS = 30.0
 """Synthetic frames are spaced as a 30 Hz camera: timestamp = original frame number / 30."""
 DEFAULT_WIDTH, DEFAULT_HEIGHT = 320, 240
-SPEC_OPTIONS = ("frames", "seed", "width", "height", "noise", "agent", "agents")
+SPEC_OPTIONS = ("frames", "seed", "width", "height", "noise", "agent", "agents", "size", "blank", "drop")
+
+FrameRange = tuple[int, int]
+"""Inclusive ``(first, last)`` 0-based frame numbers of the spec's sequence."""
 
 
 @dataclass(frozen=True)
 class SyntheticSpec:
-    """A parsed spec string: what :func:`open_synthetic` generates."""
+    """A parsed spec string: what :func:`open_synthetic` generates.
+
+    ``blank`` and ``drop`` simulate a tracking loss over an inclusive range of frame numbers
+    (0-based indices into the ``frames`` frames of the path, before any stride): ``blank``
+    frames stay in the sequence, with their timestamps and GT poses, but their RGB and depth are
+    all zero (depth invalid); ``drop`` frames are left out, so the camera jumps and later frames
+    keep their timestamps (there is a gap).
+
+    ``size`` is the hall layout of ``laps`` (``compact`` when not given; None for other kinds).
+    """
 
     kind: str
     frames: int = 100
@@ -72,13 +94,26 @@ class SyntheticSpec:
     noise: bool = False
     agent: int = 0
     agents: int = 2
+    size: str | None = None
+    blank: FrameRange | None = None
+    drop: FrameRange | None = None
+
+    def __post_init__(self) -> None:
+        if self.kind == "laps" and self.size is None:
+            object.__setattr__(self, "size", HALL_SIZES[0])
+        elif self.kind != "laps" and self.size is not None:
+            raise DataError(f"SyntheticSpec: size={self.size!r} applies only to kind 'laps', not {self.kind!r}")
 
     @property
     def name(self) -> str:
-        """Canonical spec string (every option spelled out, so equal names mean equal data)."""
+        """Canonical spec string (every option spelled out, so equal names mean equal data;
+        ``agent``/``agents`` and ``size`` only for the kinds they apply to, ``blank`` and
+        ``drop`` only when set)."""
         agent = f"&agent={self.agent}&agents={self.agents}" if self.kind == "agents" else ""
+        size = f"&size={self.size}" if self.size is not None else ""
+        loss = "".join(f"&{key}={r[0]}-{r[1]}" for key, r in (("blank", self.blank), ("drop", self.drop)) if r is not None)
         return (f"{SPEC_PREFIX}{self.kind}?frames={self.frames}&seed={self.seed}&width={self.width}"
-                f"&height={self.height}&noise={int(self.noise)}{agent}")
+                f"&height={self.height}&noise={int(self.noise)}{agent}{size}{loss}")
 
 
 class SyntheticSequence:
@@ -93,11 +128,14 @@ class SyntheticSequence:
         trajectory: (N, 4, 4) float64 ``T_world_cam`` of the frames served (after stride/limit).
         K: (3, 3) float64 intrinsics; ``width``, ``height`` the image size.
         frame_numbers: (N,) int original (unstrided) frame numbers; timestamps are these / 30.
+        blank: inclusive range of frame numbers served blank (all-zero RGB and depth, GT pose
+            kept), or None.
     """
 
     def __init__(self, scene: Scene, trajectory: np.ndarray, K: np.ndarray, width: int, height: int, *,
                  name: str = "synthetic", noise: DepthNoiseModel | None = None, seed: int = 0,
-                 frame_numbers: np.ndarray | None = None, cache_size: int = 16) -> None:
+                 frame_numbers: np.ndarray | None = None, cache_size: int = 16,
+                 blank: FrameRange | None = None) -> None:
         trajectory = np.asarray(trajectory, dtype=np.float64)
         if trajectory.ndim != 3 or trajectory.shape[1:] != (4, 4):
             raise DataError(f"{name}: trajectory must be (N, 4, 4), got {trajectory.shape}")
@@ -112,6 +150,7 @@ class SyntheticSequence:
         self.frame_numbers = np.arange(len(trajectory)) if frame_numbers is None else np.asarray(frame_numbers)
         if self.frame_numbers.shape != (len(trajectory),):
             raise DataError(f"{name}: frame_numbers must be ({len(trajectory)},), got {self.frame_numbers.shape}")
+        self.blank = None if blank is None else (int(blank[0]), int(blank[1]))
         self._cache: OrderedDict[int, Frame] = OrderedDict()
         self._cache_size = int(cache_size)
 
@@ -145,11 +184,19 @@ class SyntheticSequence:
         for i in range(len(self)):
             yield self[i]
 
+    def is_blank(self, i: int) -> bool:
+        """Whether frame ``i`` (sequence index) is served blank (see ``blank``)."""
+        number = int(self.frame_numbers[i])
+        return self.blank is not None and self.blank[0] <= number <= self.blank[1]
+
     def _render(self, i: int) -> Frame:
         T = self.trajectory[i]
+        number = int(self.frame_numbers[i])
+        if self.is_blank(i):
+            return Frame(index=i, timestamp=number / FPS, rgb=np.zeros((self.height, self.width, 3), np.float32),
+                         depth=np.zeros((self.height, self.width), np.float32), K=self.K, T_world_cam=T)
         view = render_view(self.scene, self.K, T, self.width, self.height)
         depth = view.depth
-        number = int(self.frame_numbers[i])
         if self.noise is not None:
             # Seeded by the original frame number: the same frame is equally noisy at any stride.
             rng = np.random.default_rng([self.seed, 0xD0, number])
@@ -172,13 +219,32 @@ def _parse_int(key: str, text: str, spec: str, low: int, high: int | None = None
     return value
 
 
+def _parse_range(key: str, text: str, spec: str, frames: int) -> FrameRange:
+    """``A-B`` -> (A, B), 0 <= A <= B < frames."""
+    match = re.fullmatch(r"([0-9]+)-([0-9]+)", text)
+    if match is None:
+        raise DataError(f"synthetic spec {spec!r}: option {key}={text!r} must be a frame range A-B "
+                        f"(inclusive, 0-based, e.g. {key}=100-130)")
+    a, b = int(match[1]), int(match[2])
+    if a > b:
+        raise DataError(f"synthetic spec {spec!r}: option {key}={text}: the range is reversed (first {a} > last {b})")
+    if b >= frames:
+        raise DataError(f"synthetic spec {spec!r}: option {key}={text}: frame {b} is beyond the last frame "
+                        f"{frames - 1} (frames={frames})")
+    return a, b
+
+
 def parse_synthetic_spec(spec: str) -> SyntheticSpec:
     """``[synthetic:]KIND[?key=value&...]`` -> :class:`SyntheticSpec`.
 
-    Options: frames (default ``NOMINAL_FRAMES[kind]``: 100, but 500 for ``loop``, whose
-    6.3 m path would otherwise move 6 cm and 3.6 deg per frame), seed (0), width (320), height (240, or width * 3 / 4 when
-    only width is given), noise (0 or 1), and for ``agents``: agent (0-based, default 0) and
-    agents (default 2). Unknown kinds or options raise :class:`DataError` listing the valid ones.
+    Options: frames (default :func:`nominal_frames`: 100, but 500 for ``loop``, whose
+    6.3 m path would otherwise move 6 cm and 3.6 deg per frame, and for ``laps`` 780 in the
+    compact hall (18 m) or 2200 in the large one (51 m)), seed (0), width (320), height (240,
+    or width * 3 / 4 when only width is given), noise (0 or 1), for ``agents``: agent (0-based,
+    default 0) and agents (default 2), for ``laps``: size (``compact``, the default, or
+    ``large``; see ``HALL_LAYOUTS``), and a forced tracking loss: blank=A-B (frames A..B served
+    all black with no depth) and drop=A-B (frames A..B left out); see :class:`SyntheticSpec`.
+    Unknown kinds or options raise :class:`DataError` listing the valid ones.
     """
     if not isinstance(spec, str):
         raise DataError(f"synthetic spec must be a string, got {type(spec).__name__}")
@@ -198,12 +264,25 @@ def parse_synthetic_spec(spec: str) -> SyntheticSpec:
             raise DataError(f"synthetic spec {spec!r}: option {key!r} given twice")
         if key in ("agent", "agents") and kind != "agents":
             raise DataError(f"synthetic spec {spec!r}: option {key!r} applies only to kind 'agents'")
+        if key == "size" and kind != "laps":
+            raise DataError(f"synthetic spec {spec!r}: option 'size' applies only to kind 'laps'")
         options[key] = value
-    fields: dict[str, object] = {"kind": kind, "frames": NOMINAL_FRAMES[kind]}
+    size = None
+    if kind == "laps":
+        size = options.get("size", HALL_SIZES[0])
+        if size not in HALL_SIZES:
+            raise DataError(f"synthetic spec {spec!r}: option size={size!r} must be one of {', '.join(HALL_SIZES)}")
+    fields: dict[str, object] = {"kind": kind, "frames": nominal_frames(kind, size), "size": size}
     limits = {"frames": (1, None), "seed": (0, 2**63 - 1), "width": (16, 4096), "height": (16, 4096),
               "noise": (0, 1), "agents": (1, 8), "agent": (0, 7)}
     for key, text in options.items():
-        fields[key] = _parse_int(key, text, spec, *limits[key])
+        if key not in ("blank", "drop", "size"):
+            fields[key] = _parse_int(key, text, spec, *limits[key])
+    for key in ("blank", "drop"):
+        if key in options:
+            fields[key] = _parse_range(key, options[key], spec, int(fields["frames"]))  # type: ignore[arg-type]
+    if fields.get("drop") == (0, int(fields["frames"]) - 1):  # type: ignore[arg-type]
+        raise DataError(f"synthetic spec {spec!r}: option drop={options['drop']} leaves no frames")
     if "width" in fields and "height" not in fields:
         fields["height"] = max(16, round(int(fields["width"]) * 3 / 4))  # type: ignore[arg-type]
     fields["noise"] = bool(fields.get("noise", 0))
@@ -219,7 +298,7 @@ def open_synthetic(spec: str, *, width: int | None = None, stride: int = 1, max_
     Args:
         width: override the image width (height keeps the spec's aspect ratio; K is scaled).
         stride: serve every ``stride``-th frame of the path (faster motion, same timestamps).
-        max_frames: serve at most this many frames (after striding).
+        max_frames: serve at most this many frames (after striding and the spec's ``drop``).
     """
     parsed = parse_synthetic_spec(spec)
     if width is not None:
@@ -233,11 +312,16 @@ def open_synthetic(spec: str, *, width: int | None = None, stride: int = 1, max_
     if parsed.kind == "agents":
         full = make_agent_trajectories(parsed.agents, parsed.frames, parsed.seed)[parsed.agent]
     else:
-        full = make_trajectory(parsed.kind, parsed.frames, parsed.seed)
-    numbers = np.arange(len(full))[::stride][:max_frames]
+        full = make_trajectory(parsed.kind, parsed.frames, parsed.seed, size=parsed.size)
+    numbers = np.arange(len(full))[::stride]
+    if parsed.drop is not None:
+        numbers = numbers[(numbers < parsed.drop[0]) | (numbers > parsed.drop[1])]
+        if len(numbers) == 0:
+            raise DataError(f"open_synthetic: {parsed.name} with stride={stride} leaves no frames")
+    numbers = numbers[:max_frames]
     # Agents share one scene: the room depends on the seed only, never on the agent.
-    scene = make_scene("room", parsed.seed)
+    scene = make_scene(TRAJECTORY_SCENES[parsed.kind], parsed.seed, size=parsed.size)
     K = default_intrinsics(parsed.width, parsed.height)
     noise = DepthNoiseModel() if parsed.noise else None
     return SyntheticSequence(scene, full[numbers], K, parsed.width, parsed.height, name=parsed.name,
-                             noise=noise, seed=parsed.seed, frame_numbers=numbers)
+                             noise=noise, seed=parsed.seed, frame_numbers=numbers, blank=parsed.blank)

@@ -8,7 +8,10 @@ point. Triangles wind counter-clockwise seen from the visible side (outside obje
 room), so trimesh's face normals point towards the cameras.
 
 Surfaces hidden by construction are left out where cheap (bottoms of objects resting on a
-support); the floor under furniture is kept, as in the GT meshes of real datasets.
+support); the floor under furniture is kept, as in the GT meshes of real datasets. Boxes that
+fill the room's full height (the ``hall``'s central block and its facade panels) are solid
+pillars: their top and bottom faces and every triangle lying wholly inside or on another pillar
+(the floor and ceiling under the block, the block's faces behind the facades) are dropped too.
 """
 
 from __future__ import annotations
@@ -142,6 +145,49 @@ def _primitive_parts(prim: Primitive, surface: int, spacing: float) -> list[_Par
     return _cylinder_parts(prim, surface, spacing)
 
 
+_PILLAR_EPS = 1e-6
+"""Tolerance (metres) of the pillar tests: spanning floor to ceiling, lying on a pillar."""
+
+
+def _pillars(scene: Scene) -> list[tuple[int, Box]]:
+    """(surface id, box) of every box spanning the room from floor to ceiling."""
+    z0, z1 = scene.room.lo[2], scene.room.hi[2]
+    return [(6 + i, p) for i, p in enumerate(scene.primitives)
+            if isinstance(p, Box) and abs(p.centre[2] - p.half_size[2] - z0) < _PILLAR_EPS
+            and abs(p.centre[2] + p.half_size[2] - z1) < _PILLAR_EPS]
+
+
+def _inside_box(box: Box, points: np.ndarray) -> np.ndarray:
+    """(M, 3) points -> (M,) bool, inside or on the closed ``box`` (within :data:`_PILLAR_EPS`)."""
+    local = (points - np.asarray(box.centre, float)) @ box.rotation
+    return np.all(np.abs(local) <= np.asarray(box.half_size, float) + _PILLAR_EPS, axis=1)
+
+
+def _cull_hidden_by_pillars(parts: list[_Part], pillars: list[tuple[int, Box]]) -> list[_Part]:
+    """Drop triangles wholly inside or on a pillar other than their own surface, and the pillars'
+    horizontal faces (on the floor and ceiling); unused vertices go too."""
+    out = []
+    for part in parts:
+        inside = np.zeros(len(part.vertices), dtype=bool)
+        for surface, box in pillars:
+            if surface != part.surface:
+                inside |= _inside_box(box, part.vertices)
+        hidden = inside[part.faces].all(axis=1)
+        if part.surface in {surface for surface, _ in pillars} and abs(part.normals[0, 2]) > 0.5:
+            hidden[:] = True  # a pillar's top or bottom face
+        if not hidden.any():
+            out.append(part)
+            continue
+        faces = part.faces[~hidden]
+        used = np.unique(faces)
+        if used.size == 0:
+            continue
+        remap = np.full(len(part.vertices), -1)
+        remap[used] = np.arange(used.size)
+        out.append(_Part(part.vertices[used], remap[faces], part.normals[used], part.surface))
+    return out
+
+
 def gt_mesh(scene: Scene, spacing: float = 0.1) -> trimesh.Trimesh:
     """Triangle mesh of every surface of ``scene`` with vertex colours from its textures.
 
@@ -156,6 +202,9 @@ def gt_mesh(scene: Scene, spacing: float = 0.1) -> trimesh.Trimesh:
     parts = _room_parts(scene.room, spacing)
     for i, prim in enumerate(scene.primitives):
         parts.extend(_primitive_parts(prim, 6 + i, spacing))
+    pillars = _pillars(scene)
+    if pillars:
+        parts = _cull_hidden_by_pillars(parts, pillars)
     offsets = np.cumsum([0] + [len(p.vertices) for p in parts[:-1]])
     vertices = np.concatenate([p.vertices for p in parts])
     faces = np.concatenate([p.faces + off for p, off in zip(parts, offsets)])

@@ -6,6 +6,13 @@ band within :data:`WALL_BAND` metres of the walls plus one table at the room cen
 inside :data:`TABLE_MAX_HALF_SIZE`), which leaves a free ring around the table where the synthetic
 trajectories move (see ``synthetic_trajectory.py``).
 
+The ``hall`` kind is a ring corridor around a solid full-height central block, for
+loop-closure benchmarks, in two sizes (:data:`HALL_LAYOUTS`): ``compact`` (the default), 4.4 x 3.6
+x 3 m around a 1.6 x 0.8 m block, corridors 1.4 m wide, and ``large``, 10 x 8 x 3 m around a
+5.6 x 3.6 m block, corridors 2.2 m wide. Each holds one cabinet-and-picture set at several places
+(``repeat_spots``, rendered identically), plain single-colour stretches and otherwise distinct
+textures per wall; furniture stays within ``wall_band`` of its wall (see :func:`make_scene`).
+
 Colour is a function of the 3D surface point and its normal only (a texture times a fixed
 directional "half-Lambert" shading), so every view of a point sees the same colour and the GT
 mesh's vertex colours match the renders. Texture features are at least :data:`MIN_FEATURE_SIZE`
@@ -207,6 +214,16 @@ class Scene:
     objects: tuple[Union[Primitive, Table], ...]
     light_direction: Vec3 = (0.35, 0.25, 0.9)
     name: str = "room"
+    groups: tuple[tuple[str, tuple[int, ...]], ...] = ()
+    """Named sets of surface ids (:meth:`surface_textures` order) that benchmarks can look for in
+    rendered ``surface`` images, e.g. the ``hall``'s repeated furniture; empty for ``room``."""
+
+    def group(self, name: str) -> tuple[int, ...]:
+        """Surface ids of the group called ``name`` (KeyError listing the names if absent)."""
+        for key, ids in self.groups:
+            if key == name:
+                return ids
+        raise KeyError(f"scene {self.name!r} has no surface group {name!r}; groups: {[k for k, _ in self.groups]}")
 
     @property
     def primitives(self) -> tuple[Primitive, ...]:
@@ -385,7 +402,7 @@ _PALETTE: tuple[RGB, ...] = (
     (0.60, 0.35, 0.70), (0.90, 0.88, 0.80), (0.20, 0.22, 0.28), (0.55, 0.40, 0.25),
     (0.75, 0.80, 0.35), (0.30, 0.75, 0.75), (0.85, 0.50, 0.60), (0.45, 0.45, 0.50),
 )
-SCENE_KINDS = ("room", "empty")
+SCENE_KINDS = ("room", "empty", "hall")
 
 
 def _pair(rng: np.random.Generator) -> tuple[RGB, RGB]:
@@ -496,19 +513,294 @@ def _wall_furniture(rng: np.random.Generator, room: Room) -> list[Primitive]:
     return out
 
 
-def make_scene(kind: str = "room", seed: int = 0) -> Scene:
-    """A procedural indoor scene, identical for identical ``(kind, seed)``.
+def make_scene(kind: str = "room", seed: int = 0, size: str | None = None) -> Scene:
+    """A procedural indoor scene, identical for identical ``(kind, seed, size)``.
 
     Kinds:
         room: 6 x 5 x 3 m room (textured floor, ceiling, 4 walls), a central table with 3 objects
             on it, and 9 pieces along the walls (cabinets, shelf, crate, pictures, pot, ball).
         empty: the textured room only.
+        hall: a ring corridor around a solid central block (see :data:`HALL_LAYOUTS`); ``size``
+            picks the layout: ``compact`` (default: 4.4 x 3.6 m, corridor 1.4 m, see
+            :func:`_compact_hall`) or ``large`` (10 x 8 m, corridor 2.2 m, see :func:`_hall`).
+            The seed changes only the textures of its unique pieces.
+
+    ``size`` applies to ``hall`` only (None = its default); giving it for another kind raises
+    :class:`DataError`.
     """
     if kind not in SCENE_KINDS:
         raise DataError(f"unknown synthetic scene kind {kind!r}; valid: {', '.join(SCENE_KINDS)}")
+    if kind == "hall":
+        size = hall_size(size)
+        return _compact_hall(seed) if size == "compact" else _hall(seed)
+    if size is not None:
+        raise DataError(f"scene size {size!r} applies only to kind 'hall', not {kind!r}")
     rng = np.random.default_rng(seed)
     room = _room(rng)
     if kind == "empty":
         return Scene(room, (), name=f"empty-{seed}")
     objects = (*_table_with_objects(rng), *_wall_furniture(rng, room))
     return Scene(room, tuple(objects), name=f"room-{seed}")
+
+
+# ----------------------------------------------------------------------------------------------
+# The hall: a ring corridor around a central block, for loop-closure benchmarks.
+
+
+@dataclass(frozen=True)
+class HallLayout:
+    """Where the walls, the block and the repeated furniture of one hall size are.
+
+    Attributes:
+        half_size: half extents (x, y) of the floor, metres (the hall is :data:`HALL_HEIGHT` high).
+        block_half_size: half extents (x, y) of the solid full-height central block.
+        wall_band: furniture stays within this distance of its wall (outer wall or block face).
+        repeat_spots: (x, y of the wall behind it) of each copy of the repeated furniture set, in
+            the order the anticlockwise ``laps`` path passes them. All copies face -y (so they
+            are shaded alike) and their x and y differ by multiples of every period of their
+            textures (grain off), so they render identically.
+    """
+
+    half_size: tuple[float, float]
+    block_half_size: tuple[float, float]
+    wall_band: float
+    repeat_spots: tuple[tuple[float, float], ...]
+
+    @property
+    def corridor_width(self) -> tuple[float, float]:
+        """(east/west, north/south) corridor widths, metres."""
+        return (self.half_size[0] - self.block_half_size[0], self.half_size[1] - self.block_half_size[1])
+
+
+HALL_SIZES = ("compact", "large")
+"""Layouts of the ``hall`` scene (and of the ``laps`` path around it); the first is the default."""
+HALL_LAYOUTS: dict[str, HallLayout] = {
+    "compact": HallLayout((2.2, 1.8), (0.8, 0.4), 0.38, ((1.5, 1.8), (-0.3, 1.8), (-1.5, 1.8))),
+    "large": HallLayout((5.0, 4.0), (2.8, 1.8), 0.42, ((-0.6, -1.8), (1.8, -1.8), (1.8, 4.0), (-1.8, 4.0))),
+}
+"""``compact``: 4.4 x 3.6 m around a 1.6 x 0.8 m block (corridors 1.4 m), three copies of the
+repeated set, all on the outer north wall: at x = 1.5 (facing the east corridor), -0.3 and -1.5
+(1.8 and 1.2 m apart: multiples of the wall's and floor's 0.3 m checker period too).
+``large``: 10 x 8 m around a 5.6 x 3.6 m block (corridors 2.2 m), four copies: two against the
+block's south face, two against the outer north wall."""
+HALL_HEIGHT = 3.0
+_FACADE = 0.02
+"""Thickness of the panels that give the block's east, north and west faces their own textures."""
+
+
+def hall_size(size: str | None) -> str:
+    """``size`` checked against :data:`HALL_SIZES` (None -> the default, ``compact``)."""
+    if size is None:
+        return HALL_SIZES[0]
+    if size not in HALL_SIZES:
+        raise DataError(f"unknown hall size {size!r}; valid: {', '.join(HALL_SIZES)}")
+    return size
+
+
+def _repeat_set(x: float, y_back: float) -> list[Primitive]:
+    """The large hall's repeated furniture: a cabinet (0.9 x 0.4 x 0.8 m) against the surface
+    at ``y = y_back`` (facing -y), a vase on it and a picture above it. Textures are fixed and
+    periodic (0.1 and 0.2 m; see :class:`HallLayout`) so that every copy looks exactly the same."""
+    body = Texture("stripes", (0.55, 0.40, 0.25), (0.93, 0.70, 0.25), scale=0.2, direction=(0.0, 0.0, 1.0), seed=41, grain=0.0)
+    vase = Texture("checker", (0.85, 0.33, 0.22), (0.90, 0.88, 0.80), scale=0.05, seed=42, grain=0.0)
+    picture = Texture("checker", (0.20, 0.22, 0.28), (0.30, 0.75, 0.75), scale=0.1, seed=43, grain=0.0)
+    return [
+        Box((x, y_back - 0.2, 0.4), (0.45, 0.2, 0.4), body, mesh_bottom=False),
+        Cylinder((x + 0.25, y_back - 0.2, 0.8), 0.08, 0.3, vase, mesh_bottom=False),
+        Box((x, y_back - 0.02, 1.55), (0.35, 0.02, 0.25), picture),
+    ]
+
+
+def _hall_groups(objects: list[Primitive], repeats: list[list[Primitive]], block: Box, facades: list[Box],
+                 mat: Box) -> tuple[tuple[str, tuple[int, ...]], ...]:
+    """``repeat_k`` (one per copy), ``plain_east`` (outer east wall, east facade, mat),
+    ``plain_west`` (outer west wall) and ``block`` (block and facades) surface ids."""
+    ids = {id(obj): 6 + i for i, obj in enumerate(objects)}  # every object here is one primitive
+    groups = [(f"repeat_{k}", tuple(ids[id(p)] for p in piece)) for k, piece in enumerate(repeats)]
+    groups.append(("plain_east", (ROOM_FACES.index("wall_x_hi"), ids[id(facades[0])], ids[id(mat)])))
+    groups.append(("plain_west", (ROOM_FACES.index("wall_x_lo"),)))
+    groups.append(("block", (ids[id(block)], *(ids[id(f)] for f in facades))))
+    return tuple(groups)
+
+
+def _hall(seed: int) -> Scene:
+    """The large hall (``size=large``), walked anticlockwise by the ``laps`` trajectory.
+
+    Layout (world metres; floor x in [-5, 5], y in [-4, 4]; block x in [-2.8, 2.8], y in [-1.8, 1.8]):
+        south corridor (y < -1.8): outer wall wood, with a bench, a poster and a plant; the block's
+            south face has vertical stripes, the repeated set at x = -0.6 and x = +1.8 and an
+            extinguisher near its west end.
+        east corridor (x > 2.8, |y| < 1.8): plain (solid, no grain) outer wall, plain block face
+            and a plain floor mat; nothing else (group ``plain_east``).
+        north corridor (y > 1.8): outer wall checkered, the repeated set at x = +1.8 and x = -1.8
+            (same wall and floor pattern behind both); the block's north face has noise, a poster
+            and a bin.
+        west corridor (x < -2.8): plain outer wall with nothing in front (group ``plain_west``);
+            the block's west face is wood with a shelf and a crate.
+        corners: a column (NE), a ball (NW) and a pot (SW) against the north/south walls.
+    Floor checker (0.6 m period) and the north wall have no grain, so the two north copies have
+    identical surroundings too. Groups: ``repeat_0`` .. ``repeat_3`` (in
+    ``HALL_LAYOUTS["large"].repeat_spots`` order), ``plain_east``, ``plain_west``, ``block``.
+    """
+    layout = HALL_LAYOUTS["large"]
+    rng = np.random.default_rng([seed, 0x4A11])
+    hx, hy = layout.half_size
+    bx, by = layout.block_half_size
+    h = HALL_HEIGHT
+    tex = lambda: _random_texture(rng, scale_range=(0.06, 0.2), patterns=("checker", "stripes", "noise", "wood"))  # noqa: E731
+    a, b = _pair(rng)
+    south = Texture("wood", a, b, scale=float(rng.uniform(0.3, 0.4)), direction=(1.0, 0.0, 0.0), seed=int(rng.integers(0, 2**31 - 1)))
+    east = Texture("solid", (0.86, 0.84, 0.78), grain=0.0)
+    north = Texture("checker", (0.90, 0.88, 0.80), (0.60, 0.35, 0.70), scale=0.3, seed=44, grain=0.0)
+    west = Texture("solid", (0.72, 0.80, 0.86), grain=0.0)
+    floor = Texture("checker", (0.55, 0.40, 0.25), (0.75, 0.80, 0.35), scale=0.3, seed=45, grain=0.0)
+    ceiling = Texture("noise", (0.92, 0.92, 0.88), (0.70, 0.72, 0.78), scale=0.5, seed=int(rng.integers(0, 2**31 - 1)))
+    room = Room((-hx, -hy, 0.0), (hx, hy, h), (west, east, south, north, floor, ceiling))
+
+    half_h = h / 2
+    block = Box((0.0, 0.0, half_h), (bx, by, half_h),
+                Texture("stripes", (0.30, 0.55, 0.80), (0.90, 0.88, 0.80), scale=0.4, direction=(1.0, 0.0, 0.0), seed=46, grain=0.0),
+                mesh_bottom=False)
+    t = _FACADE / 2
+    a, b = _pair(rng)
+    facades = [
+        Box((bx + t, 0.0, half_h), (t, by + _FACADE, half_h), Texture("solid", (0.80, 0.80, 0.82), grain=0.0), mesh_bottom=False),
+        Box((0.0, by + t, half_h), (bx, t, half_h),
+            Texture("noise", a, b, scale=float(rng.uniform(0.25, 0.4)), seed=int(rng.integers(0, 2**31 - 1))), mesh_bottom=False),
+        Box((-bx - t, 0.0, half_h), (t, by + _FACADE, half_h),
+            Texture("wood", *_pair(rng), scale=float(rng.uniform(0.25, 0.4)), direction=(0.0, 0.0, 1.0),
+                    seed=int(rng.integers(0, 2**31 - 1))), mesh_bottom=False),
+    ]
+    mat = Box(((bx + _FACADE + hx) / 2, 0.0, 0.005), ((hx - bx - _FACADE) / 2 - 0.02, by, 0.005),
+              Texture("solid", (0.45, 0.50, 0.48), grain=0.0), mesh_bottom=False)
+    repeats = [_repeat_set(x, y) for x, y in layout.repeat_spots]
+    face = by + _FACADE  # the north and west pieces stand against the facades
+    unique: list[Primitive] = [
+        # South corridor: bench, poster and plant on the outer wall; extinguisher at the block.
+        Box((-2.6, -hy + 0.2, 0.22), (0.7, 0.2, 0.22), tex(), mesh_bottom=False),
+        Box((0.3, -hy + 0.02, 1.6), (0.5, 0.02, 0.35), tex()),
+        Cylinder((2.1, -hy + 0.22, 0.0), 0.18, 0.55, tex(), mesh_bottom=False),
+        Sphere((2.1, -hy + 0.22, 0.75), 0.2, tex()),
+        Cylinder((-2.4, -by - 0.1, 0.0), 0.08, 0.5, Texture("stripes", (0.85, 0.33, 0.22), (0.20, 0.22, 0.28), scale=0.12,
+                                                             direction=(0.0, 0.0, 1.0), seed=47), mesh_bottom=False),
+        # North corridor: a column in the NE corner; a poster and a bin at the block.
+        Cylinder((4.2, hy - 0.25, 0.0), 0.17, 1.0, tex(), mesh_bottom=False),
+        Box((-0.8, face + 0.02, 1.5), (0.4, 0.02, 0.3), tex()),
+        Cylinder((0.3, face + 0.2, 0.0), 0.18, 0.6, tex(), mesh_bottom=False),
+        # West corridor: a shelf and a crate at the block; a ball (NW) and a pot (SW) in the corners.
+        Box((-bx - _FACADE - 0.15, 0.6, 0.7), (0.15, 0.45, 0.7), tex(), mesh_bottom=False),
+        Box((-bx - _FACADE - 0.18, -0.9, 0.2), (0.18, 0.25, 0.2), tex(), mesh_bottom=False),
+        Sphere((-4.1, hy - 0.22, 0.2), 0.2, tex()),
+        Cylinder((-4.2, -hy + 0.22, 0.0), 0.2, 0.6, tex(), mesh_bottom=False),
+    ]
+    objects: list[Primitive] = [block, *facades, mat]
+    for piece in repeats:
+        objects.extend(piece)
+    objects.extend(unique)
+    return Scene(room, tuple(objects), name=f"hall-{seed}", groups=_hall_groups(objects, repeats, block, facades, mat))
+
+
+def _compact_repeat_set(x: float, y_back: float) -> list[Primitive]:
+    """The compact hall's repeated furniture: a cabinet (0.5 x 0.24 x 0.7 m) against the surface
+    at ``y = y_back`` (facing -y), a vase on it and a picture (0.4 x 0.3 m) above it. Textures
+    are fixed and periodic (periods 0.1 and 0.2 m, grain off; see :class:`HallLayout`)."""
+    body = Texture("stripes", (0.55, 0.40, 0.25), (0.93, 0.70, 0.25), scale=0.14, direction=(0.0, 0.0, 1.0), seed=41, grain=0.0)
+    vase = Texture("checker", (0.85, 0.33, 0.22), (0.90, 0.88, 0.80), scale=0.05, seed=42, grain=0.0)
+    picture = Texture("checker", (0.20, 0.22, 0.28), (0.30, 0.75, 0.75), scale=0.1, seed=43, grain=0.0)
+    return [
+        Box((x, y_back - 0.12, 0.35), (0.25, 0.12, 0.35), body, mesh_bottom=False),
+        Cylinder((x + 0.12, y_back - 0.12, 0.7), 0.06, 0.22, vase, mesh_bottom=False),
+        Box((x, y_back - 0.01, 1.3), (0.2, 0.01, 0.15), picture),
+    ]
+
+
+def _compact_hall(seed: int) -> Scene:
+    """The compact hall (``size=compact``, the default), walked anticlockwise by ``laps``.
+
+    The large hall's ingredients (:func:`_hall`) scaled to 1.4 m corridors, with textures about
+    half as coarse (the walls are about half as far). Every piece within 0.8 m of the path rises
+    at most 0.92 m or is a flat panel 0.02 m deep, so a camera 0.55-0.8 m from the block at
+    1.35-1.55 m keeps 0.5 m from everything. From this close the walls at the corridors' ends
+    fill most views: the path looks at the east wall along the south corridor, at the north wall
+    along the east one, at the west wall along the north one and at the south wall along the
+    west one. Layout (world metres; floor x in [-2.2, 2.2], y in [-1.8, 1.8]; block x in
+    [-0.8, 0.8], y in [-0.4, 0.4]):
+        south corridor (y < -0.4): outer wall wood, with a bench, a poster and a plant; the block's
+            south face has vertical stripes and an extinguisher.
+        east end (x > 0.8): plain (solid, no grain) outer wall, plain block facade and a plain
+            floor mat reaching 0.5 m past the block's ends (``plain_east``); nothing else but a
+            textured panel on the outer wall's south end (y in [-1.75, -0.95]), in view from the
+            south corridor. Nearly all plain while the path rounds the south-east corner.
+        north corridor (y > 0.4): outer wall checkered (no grain, 0.3 m period) with the repeated
+            set at x = +1.5 (seen head-on from the east corridor), -0.3 and -1.5 (seen along the
+            north corridor); the same wall and floor pattern lie behind each. The block's north
+            facade has noise, a poster and a bin.
+        west end (x < -0.8): plain outer wall (``plain_west``) with a textured panel on its
+            north end (y in [0.95, 1.75]), in view from the north corridor; nearly all plain while
+            the path rounds the north-west corner. The block's west facade is wood with a crate
+            and a small picture.
+        corners: a column (NE), a ball (NW) and a pot (SW) against the north/south walls.
+    Groups: ``repeat_0`` .. ``repeat_2`` (in ``HALL_LAYOUTS["compact"].repeat_spots`` order:
+    east to west, as the path passes them), ``plain_east``, ``plain_west``, ``block``.
+    """
+    layout = HALL_LAYOUTS["compact"]
+    rng = np.random.default_rng([seed, 0xC0A11])
+    hx, hy = layout.half_size
+    bx, by = layout.block_half_size
+    h = HALL_HEIGHT
+    tex = lambda: _random_texture(rng, scale_range=(0.05, 0.12), patterns=("checker", "stripes", "noise", "wood"))  # noqa: E731
+    a, b = _pair(rng)
+    south = Texture("wood", a, b, scale=float(rng.uniform(0.15, 0.2)), direction=(1.0, 0.0, 0.0), seed=int(rng.integers(0, 2**31 - 1)))
+    east = Texture("solid", (0.86, 0.84, 0.78), grain=0.0)
+    north = Texture("checker", (0.90, 0.88, 0.80), (0.60, 0.35, 0.70), scale=0.15, seed=44, grain=0.0)
+    west = Texture("solid", (0.72, 0.80, 0.86), grain=0.0)
+    floor = Texture("checker", (0.55, 0.40, 0.25), (0.75, 0.80, 0.35), scale=0.15, seed=45, grain=0.0)
+    ceiling = Texture("noise", (0.92, 0.92, 0.88), (0.70, 0.72, 0.78), scale=0.3, seed=int(rng.integers(0, 2**31 - 1)))
+    room = Room((-hx, -hy, 0.0), (hx, hy, h), (west, east, south, north, floor, ceiling))
+
+    half_h = h / 2
+    block = Box((0.0, 0.0, half_h), (bx, by, half_h),
+                Texture("stripes", (0.30, 0.55, 0.80), (0.90, 0.88, 0.80), scale=0.15, direction=(1.0, 0.0, 0.0), seed=46, grain=0.0),
+                mesh_bottom=False)
+    t = _FACADE / 2
+    a, b = _pair(rng)
+    facades = [
+        Box((bx + t, 0.0, half_h), (t, by + _FACADE, half_h), Texture("solid", (0.80, 0.80, 0.82), grain=0.0), mesh_bottom=False),
+        Box((0.0, by + t, half_h), (bx, t, half_h),
+            Texture("noise", a, b, scale=float(rng.uniform(0.12, 0.18)), seed=int(rng.integers(0, 2**31 - 1))), mesh_bottom=False),
+        Box((-bx - t, 0.0, half_h), (t, by + _FACADE, half_h),
+            Texture("wood", *_pair(rng), scale=float(rng.uniform(0.12, 0.18)), direction=(0.0, 0.0, 1.0),
+                    seed=int(rng.integers(0, 2**31 - 1))), mesh_bottom=False),
+    ]
+    mat = Box(((bx + _FACADE + hx) / 2, 0.0, 0.005), ((hx - bx - _FACADE) / 2 - 0.02, by + 0.5, 0.005),
+              Texture("solid", (0.45, 0.50, 0.48), grain=0.0), mesh_bottom=False)
+    repeats = [_compact_repeat_set(x, y) for x, y in layout.repeat_spots]
+    panel = lambda: _random_texture(rng, scale_range=(0.06, 0.15), patterns=("checker", "noise", "wood"))  # noqa: E731
+    face = by + _FACADE  # the north and west pieces stand against the facades
+    unique: list[Primitive] = [
+        # South corridor: bench, poster and plant on the outer wall; extinguisher at the block.
+        Box((-1.25, -hy + 0.15, 0.2), (0.4, 0.15, 0.2), tex(), mesh_bottom=False),
+        Box((-0.15, -hy + 0.01, 1.45), (0.3, 0.01, 0.22), tex()),
+        Cylinder((1.15, -hy + 0.17, 0.0), 0.14, 0.45, tex(), mesh_bottom=False),
+        Sphere((1.15, -hy + 0.17, 0.6), 0.16, tex()),
+        Cylinder((-0.6, -by - 0.07, 0.0), 0.06, 0.45, Texture("stripes", (0.85, 0.33, 0.22), (0.20, 0.22, 0.28), scale=0.08,
+                                                              direction=(0.0, 0.0, 1.0), seed=47), mesh_bottom=False),
+        # The end walls' panels, where the south and north corridors look at them.
+        Box((hx - 0.01, -1.35, 1.25), (0.01, 0.4, 0.85), panel()),
+        Box((-hx + 0.01, 1.35, 1.25), (0.01, 0.4, 0.85), panel()),
+        # North corridor: a column in the NE corner; a poster and a bin at the block.
+        Cylinder((hx - 0.22, hy - 0.22, 0.0), 0.12, 0.8, tex(), mesh_bottom=False),
+        Box((-0.3, face + 0.01, 1.4), (0.25, 0.01, 0.18), tex()),
+        Cylinder((0.45, face + 0.13, 0.0), 0.12, 0.45, tex(), mesh_bottom=False),
+        # West corridor: a crate and a picture at the block; a ball (NW) and a pot (SW) in the corners.
+        Box((-bx - _FACADE - 0.14, -0.12, 0.18), (0.14, 0.2, 0.18), tex(), mesh_bottom=False),
+        Box((-bx - _FACADE - 0.01, 0.15, 1.35), (0.01, 0.18, 0.14), tex()),
+        Sphere((-hx + 0.2, hy - 0.2, 0.18), 0.18, tex()),
+        Cylinder((-hx + 0.2, -hy + 0.2, 0.0), 0.16, 0.5, tex(), mesh_bottom=False),
+    ]
+    objects: list[Primitive] = [block, *facades, mat]
+    for piece in repeats:
+        objects.extend(piece)
+    objects.extend(unique)
+    return Scene(room, tuple(objects), name=f"hall-compact-{seed}",
+                 groups=_hall_groups(objects, repeats, block, facades, mat))
