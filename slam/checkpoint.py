@@ -82,6 +82,7 @@ def save_checkpoint(mapset: MapSet, path: str | Path, *, extra: dict | None = No
         "version": CHECKPOINT_VERSION,
         "config": mapset.config.to_dict(),
         "maps": [submap.state_dict() for submap in mapset.maps],
+        "links": [[int(a), int(b)] for a, b in mapset.links],
         "extra": _pack_extra(dict(extra or {}), "extra"),
     }
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -136,7 +137,12 @@ def load_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> Map
         maps = [SubMap.from_state_dict(state, config, device=device) for state in payload["maps"]]
     except (KeyError, TypeError, ValueError, RuntimeError, AttributeError) as exc:
         raise CheckpointError(f"checkpoint {path}: bad submap state: {exc!r}") from exc
-    return MapSet(config, maps)
+    links = payload.get("links") or []  # absent in checkpoints written before multi-maps
+    try:
+        links = [(int(a), int(b)) for a, b in links]
+    except (TypeError, ValueError) as exc:
+        raise CheckpointError(f"checkpoint {path}: bad map links: {exc!r}") from exc
+    return MapSet(config, maps, links)
 
 
 def load_checkpoint_extra(path: str | Path) -> dict:

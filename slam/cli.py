@@ -64,20 +64,45 @@ def cmd_run(args: argparse.Namespace) -> int:
         config = replace(config, runtime=runtime)
         if args.no_loops:
             config = replace(config, loop=replace(config.loop, enabled=False))
-        sources = [open_sequence(p, args.format, stride=args.stride, max_frames=args.max_frames,
-                                 intrinsics=args.intrinsics, depth_scale=args.depth_scale) for p in args.paths]
+        sources = []
+        for k, path in enumerate(args.paths):
+            try:
+                sources.append(open_sequence(path, args.format, stride=args.stride, max_frames=args.max_frames,
+                                             intrinsics=args.intrinsics, depth_scale=args.depth_scale))
+            except (DataError, ValueError) as exc:
+                # Every PATH is opened before anything starts, and a bad one is named.
+                where = f"PATH {k + 1} ({path})" if len(args.paths) > 1 else str(path)
+                raise DataError(exc if str(path) in str(exc) and len(args.paths) == 1 else f"{where}: {exc}") from exc
     except (ConfigError, DataError, ValueError) as exc:
         print(f"voxfusion run: {exc}", file=sys.stderr)
         return 2
     result = run_slam(sources, config, args.out, use_gt_poses=args.gt_poses, progress=not args.quiet)
-    line = (f"{result.status}: {result.frames} frames, {result.keyframes} keyframes, "
-            f"{result.fps:.2f} frames/s")
+    line = (f"{result.status}: {result.frames} frames, {result.keyframes} keyframes, {result.maps} maps, "
+            f"{result.loops} loops, {result.fps:.2f} frames/s")
     if result.ate_rmse is not None:
         line += f", ATE RMSE {result.ate_rmse * 100:.2f} cm"
     print(line + f" -> {result.out_dir}")
+    if result.agents > 1:
+        print(_agents_summary(result.out_dir / "run.json"))
     if result.error:
         print(result.error, file=sys.stderr)
     return {"finished": 0, "cancelled": 130}.get(result.status, 1)
+
+
+def _agents_summary(run_json: Path) -> str:
+    """One line per agent: frames, ATE, and whether its maps joined agent 0's world."""
+    import json
+
+    try:
+        agents = json.loads(run_json.read_text()).get("agents", [])
+    except (OSError, ValueError):
+        return ""
+    lines = []
+    for a in agents:
+        ate = "" if a.get("ate_rmse_m") is None else f", ATE RMSE {a['ate_rmse_m'] * 100:.2f} cm"
+        joined = "joined the world" if a.get("joined") else "never met the others: its own frame"
+        lines.append(f"  agent {a['agent']}: {a['frames']} frames -> {a['trajectory']}{ate}; {joined}")
+    return "\n".join(lines)
 
 
 def add_render_arguments(p: argparse.ArgumentParser) -> None:

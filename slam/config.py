@@ -181,26 +181,75 @@ class MappingConfig:
 
 @dataclass(frozen=True)
 class MultiMapConfig:
+    """When a new map starts (paper: Incremental Mapping with Multi-Maps)."""
+
     enabled: bool = True
     region_size: float = 8.0
-    """A new map starts when the camera leaves a cube of this edge around the map origin."""
+    """A new map starts when the camera leaves a cube of this edge (metres) centred on the
+    map's origin (the camera position of its first frame): it bounds a map's voxels, so the
+    cost of mapping and of publishing a map to the tracker stays constant."""
     new_map_on_tracking_failure: bool = True
+    failures_before_new_map: int = 2
+    """Consecutive failed frames after which the camera counts as lost: the next frame with
+    enough valid depth starts a new map that floats in its own frame until a loop joins it."""
+    min_valid_depth: float = 0.2
+    """Share of pixels with valid depth a frame needs to start a map."""
+
+    def __post_init__(self) -> None:
+        if self.region_size <= 0 or self.failures_before_new_map < 1 or not 0 <= self.min_valid_depth <= 1:
+            raise ConfigError("multimap: region_size must be > 0, failures_before_new_map >= 1, "
+                              "min_valid_depth in [0, 1]")
 
 
 @dataclass(frozen=True)
 class LoopConfig:
+    """Loop detection and hierarchical pose optimisation (paper: Robust Loop Detection,
+    Hierarchical Pose Optimization); the thresholds are explained in ``slam.loop``."""
+
     enabled: bool = True
-    similarity_threshold: float = 0.9
-    """Cosine similarity a keyframe must exceed to become a loop candidate."""
-    min_frame_gap: int = 30
-    """Candidates must be at least this many frames older than the query."""
-    geometry_rays: int = 512
-    """Rays cast into the candidate map for the geometry check."""
-    geometry_min_hit_ratio: float = 0.5
-    inter_map_iterations: int = 50
-    intra_map_iterations: int = 20
+    descriptor: str = "orb-bow+thumbnail"
+    """Global keyframe descriptor of the appearance check (``slam.loop.database``)."""
     netvlad_weights: str | None = None
-    """Path to NetVLAD-style weights; None uses the offline descriptor."""
+    """A TorchScript NetVLAD-style model (image in, global vector out) to use instead of the
+    offline descriptor; never downloaded."""
+    top_k: int = 3
+    """Appearance candidates verified per keyframe, best first."""
+    similarity_threshold: float = 0.35
+    """Absolute floor of the cosine similarity a candidate must exceed."""
+    neighbour_ratio: float = 0.65
+    """...and this share of the keyframe's similarity to its own map's latest keyframes (the
+    threshold adapts to how alike views of this scene are)."""
+    min_frame_gap: int = 30
+    """Same-map candidates must be at least this many frames older than the query."""
+    min_inliers: int = 25
+    """PnP inliers the relative pose from features needs."""
+    pnp_reprojection_px: float = 3.0
+    geometry_rays: int = 512
+    """Rays of the query frame cast into the candidate map for the geometry check."""
+    geometry_min_hit_ratio: float = 0.5
+    """Share of the query's surface points that must land in the candidate map's voxels."""
+    depth_tolerance: float = 0.05
+    min_depth_agreement: float = 0.5
+    """Share of rays whose rendered depth must be within ``depth_tolerance`` (m)."""
+    max_refinement_m: float = 0.15
+    max_refinement_rad: float = 0.15
+    """Tracking the query against the candidate map may move it this far from the PnP pose."""
+    inter_map_iterations: int = 10
+    """Tracker steps of the refinement against the target map (the inter-map optimisation)."""
+    keyframes_between_loops: int = 5
+    """After a loop between two maps, candidates between them wait this many keyframes."""
+    intra_map_iterations: int = 20
+    """Global bundle-adjustment iterations of each joined map after a loop (intra-map)."""
+    sequential_sigma_m: float = 0.05
+    sequential_sigma_rad: float = 0.02
+    """Uncertainty of the tracking chain between a map and the one it continues: the drift
+    accumulated over one map, which loop edges may correct."""
+    loop_sigma_m: float = 0.02
+    loop_sigma_rad: float = 0.01
+
+    def __post_init__(self) -> None:
+        if self.top_k < 1 or self.min_inliers < 6 or self.geometry_rays < 1:
+            raise ConfigError("loop: top_k >= 1, min_inliers >= 6 and geometry_rays >= 1 are required")
 
 
 @dataclass(frozen=True)

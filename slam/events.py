@@ -63,20 +63,49 @@ class SubmapEvent:
     agent: int
     T_world_map: np.ndarray
     reason: str
-    """``start``, ``region`` (left the map's bound) or ``tracking_failure``."""
+    """``start`` (an agent's first map), ``region`` (left the map's bound) or
+    ``tracking_failure`` (the new map floats in its own frame until a loop joins it)."""
 
 
 @dataclass(frozen=True)
 class LoopEvent:
-    """A verified loop between a frame of map ``src_map`` and a keyframe of ``tar_map``."""
+    """A verified loop: keyframe ``frame_index`` of agent ``agent`` in map ``map_id`` matches
+    keyframe ``match_frame_index`` of agent ``match_agent`` in map ``match_map``.
 
-    src_map: int
-    tar_map: int
+    ``T_world_cam`` / ``T_world_match`` (4, 4) are both keyframes' world poses after the
+    loop's pose optimisation (for drawing the loop edge); ``scores`` are the verification
+    scores (similarity, PnP inliers, hit ratio, depth agreement, ...)."""
+
+    agent: int
+    map_id: int
     frame_index: int
-    keyframe_index: int
-    similarity: float
-    T_world_src: np.ndarray
-    T_world_tar: np.ndarray
+    timestamp: float
+    match_agent: int
+    match_map: int
+    match_frame_index: int
+    match_timestamp: float
+    T_world_cam: np.ndarray
+    T_world_match: np.ndarray
+    scores: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class PosesUpdatedEvent:
+    """Pose optimisation moved maps and keyframes (after a loop, or the final refinement).
+
+    ``map_poses``: map id -> T_world_map (4, 4) of *every* map; ``keyframe_poses``: map id ->
+    (K, 4, 4) world poses of that map's keyframes in keyframe order; ``agents``: map id ->
+    agent. A viewer re-places each map's mesh by the change of its ``T_world_map`` and moves
+    the trajectory frames tracked in that map with it."""
+
+    map_poses: dict
+    keyframe_poses: dict
+    agents: dict
+    reason: str
+    """``loop`` or ``refinement``."""
+    keyframe_indices: dict = field(default_factory=dict)
+    """map id -> the frame indices (of the map's agent) of its keyframes, in the order of
+    ``keyframe_poses``."""
 
 
 @dataclass(frozen=True)
@@ -100,4 +129,5 @@ class FinishedEvent:
     error: str | None = None
 
 
-Event = PoseEvent | KeyframeEvent | MapUpdateEvent | SubmapEvent | LoopEvent | StatsEvent | FinishedEvent
+Event = (PoseEvent | KeyframeEvent | MapUpdateEvent | SubmapEvent | LoopEvent | PosesUpdatedEvent | StatsEvent
+         | FinishedEvent)

@@ -253,6 +253,13 @@ class FeatureOdometry:
         T_pnp, inliers = solved
         return Correspondences(points[inliers], pixels[inliers], K, sigmas[inliers], T_pnp)
 
+    def transform(self, delta: np.ndarray) -> None:
+        """The world moved under the remembered frame (a loop moved its map): its pose
+        becomes ``delta @ T_world_cam``, delta (4, 4)."""
+        if self._previous is not None:
+            features, T = self._previous
+            self._previous = (features, np.asarray(delta, np.float64) @ T)
+
     def remember(self, T_world_cam: np.ndarray | None) -> None:
         """Keep the last detected frame's features at pose T_world_cam (None: forget them, so
         the next frame is tracked without correspondences)."""

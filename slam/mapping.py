@@ -50,6 +50,21 @@ class TrackedFrame:
     frame: TensorFrame
     T_world_cam: torch.Tensor
     tracking_ok: bool = True
+    agent: int = 0
+    new_map: "NewMap | None" = None
+    """Start a new map of ``agent`` with this frame first; None: map into the agent's active
+    map (an agent's first frame starts its first map either way)."""
+
+
+@dataclass(frozen=True)
+class NewMap:
+    """The tracker's decision to start a map: why (``start``, ``region`` or
+    ``tracking_failure``, see ``slam.events.SubmapEvent``), its id (the tracker numbers maps,
+    so both processes agree without a round trip) and its pose T_world_map (4, 4)."""
+
+    reason: str
+    map_id: int
+    T_world_map: torch.Tensor
 
 
 @dataclass(frozen=True)
@@ -82,6 +97,9 @@ class MappingStep:
     new_voxels: int
     losses: dict[str, float]
     seconds: float
+    map_id: int = 0
+    started_map: str | None = None
+    """The reason a map was started with this frame (None: none was)."""
 
 
 @dataclass
@@ -100,7 +118,13 @@ def training_far(depth: torch.Tensor, truncation: float, max_distance: float) ->
 
 
 class Mapper:
-    """Owns the map set and optimises it as tracked frames arrive."""
+    """Owns the map set and optimises it as tracked frames arrive.
+
+    Multi-maps (paper: Incremental Mapping with Multi-Maps): every agent maps into its active
+    map; a frame flagged ``new_map`` starts a new one, placed at the frame's world pose, and
+    the agent's previous map is frozen from then on (its optimiser state is dropped, its
+    keyframes kept for loop closing and the final refinement).
+    """
 
     def __init__(self, config: SLAMConfig, device: torch.device, agent: int = 0, seed: int = 0):
         self.config = config
@@ -108,20 +132,30 @@ class Mapper:
         self.agent = agent
         self.maps = MapSet(config)
         self.version = 0
-        self.frames_since_keyframe = 0
         self.timer = _Timer()
+        self.active: dict[int, SubMap] = {}
+        """agent -> the map it is mapping into."""
         self._rng = random.Random(seed)
         self._gen = torch.Generator().manual_seed(seed)
-        self._optimizer: torch.optim.Optimizer | None = None
+        self._optimizers: dict[int, torch.optim.Optimizer] = {}
+        """map id -> Adam over its embeddings and decoder (active maps only)."""
         self._seed = seed
-        self._keyframe_pending = False
+        self._frames_since_keyframe: dict[int, int] = {}
+        self._keyframe_pending: dict[int, bool] = {}
         self._kf_codes: dict[int, torch.Tensor] = {}
         """Sorted Morton codes of the voxels observed by each submap's keyframes."""
 
     # ---------------------------------------------------------------- helpers
     @property
     def current(self) -> SubMap | None:
+        """The active map of the agent that was mapped last (the newest map if none)."""
+        if self.agent in self.active:
+            return self.active[self.agent]
         return self.maps.maps[-1] if self.maps.maps else None
+
+    @property
+    def frames_since_keyframe(self) -> int:
+        return self._frames_since_keyframe.get(self.agent, 0)
 
     def _loss_weights(self) -> LossWeights:
         c = self.config.loss
@@ -139,34 +173,63 @@ class Mapper:
         return points, points[n:2 * n]
 
     def _ensure_optimizer(self, submap: SubMap) -> torch.optim.Optimizer:
-        if self._optimizer is None:
+        opt = self._optimizers.get(submap.map_id)
+        if opt is None:
             m = self.config.mapping
-            self._optimizer = torch.optim.Adam([
+            opt = torch.optim.Adam([
                 {"params": [submap.voxels.embeddings], "lr": m.lr_embed},
                 {"params": list(submap.decoder.parameters()), "lr": m.lr_decoder},
             ])
-        return self._optimizer
+            self._optimizers[submap.map_id] = opt
+        return opt
 
     def _allocate(self, submap: SubMap, points: torch.Tensor) -> int:
         old = submap.voxels.embeddings
         result = submap.voxels.allocate(points)
-        if self._optimizer is not None and submap.voxels.embeddings is not old:
-            grow_adam_state(self._optimizer, old, submap.voxels.embeddings)
+        opt = self._optimizers.get(submap.map_id)
+        if opt is not None and submap.voxels.embeddings is not old:
+            grow_adam_state(opt, old, submap.voxels.embeddings)
         return result.new_voxels
 
     # ------------------------------------------------------------------ steps
-    def start_map(self, T_world_map: torch.Tensor | None = None) -> SubMap:
-        submap = SubMap.create(len(self.maps.maps), self.agent, self.config, self.device,
-                               T_world_map, seed=self._seed)
+    def start_map(self, T_world_map: torch.Tensor | None = None, agent: int | None = None,
+                  reason: str = "start", map_id: int | None = None) -> SubMap:
+        """A new map for ``agent`` (default: the mapper's current agent) with its origin at
+        ``T_world_map`` (default: the world origin); the agent's previous map is frozen."""
+        agent = self.agent if agent is None else agent
+        previous = self.active.get(agent)
+        map_id = len(self.maps.maps) if map_id is None else map_id
+        if map_id != len(self.maps.maps):
+            raise ValueError(f"map ids are given in creation order: expected {len(self.maps.maps)}, got {map_id}")
+        submap = SubMap.create(map_id, agent, self.config, self.device, T_world_map, seed=self._seed)
+        submap.reason = reason
+        if previous is not None and reason == "region":
+            submap.parent = previous.map_id
+            submap.T_parent_map = se3_inverse(previous.T_world_map) @ submap.T_world_map
         self.maps.maps.append(submap)
-        self._optimizer = None
+        if previous is not None:
+            # Frozen from now on (paper: earlier maps' parameters stay unchanged); loop
+            # closing makes new optimisers for its intra-map refinement.
+            self._optimizers.pop(previous.map_id, None)
+        self.active[agent] = submap
+        self._frames_since_keyframe[agent] = 0
         return submap
 
     def process(self, tracked: TrackedFrame, optimize: bool = True) -> MappingStep:
-        """Keyframe test, allocation and (optionally) one round of windowed optimisation."""
+        """Keyframe test, allocation and (optionally) one round of windowed optimisation of
+        the frame's agent's active map (a new one first when ``tracked.new_map`` says so)."""
         t0 = time.perf_counter()
-        first = self.current is None
-        submap = self.current or self.start_map()
+        self.agent = tracked.agent
+        started = None
+        if tracked.new_map is not None:
+            nm = tracked.new_map
+            started = nm.reason
+            self.start_map(nm.T_world_map.to(self.device), tracked.agent, nm.reason, nm.map_id)
+        elif tracked.agent not in self.active:
+            started = "start"
+            self.start_map(None, tracked.agent, started)
+        first = started is not None
+        submap = self.active[tracked.agent]
         T_map_cam = self._T_map_cam(submap, tracked.T_world_cam)
         ta = time.perf_counter()
         points, surface = self._points(tracked.frame, T_map_cam)
@@ -176,6 +239,7 @@ class Mapper:
         # A frame whose tracking failed is not fused: its pose would corrupt the map.
         is_kf = first or (tracked.tracking_ok and (
             ratio > m.keyframe_ratio or self.frames_since_keyframe + 1 >= m.keyframe_max_interval))
+        agent = tracked.agent
         new_voxels = 0
         if first or tracked.tracking_ok:
             # Every successfully tracked frame allocates (paper: Voxel Allocation), so that the
@@ -187,21 +251,23 @@ class Mapper:
             submap.keyframes.append(Keyframe(
                 tracked.frame.index, tracked.frame.timestamp, tracked.frame, tracked.frame.K,
                 T_map_cam.detach().clone()))
-            self.frames_since_keyframe = 0
+            self._frames_since_keyframe[agent] = 0
         else:
-            self.frames_since_keyframe += 1
+            self._frames_since_keyframe[agent] = self.frames_since_keyframe + 1
         self.timer.add("voxel_allocation", time.perf_counter() - ta)
         losses: dict[str, float] = {}
-        self._keyframe_pending = self._keyframe_pending or is_kf
+        pending = self._keyframe_pending.get(agent, False) or is_kf
+        self._keyframe_pending[agent] = pending
         if optimize:
             iters = m.first_frame_iterations if first else m.iterations
-            if not first and self._keyframe_pending and m.keyframe_iterations > 0:
+            if not first and pending and m.keyframe_iterations > 0:
                 iters = m.keyframe_iterations
-            self._keyframe_pending = False
+            self._keyframe_pending[agent] = False
             current = None if is_kf or not tracked.tracking_ok else (tracked.frame, T_map_cam)
             losses = self.optimize(submap, iters, current)
         self.version += 1
-        return MappingStep(tracked.frame.index, is_kf, ratio, new_voxels, losses, time.perf_counter() - t0)
+        return MappingStep(tracked.frame.index, is_kf, ratio, new_voxels, losses, time.perf_counter() - t0,
+                           submap.map_id, started)
 
     def _keyframe_coverage(self, submap: SubMap, points: torch.Tensor) -> tuple[int, int, torch.Tensor]:
         """(N_o, N_c, codes): voxels the frame observes, how many of them no keyframe has
@@ -317,9 +383,9 @@ class Mapper:
             counts += (grad.abs().amax(1) > 0).to(torch.int32)
 
     # --------------------------------------------------------------- outputs
-    def snapshot(self) -> MapSnapshot:
-        """Detached copies of the current submap's tensors for the tracker."""
-        submap = self.current
+    def snapshot(self, submap: SubMap | None = None) -> MapSnapshot:
+        """Detached copies of a submap's tensors (default: the current one) for the tracker."""
+        submap = submap or self.current
         assert submap is not None, "no map yet"
         v = submap.voxels
         def arr(t: torch.Tensor) -> np.ndarray:
@@ -336,6 +402,16 @@ class Mapper:
             decoder_state={k: arr(t) for k, t in submap.decoder.state_dict().items()},
             corner_updates=arr(submap.updates()),
         )
+
+    def refine_map(self, submap: SubMap, iterations: int, num_rays: int) -> dict[str, float]:
+        """Global bundle adjustment of any map, frozen or active (loop closing's intra-map
+        step); a frozen map's optimiser state is dropped again afterwards."""
+        active = any(m is submap for m in self.active.values())
+        losses = self.global_bundle_adjustment(submap, iterations, num_rays)
+        if not active:
+            self._optimizers.pop(submap.map_id, None)
+        self.version += 1
+        return losses
 
     def keyframe_poses_world(self, submap: SubMap) -> torch.Tensor:
         """(K, 4, 4) optimised keyframe poses of ``submap`` in the world frame."""

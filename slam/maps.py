@@ -3,6 +3,12 @@
 A ``SubMap`` owns its sparse voxels, its decoder and its keyframes, all in the map's own
 frame; ``T_world_map`` places it in the world (paper: Loop Closure based Multi-maps). A
 single-map run has one submap with ``T_world_map = I``.
+
+Maps are related in two ways: a map started because the camera left its predecessor's
+region has that map as ``parent`` (the tracking chain relates them), and an accepted loop
+links two maps (``MapSet.links``). Maps connected through either form one *group* whose
+poses are known relative to each other; a map started after a tracking failure has no
+parent and floats in its own group until a loop joins it.
 """
 
 from __future__ import annotations
@@ -57,10 +63,19 @@ class SubMap:
     surface_codes: torch.Tensor | None = None
     """Sorted Morton codes of the voxels that held an observed surface point (a depth pixel
     back-projected with its pose); None: unknown (every voxel may hold surface)."""
+    parent: int | None = None
+    """The map this one continues (started by ``region``), None for an agent's first map
+    and for a map started after a tracking failure."""
+    reason: str = "start"
+    """Why the map was started: ``start``, ``region`` or ``tracking_failure``."""
+    T_parent_map: torch.Tensor | None = None
+    """(4, 4) this map's pose in its parent's frame when it was started: the tracking chain's
+    measurement of their relation (the pose graph's sequential edge)."""
 
     @classmethod
     def create(cls, map_id: int, agent: int, config: SLAMConfig, device: torch.device,
                T_world_map: torch.Tensor | None = None, seed: int = 0) -> "SubMap":
+        """An empty map (random corner embeddings are allocated with its voxels)."""
         torch.manual_seed(seed + map_id)
         voxels = SparseVoxelMap(config.voxel.voxel_size, config.voxel.embed_dim,
                                 config.voxel.embed_init_std, device=device, seed=seed + map_id)
@@ -123,6 +138,9 @@ class SubMap:
             "T_world_map": self.T_world_map.detach().cpu(),
             "corner_updates": None if self.corner_updates is None else self.corner_updates.cpu(),
             "surface_codes": None if self.surface_codes is None else self.surface_codes.cpu(),
+            "parent": self.parent,
+            "reason": self.reason,
+            "T_parent_map": None if self.T_parent_map is None else self.T_parent_map.detach().cpu(),
             "keyframes": [
                 {"frame_index": kf.frame_index, "timestamp": kf.timestamp,
                  "T_map_cam": kf.T_map_cam.detach().cpu(), "K": kf.K.detach().cpu()}
@@ -142,6 +160,10 @@ class SubMap:
             submap.corner_updates = state["corner_updates"].to(device)
         if state.get("surface_codes") is not None:
             submap.surface_codes = state["surface_codes"].to(device)
+        submap.parent = None if state.get("parent") is None else int(state["parent"])
+        submap.reason = str(state.get("reason", "start"))
+        if state.get("T_parent_map") is not None:
+            submap.T_parent_map = state["T_parent_map"].to(device)
         # Keyframe images are not stored in checkpoints; only their poses.
         for kf in state.get("keyframes", []):
             submap.keyframes.append(Keyframe(kf["frame_index"], kf["timestamp"], None,
@@ -155,6 +177,32 @@ class MapSet:
 
     config: SLAMConfig
     maps: list[SubMap] = field(default_factory=list)
+    links: list[tuple[int, int]] = field(default_factory=list)
+    """Pairs of map ids joined by an accepted loop."""
+
+    def by_id(self, map_id: int) -> SubMap:
+        for submap in self.maps:
+            if submap.map_id == map_id:
+                return submap
+        raise KeyError(f"no map {map_id}")
+
+    def groups(self) -> dict[int, int]:
+        """map id -> the smallest map id of its group (maps related by ``parent`` or by a
+        loop link: their relative poses are known)."""
+        root = {m.map_id: m.map_id for m in self.maps}
+
+        def find(i: int) -> int:
+            while root[i] != i:
+                root[i] = root[root[i]]
+                i = root[i]
+            return i
+
+        pairs = [(m.map_id, m.parent) for m in self.maps if m.parent is not None] + list(self.links)
+        for a, b in pairs:
+            if a in root and b in root:
+                ra, rb = find(a), find(b)
+                root[max(ra, rb)] = min(ra, rb)
+        return {i: find(i) for i in root}
 
     def num_voxels(self) -> int:
         return sum(m.voxels.num_voxels for m in self.maps)

@@ -27,7 +27,7 @@ import trimesh
 from skimage import measure
 
 from .render import MapView, trilinear_weights
-from .voxels import morton_decode
+from .voxels import lookup_sorted, morton_decode, morton_encode, voxel_coords_of
 
 MESH_FORMATS = ("ply", "glb", "obj")
 
@@ -281,28 +281,64 @@ def _as_matrix(T) -> np.ndarray:
     return np.asarray(T, dtype=np.float64)
 
 
-def extract_mesh(mapset, resolution: int | None = None, **kwargs) -> trimesh.Trimesh:
+def _claimed_by(points_world: np.ndarray, owner, min_corner_updates: int = 1) -> np.ndarray:
+    """(N,) bool: world points (N, 3) that fall in a voxel ``owner`` optimised. Not only its
+    surface voxels: near the border of what it saw, a later map's mesh reaches up to a voxel
+    farther (its own voxel grid is offset), into the earlier map's truncation band."""
+    view = owner.optimised_view(min_corner_updates, surface_only=False)
+    if view.voxel_codes.numel() == 0 or len(points_world) == 0:
+        return np.zeros(len(points_world), bool)
+    T = np.linalg.inv(_as_matrix(owner.T_world_map))
+    local = torch.from_numpy(points_world @ T[:3, :3].T + T[:3, 3]).to(view.voxel_codes.device, torch.float32)
+    codes = morton_encode(voxel_coords_of(local, view.voxel_size))
+    return (lookup_sorted(view.voxel_codes, codes) >= 0).cpu().numpy()
+
+
+def extract_mesh(mapset, resolution: int | None = None, *, dedupe: bool = True, **kwargs) -> trimesh.Trimesh:
     """World-frame mesh of every submap (placed by ``T_world_map``), concatenated.
 
     ``resolution`` defaults to ``mapset.config.mesh.resolution``; ``kwargs`` go to
-    ``extract_submap_mesh``. Vertex colours (V, 4) uint8.
+    ``extract_submap_mesh``. Vertex colours (V, 4) uint8. With ``dedupe`` (paper: duplicate
+    geometry removed) a region that several maps of one group reconstructed is kept from
+    the oldest of them only: a later map's faces whose centre lies in voxels an earlier
+    map optimised are dropped. Maps of different groups (not joined by a loop) are never
+    compared: their relative placement is unknown.
     """
     if resolution is None:
         resolution = mapset.config.mesh.resolution
+    groups = mapset.groups() if hasattr(mapset, "groups") else {}
     vertices, faces, colors, base = [], [], [], 0
+    kept: list = []
     for submap in mapset.maps:
         mesh = extract_submap_mesh(submap, resolution, **kwargs)
         if len(mesh.faces) == 0:
+            kept.append(submap)
             continue
         T = _as_matrix(submap.T_world_map)
-        vertices.append(mesh.vertices @ T[:3, :3].T + T[:3, 3])
-        faces.append(np.asarray(mesh.faces) + base)
+        v = mesh.vertices @ T[:3, :3].T + T[:3, 3]
+        f = np.asarray(mesh.faces)
+        if dedupe:
+            earlier = [m for m in kept if groups.get(m.map_id, m.map_id) == groups.get(submap.map_id, submap.map_id)]
+            if earlier:
+                centres = v[f].mean(1)
+                drop = np.zeros(len(f), bool)
+                for owner in earlier:
+                    drop |= _claimed_by(centres, owner)
+                f = f[~drop]
+        kept.append(submap)
+        if len(f) == 0:
+            continue
+        vertices.append(v)
+        faces.append(f + base)
         colors.append(np.asarray(mesh.visual.vertex_colors))
-        base += len(mesh.vertices)
+        base += len(v)
     if not vertices:
         return empty_mesh()
-    return trimesh.Trimesh(vertices=np.concatenate(vertices), faces=np.concatenate(faces),
-                           vertex_colors=np.concatenate(colors), process=False)
+    out = trimesh.Trimesh(vertices=np.concatenate(vertices), faces=np.concatenate(faces),
+                          vertex_colors=np.concatenate(colors), process=False)
+    if dedupe:
+        out.remove_unreferenced_vertices()
+    return out
 
 
 # -------------------------------------------------------------------- export

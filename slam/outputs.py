@@ -1,0 +1,223 @@
+"""What a run writes: trajectories, ``run.json`` (the mesh and ``map.pt`` come from the mapper).
+
+Every frame is recorded in the frame of the map it was tracked against; its world pose is
+composed at the end with that map's final ``T_world_map`` (so loop closure moves it with its
+map), then moved by bundle adjustment's correction of its latest keyframe, and frames whose
+tracking failed are interpolated between their well-tracked neighbours.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from .config import SLAMConfig
+
+if TYPE_CHECKING:
+    from .mapping_process import MapperStats
+    from .runtime import AgentTrack, RunResult
+
+
+@dataclass(frozen=True)
+class FrameRecord:
+    """One input frame as tracked: T_map_cam (4, 4) float64 in map ``map_id``; ``tracked``
+    False when tracking failed or the camera was lost; ``gt`` (4, 4) or None."""
+
+    index: int
+    timestamp: float
+    map_id: int
+    T_map_cam: np.ndarray
+    tracked: bool
+    gt: np.ndarray | None
+
+
+def refine_with_keyframes(poses: np.ndarray, frame_indices: list[int],
+                          keyframe_poses: dict[int, list[float]]) -> np.ndarray:
+    """Tracked world poses (N, 4, 4) moved by bundle adjustment's keyframe corrections.
+
+    Each frame takes the correction ``T_kf_BA T_kf_tracked^-1`` of the latest keyframe at or
+    before it (so keyframes get their bundle-adjusted pose and the frames tracked against them
+    follow); frames before the first keyframe are unchanged. ``keyframe_poses``: frame index ->
+    the keyframe's optimised T_world_cam as 16 row-major numbers (``run.json``'s form).
+    """
+    out = np.array(poses, dtype=np.float64, copy=True)
+    correction = None
+    for i, index in enumerate(frame_indices):
+        refined = keyframe_poses.get(index)
+        if refined is not None:
+            correction = np.asarray(refined, np.float64).reshape(4, 4) @ np.linalg.inv(poses[i])
+        if correction is not None:
+            out[i] = correction @ poses[i]
+    return out
+
+
+def interpolate_untracked(poses: np.ndarray, timestamps: np.ndarray, tracked: np.ndarray) -> np.ndarray:
+    """Poses (N, 4, 4) where frames with ``tracked`` (N,) False are replaced by the pose
+    interpolated in time between the nearest tracked frames before and after (rotation by
+    slerp, translation linearly); held at the nearest one at either end."""
+    from scipy.spatial.transform import Rotation, Slerp
+
+    out = np.array(poses, dtype=np.float64, copy=True)
+    good = np.flatnonzero(tracked)
+    if len(good) == 0 or len(good) == len(poses):
+        return out
+    for i in np.flatnonzero(~np.asarray(tracked, bool)):
+        before, after = good[good < i], good[good > i]
+        if len(before) == 0 or len(after) == 0:
+            out[i] = poses[after[0] if len(before) == 0 else before[-1]]
+            continue
+        a, b = before[-1], after[0]
+        span = timestamps[b] - timestamps[a]
+        s = 0.5 if span <= 0 else float(np.clip((timestamps[i] - timestamps[a]) / span, 0.0, 1.0))
+        rot = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([poses[a][:3, :3], poses[b][:3, :3]])))([s])
+        out[i, :3, :3] = rot.as_matrix()[0]
+        out[i, :3, 3] = (1 - s) * poses[a][:3, 3] + s * poses[b][:3, 3]
+    return out
+
+
+def world_poses(records: list[FrameRecord], map_poses: dict[int, np.ndarray]) -> np.ndarray:
+    """(N, 4, 4) world poses of ``records`` with the given map poses."""
+    return np.stack([np.asarray(map_poses[r.map_id], np.float64) @ r.T_map_cam for r in records])
+
+
+def running_ate(records: list[FrameRecord], map_poses: dict[int, np.ndarray]) -> float | None:
+    """ATE RMSE (m) of the raw world poses so far (None without GT)."""
+    if len(records) < 3 or any(r.gt is None for r in records):
+        return None
+    from .eval.ate import umeyama_alignment
+
+    est = world_poses(records, map_poses)[:, :3, 3]
+    gt = np.stack([r.gt[:3, 3] for r in records])  # type: ignore[index]
+    try:
+        R, t, _ = umeyama_alignment(est, gt)
+    except ValueError:
+        return None
+    err = np.linalg.norm(est @ R.T + t - gt, axis=1)
+    return float(np.sqrt((err ** 2).mean()))
+
+
+@dataclass(frozen=True)
+class AgentTrajectory:
+    agent: int
+    timestamps: np.ndarray
+    poses: np.ndarray
+    gt: list[np.ndarray | None]
+    interpolated: int
+
+
+def agent_trajectory(track: "AgentTrack", stats: "MapperStats | None", fallback_poses: dict[int, np.ndarray],
+                     use_gt_poses: bool) -> AgentTrajectory:
+    """An agent's final world trajectory (see the module doc)."""
+    records = track.records
+    map_poses = stats.map_poses if stats is not None else fallback_poses
+    poses = world_poses(records, map_poses)
+    indices = [r.index for r in records]
+    ts = np.array([r.timestamp for r in records])
+    tracked = np.array([r.tracked for r in records])
+    if not use_gt_poses and stats is not None:
+        kf = {k.frame_index: k.T_world_cam for k in stats.keyframe_records if k.agent == track.agent}
+        poses = refine_with_keyframes(poses, indices, kf)
+        poses = interpolate_untracked(poses, ts, tracked)
+    return AgentTrajectory(track.agent, ts, poses, [r.gt for r in records], int((~tracked).sum()))
+
+
+def _ate(trajectories: list[AgentTrajectory]) -> float | None:
+    """ATE RMSE (m) of the trajectories together, one rigid alignment for all (None when a
+    pose has no GT)."""
+    from .eval.ate import umeyama_alignment
+
+    est = [t.poses[:, :3, 3] for t in trajectories if len(t.poses)]
+    if not est or any(g is None for t in trajectories for g in t.gt):
+        return None
+    est_all = np.concatenate(est)
+    gt_all = np.concatenate([np.stack([g[:3, 3] for g in t.gt]) for t in trajectories if len(t.poses)])  # type: ignore[index]
+    if len(est_all) < 3:
+        return None
+    try:
+        R, t, _ = umeyama_alignment(est_all, gt_all)
+    except ValueError:
+        return None
+    err = np.linalg.norm(est_all @ R.T + t - gt_all, axis=1)
+    return float(np.sqrt((err ** 2).mean()))
+
+
+def _agent_joined(agent: int, stats: "MapperStats | None") -> bool:
+    """Whether any of the agent's maps shares a group with the world's first map."""
+    if stats is None or not stats.map_groups:
+        return agent == 0
+    world = stats.map_groups.get(0, 0)
+    return any(stats.map_groups.get(m) == world for m, a in stats.map_agents.items() if a == agent)
+
+
+def write_outputs(out: Path, config: SLAMConfig, tracks: list["AgentTrack"], stats: "MapperStats | None",
+                  status: str, error: str | None, elapsed: float, total: int | None, tracking_busy: float,
+                  use_gt_poses: bool, map_poses: dict[int, np.ndarray] | None = None) -> "RunResult":
+    from .eval.trajectory import Trajectory, write_tum
+    from .runtime import RunResult
+
+    trajectories = [agent_trajectory(t, stats, map_poses or {}, use_gt_poses) for t in tracks if t.records]
+    for traj in trajectories:
+        tum = Trajectory(traj.timestamps, traj.poses)
+        if traj.agent == 0:
+            write_tum(out / "trajectory.txt", tum)
+        if len(tracks) > 1:
+            write_tum(out / f"trajectory_{traj.agent}.txt", tum)
+    agents = [{
+        "agent": t.agent, "frames": len(t.poses), "trajectory": "trajectory.txt" if len(tracks) == 1 else f"trajectory_{t.agent}.txt",
+        "ate_rmse_m": _ate([t]), "joined": _agent_joined(t.agent, stats),
+        "frames_interpolated": t.interpolated,
+        "tracking_failures": next(tr.tracking_failures for tr in tracks if tr.agent == t.agent),
+    } for t in trajectories]
+    frames = sum(len(t.poses) for t in trajectories)
+    ate_rmse = next((a["ate_rmse_m"] for a in agents if a["agent"] == 0), None)
+    kf0 = {str(k.frame_index): k.T_world_cam for k in (stats.keyframe_records if stats else []) if k.agent == 0}
+    closures = stats.loop_closures if stats else []
+    fps = frames / max(elapsed, 1e-9)
+    mapping_busy = stats.busy_seconds if stats else 0.0
+    info = {
+        "status": status,
+        "error": error,
+        "config": config.to_dict(),
+        "frames": frames,
+        "frames_total": total,
+        "keyframes": stats.keyframes if stats else 0,
+        "keyframe_poses": kf0,
+        "maps": stats.maps if stats else 0,
+        "map_poses": {str(k): np.asarray(v).reshape(-1).tolist() for k, v in (stats.map_poses if stats else {}).items()},
+        "map_agents": {str(k): v for k, v in (stats.map_agents if stats else {}).items()},
+        "map_reasons": {str(k): v for k, v in (stats.map_reasons if stats else {}).items()},
+        "map_groups": len(set(stats.map_groups.values())) if stats and stats.map_groups else 0,
+        "loops": len(closures),
+        "loop_closures": closures,
+        "loop_candidates_rejected": stats.loop_candidates_rejected if stats else 0,
+        "loop_candidates": stats.loop_candidates if stats else [],
+        "loop_timings_ms": stats.loop_timings_ms if stats else {},
+        "agents": agents,
+        "ate_rmse_m_all_agents": _ate(trajectories) if len(trajectories) > 1 else ate_rmse,
+        "voxels": stats.voxels if stats else 0,
+        "map_memory_mb": {
+            "embeddings": (stats.map_bytes if stats else 0) / 2**20,
+            "decoder": (stats.decoder_bytes if stats else 0) / 2**20,
+        },
+        "tracking_failures": sum(t.tracking_failures for t in tracks),
+        "frames_interpolated": sum(t.interpolated for t in trajectories),
+        "timings_s": {
+            "wall": elapsed,
+            "tracking_busy": tracking_busy,
+            "mapping_busy": mapping_busy,
+            **({f"mapping_{k}": v for k, v in stats.timings.items()} if stats else {}),
+        },
+        "busy_share": {
+            "tracking": tracking_busy / max(elapsed, 1e-9),
+            "mapping": mapping_busy / max(elapsed, 1e-9),
+        },
+        "fps": fps,
+        "ate_rmse_m": ate_rmse,
+    }
+    (out / "run.json").write_text(json.dumps(info, indent=2))
+    return RunResult(status, error, frames, info["keyframes"], info["maps"], len(closures), fps, out, ate_rmse,
+                     agents=max(len(tracks), 1))
