@@ -29,13 +29,16 @@ Neural implicit dense RGB-D SLAM (Vox-Fusion++) as a service.
 
 * **Sessions** run the SLAM pipeline on a dataset zip (TUM RGB-D, Replica, ScanNet, 7-Scenes),
   on the built-in synthetic scene, or on frames streamed over HTTP or a WebSocket.
+* **Collaborative mapping**: several `file` parts in one upload (or a list of synthetic specs)
+  are one session, one agent per part; streamed frames name their `agent`. All agents share
+  one world frame; `GET .../trajectory?agent=k` gives the k-th agent's trajectory.
 * While a session runs: its status, trajectory, mesh (PLY/GLB/OBJ) and rendered colour/depth
   views for any camera; the live 3D viewer at `/viewer`; AR composites with occlusion.
 * Poses are 4x4 camera-to-world matrices `T_world_cam` (OpenCV axes: x right, y down,
   z forward), in metres. Depth PNGs are 16-bit millimetres.
 
 **Streaming over a WebSocket** (`/api/sessions/{id}/stream`): send a JSON header
-`{"intrinsics": "fx,fy,cx,cy", "depth_scale": 5000}` (answer `{"type": "ready"}`), then per frame
+`{"intrinsics": "fx,fy,cx,cy", "depth_scale": 5000, "agent": 0}` (answer `{"type": "ready"}`), then per frame
 either a binary message (float64 LE timestamp, uint32 LE colour length n, n colour bytes, the
 16-bit depth PNG) or a text message `{"timestamp": t, "color": base64, "depth": base64}`; each is
 answered `{"type": "ack", "index": i}` or `{"type": "error", "status": 4xx, "detail": ...}`.

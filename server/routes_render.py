@@ -107,9 +107,17 @@ def viewer_select(session_id: str, manager: SessionManager = Depends(get_manager
     if not viewer.has_session(session_id) and state.status in ENDED:
         # A session from before a restart: show its results from disk.
         directory = manager.session_dir(session_id)
-        viewer.load_finished(session_id, directory / "mesh.ply", _positions(directory / "trajectory.txt"))
+        viewer.load_finished(session_id, directory / "mesh.ply", _agent_positions(directory, state.agents))
     viewer.select(session_id)
     return Response(status_code=204)
+
+
+def _agent_positions(directory, agents: int) -> dict[int, np.ndarray]:
+    """Camera centres per agent from a finished session's trajectory files (missing ones left out)."""
+    paths = {0: directory / "trajectory.txt"}
+    paths.update({k: directory / f"trajectory_{k}.txt" for k in range(1, max(agents, 1))})
+    positions = {k: _positions(path) for k, path in paths.items()}
+    return {k: v for k, v in positions.items() if v is not None}
 
 
 def _positions(path) -> np.ndarray | None:

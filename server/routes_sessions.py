@@ -11,6 +11,7 @@ from fastapi.responses import FileResponse, PlainTextResponse
 from pydantic import ValidationError
 from starlette.concurrency import run_in_threadpool
 from starlette.datastructures import UploadFile
+from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from server.deps import get_manager, get_map_cache, get_mesh_files, get_settings, require_token
 from server.rendering import MapCache, MeshFiles, NoMapYet, mesh_bytes_from_arrays
@@ -18,6 +19,7 @@ from server.schemas import ErrorOut, SessionCreated, SessionCreateJSON, SessionO
 from server.sessions import SessionManager, SessionStatus, check_session_id, new_session_id
 from server.settings import Settings
 from server.upload import (
+    MAX_AGENTS,
     UploadError,
     ZipLimits,
     dataset_root,
@@ -40,8 +42,11 @@ _MULTIPART_SCHEMA = {
     "type": "object",
     "required": ["file"],
     "properties": {
-        "file": {"type": "string", "format": "binary",
-                 "description": "zip of a TUM RGB-D, Replica, ScanNet or 7-Scenes folder"},
+        "file": {"type": "array", "items": {"type": "string", "format": "binary"}, "minItems": 1,
+                 "maxItems": MAX_AGENTS,
+                 "description": "zip of a TUM RGB-D, Replica, ScanNet or 7-Scenes folder; several 'file' parts "
+                                "make one collaborative session, one agent per part in the order given (each "
+                                "opened with the same options)"},
         "format": {"type": "string", "enum": list(FORMATS[:-1]), "default": "auto"},
         "preset": {"type": "string", "enum": list(PRESETS)},
         "intrinsics": {"type": "string", "description": "fx,fy,cx,cy (replaces the format's camera)",
@@ -72,7 +77,8 @@ _CREATE_OPENAPI = {
 
 def session_out(manager: SessionManager, state: SessionStatus) -> SessionOut:
     directory = manager.session_dir(state.id)
-    data = {k: v for k, v in state.to_json().items() if k != "spec"}
+    data = {k: v for k, v in state.to_json().items() if k not in ("spec", "specs")}
+    data["agents"] = manager.agent_count(state.id)
     outputs = SessionOutputs(trajectory=(directory / "trajectory.txt").is_file() or state.frames_done > 0,
                              mesh=(directory / "mesh.ply").is_file() or bool(manager.live_meshes(state.id))
                              or (directory / "map.pt").is_file(),
@@ -124,17 +130,23 @@ def _upload_spec(form) -> tuple[SourceSpec, str]:
     return spec, preset
 
 
-def _unpack_dataset(settings: Settings, session_dir: Path, upload: UploadFile, spec: SourceSpec) -> SourceSpec:
-    """Save, check and extract the zip, find the dataset folder, open its first frame.
+def _part_label(index: int, count: int, upload: UploadFile) -> str:
+    """How an error names a file part: ``file 2 of 3 ('b.zip')`` (the client's name, quoted, never a path)."""
+    name = (upload.filename or "").replace("\n", " ")[:80]
+    return f"file {index + 1} of {count}" + (f" ({name!r})" if name else "")
 
-    Runs in a worker thread. On any error the session folder is removed again.
-    """
+
+def _unpack_dataset(settings: Settings, session_dir: Path, upload: UploadFile, spec: SourceSpec,
+                    input_dir: Path | None = None) -> SourceSpec:
+    """Save, check and extract the zip into ``input_dir`` (default ``session_dir/input``), find
+    the dataset folder, open its first frame. Runs in a worker thread; the caller removes the
+    session folder on error."""
     from dataclasses import replace
 
     from slam.data import detect_format, open_sequence
 
+    input_dir = input_dir or session_dir / "input"
     zip_path = settings.uploads_dir / f"{session_dir.name}.zip"
-    input_dir = session_dir / "input"
     try:
         save_upload(upload.file, zip_path, settings.max_upload_bytes)
         extract_zip(zip_path, input_dir, ZipLimits(settings.max_zip_entries, settings.max_unzipped_bytes))
@@ -151,26 +163,52 @@ def _unpack_dataset(settings: Settings, session_dir: Path, upload: UploadFile, s
             message = str(error).replace(f"{input_dir.resolve()}/", "").replace(f"{input_dir}/", "")
             raise UploadError(f"the dataset cannot be read: {message}") from None
         return replace(spec, path=str(root), format=fmt)
-    except BaseException:
-        remove_tree(session_dir)
-        raise
     finally:
         zip_path.unlink(missing_ok=True)
 
 
-def _json_spec(body: SessionCreateJSON) -> tuple[SourceSpec, str]:
+def _unpack_datasets(settings: Settings, session_dir: Path, uploads: list[UploadFile],
+                     spec: SourceSpec) -> list[SourceSpec]:
+    """Every part of an upload, one agent each (``input/`` for one part, ``input/<k>/`` for
+    several), all checked before the session exists. On any error the session folder is
+    removed again; with several parts the error names the part."""
+    specs = []
+    try:
+        for k, upload in enumerate(uploads):
+            input_dir = session_dir / "input" if len(uploads) == 1 else session_dir / "input" / str(k)
+            try:
+                specs.append(_unpack_dataset(settings, session_dir, upload, spec, input_dir))
+            except UploadError as error:
+                if len(uploads) == 1:
+                    raise
+                raise UploadError(f"{_part_label(k, len(uploads), upload)}: {error}", status=error.status) from None
+        return specs
+    except BaseException:
+        remove_tree(session_dir)
+        raise
+
+
+def _json_spec(body: SessionCreateJSON) -> tuple[list[SourceSpec], str]:
+    """The sources of a JSON request: synthetic (one, or one per listed spec) or a stream."""
     preset = body.preset or _default_preset()
     if body.source == "synthetic":
         from slam.data.synthetic import parse_synthetic_spec
 
-        spec_text = body.spec.removeprefix("synthetic:")
-        try:
-            parse_synthetic_spec(spec_text)
-        except DataError as error:
-            raise UploadError(f"spec: {error}") from None
-        return SourceSpec(kind="synthetic", path=spec_text, format="synthetic", max_frames=body.max_frames), preset
+        texts = [body.spec] if isinstance(body.spec, str) else list(body.spec)
+        specs = []
+        for k, text in enumerate(texts):
+            spec_text = text.removeprefix("synthetic:")
+            try:
+                parse_synthetic_spec(spec_text)
+            except DataError as error:
+                where = "spec" if isinstance(body.spec, str) else f"spec[{k}] (agent {k})"
+                raise UploadError(f"{where}: {error}") from None
+            specs.append(SourceSpec(kind="synthetic", path=spec_text, format="synthetic", max_frames=body.max_frames))
+        return specs, preset
+    if not isinstance(body.spec, str):
+        raise UploadError("spec: a list of specs is for synthetic sessions; a stream's frames name their agent")
     intrinsics = None if body.intrinsics is None else parse_intrinsics(body.intrinsics)
-    return SourceSpec(kind="stream", format="stream", intrinsics=intrinsics, depth_scale=body.depth_scale), preset
+    return [SourceSpec(kind="stream", format="stream", intrinsics=intrinsics, depth_scale=body.depth_scale)], preset
 
 
 @router.post("", status_code=status.HTTP_201_CREATED, response_model=SessionCreated,
@@ -181,17 +219,27 @@ async def create_session(request: Request, manager: SessionManager = Depends(get
                          settings: Settings = Depends(get_settings)) -> SessionCreated:
     """Multipart with a ``file`` (zip of a dataset folder; ``format``, ``preset``, ``intrinsics``,
     ``depth_scale``, ``stride``, ``max_frames`` optional), or JSON ``{"source": "synthetic"}`` /
-    ``{"source": "stream"}``. The zip is validated and its first frame read before the session is
-    queued; every problem is a 4xx that says what is wrong."""
+    ``{"source": "stream"}``. Several ``file`` parts are one collaborative session, one agent per
+    part in the order given; a JSON ``spec`` list is one synthetic agent per spec. Every zip is
+    validated and its first frame read before the session is queued; every problem is a 4xx
+    that says what is wrong (and which part)."""
     content_type = request.headers.get("content-type", "")
     session_id = new_session_id()
     if content_type.startswith("multipart/form-data"):
-        form = await request.form(max_files=1, max_fields=20)
-        upload = form.get("file")
-        if not isinstance(upload, UploadFile):
+        try:
+            form = await request.form(max_files=MAX_AGENTS, max_fields=20)
+        except StarletteHTTPException as error:  # Starlette's "Too many files" and friends
+            raise UploadError(f"the form cannot be read: {error.detail} (at most {MAX_AGENTS} 'file' parts)",
+                              status=error.status_code) from None
+        parts = form.getlist("file")
+        uploads = [part for part in parts if isinstance(part, UploadFile)]
+        if not parts:
             raise UploadError("file: a zip of the dataset is required in the multipart field 'file'")
+        if len(uploads) != len(parts):
+            bad = next(k for k, part in enumerate(parts) if not isinstance(part, UploadFile))
+            raise UploadError(f"file {bad + 1} of {len(parts)}: the 'file' field must be a file (a zip), not text")
         spec, preset = _upload_spec(form)
-        spec = await run_in_threadpool(_unpack_dataset, settings, manager.session_dir(session_id), upload, spec)
+        specs = await run_in_threadpool(_unpack_datasets, settings, manager.session_dir(session_id), uploads, spec)
     elif content_type.startswith("application/json"):
         try:
             body = SessionCreateJSON.model_validate(json.loads(await request.body()))
@@ -200,11 +248,11 @@ async def create_session(request: Request, manager: SessionManager = Depends(get
         except ValidationError as error:
             raise UploadError("; ".join(f"{'.'.join(map(str, e['loc'])) or 'body'}: {e['msg']}"
                                         for e in error.errors())) from None
-        spec, preset = _json_spec(body)
+        specs, preset = _json_spec(body)
     else:
         raise HTTPException(status.HTTP_415_UNSUPPORTED_MEDIA_TYPE,
                             "send multipart/form-data with a zip in 'file', or application/json")
-    created = manager.create(session_id, spec, preset)
+    created = manager.create(session_id, specs, preset)
     return SessionCreated(id=created.id, status=created.status)
 
 
@@ -229,24 +277,42 @@ def delete_session(session_id: str, manager: SessionManager = Depends(get_manage
     return Response(status_code=status.HTTP_204_NO_CONTENT)
 
 
+def trajectory_file(directory: Path, agent: int) -> Path:
+    """Where the runtime writes ``agent``'s trajectory: ``trajectory.txt`` for agent 0 (and a
+    single-agent run), ``trajectory_<k>.txt`` for every agent of a collaborative run."""
+    return directory / ("trajectory.txt" if agent == 0 else f"trajectory_{agent}.txt")
+
+
 @router.get("/{session_id}/trajectory", response_class=PlainTextResponse,
             responses={200: {"content": {"text/plain": {"example": "# timestamp tx ty tz qx qy qz qw\n"
                                                                    "0.000000 0.1 0.2 1.4 0 0 0 1\n"}}},
                        409: {"model": ErrorOut}},
-            summary="Estimated trajectory (TUM text), also while running")
-def get_trajectory(session_id: str, manager: SessionManager = Depends(get_manager)) -> Response:
+            summary="Estimated trajectory (TUM text) of one agent, also while running")
+def get_trajectory(session_id: str,
+                   agent: int = Query(0, ge=0,
+                                      description="agent (camera) of a collaborative session; 0 is the first"),
+                   manager: SessionManager = Depends(get_manager)) -> Response:
+    """All agents' trajectories share one world frame (the first agent's first camera). While
+    the session runs, poses tracked so far, moved with their maps by loop closures."""
     from slam.eval.trajectory import Trajectory, format_tum
 
     directory = manager.session_dir(check_session_id(session_id))
     state = manager.get(session_id)
-    path = directory / "trajectory.txt"
+    path = trajectory_file(directory, agent)
+    agents = manager.agent_count(session_id)
     if path.is_file() and state.status in ("finished", "failed", "cancelled"):
         return PlainTextResponse(path.read_text())
-    _, stamps, poses = manager.tracked_poses(session_id)
+    _, stamps, poses = manager.tracked_poses(session_id, agent)
     if len(stamps) == 0:
         if path.is_file():
             return PlainTextResponse(path.read_text())
-        raise HTTPException(status.HTTP_409_CONFLICT, f"session {session_id} has no tracked poses yet")
+        if agent >= agents and agent not in manager.tracked_agents(session_id):
+            which = "one agent (0)" if agents == 1 else f"{agents} agents (0 to {agents - 1})"
+            running = "" if state.status in ("finished", "failed", "cancelled") else " so far"
+            raise HTTPException(status.HTTP_404_NOT_FOUND,
+                                f"session {session_id} has no agent {agent}: it has {which}{running}")
+        raise HTTPException(status.HTTP_409_CONFLICT, f"session {session_id} has no tracked poses yet"
+                            + ("" if agent == 0 else f" for agent {agent}"))
     return PlainTextResponse(format_tum(Trajectory(stamps, poses)))
 
 

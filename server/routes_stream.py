@@ -4,14 +4,17 @@ WebSocket protocol at ``/api/sessions/{id}/stream`` (token as ``?token=`` when o
 
 1. The client sends a JSON header: ``{"intrinsics": "fx,fy,cx,cy", "depth_scale": 5000}``;
    both are optional when the session was created with them (``{}`` is a valid header).
-   The server answers ``{"type": "ready", "frames_received": n}``.
+   ``"agent": k`` (default 0) says which camera of a collaborative session this socket's
+   frames come from. The server answers ``{"type": "ready", "frames_received": n}`` (all
+   agents together).
 2. Each frame is either
    * one **binary** message: 8-byte little-endian float64 timestamp, 4-byte little-endian
      uint32 length ``n`` of the colour image, the ``n`` colour bytes (PNG/JPEG), then the depth
      PNG bytes (16-bit) up to the end of the message; or
    * one **text** message ``{"timestamp": t, "color": "<base64>", "depth": "<base64>"}``
-     (``intrinsics`` / ``depth_scale`` may be added as in the header).
-   The server answers each with ``{"type": "ack", "index": i}``, or with
+     (``intrinsics`` / ``depth_scale`` / ``agent`` may be added as in the header).
+   The server answers each with ``{"type": "ack", "index": i}`` (``i`` counts that agent's
+   frames from 0; ``"agent": k`` is added for agents other than 0), or with
    ``{"type": "error", "status": 422, "detail": "..."}`` for a bad frame (the socket stays open;
    503 means the session is behind: resend later).
 3. ``{"type": "finish"}`` ends the input; the server answers ``{"type": "finished", "frames": n}``
@@ -32,7 +35,7 @@ from server.deps import get_manager, require_token, token_ok
 from server.schemas import ErrorOut, FrameAccepted, StreamFinished
 from server.sessions import SessionConflict, SessionManager, SessionNotFound, check_session_id
 from server.stream import StreamInput
-from server.upload import UploadError
+from server.upload import MAX_AGENTS, UploadError, parse_agent
 
 router = APIRouter(prefix="/api/sessions", tags=["streaming"])
 
@@ -50,15 +53,20 @@ async def post_frame(
     timestamp: str | None = Form(None, description="seconds (default: index / 30)", examples=["1305031453.36"]),
     depth_scale: str | None = Form(None, description="raw depth units per metre (default: the session's, or 1000)",
                                    examples=["5000"]),
-    intrinsics: str | None = Form(None, description="fx,fy,cx,cy: required on the first frame unless given "
-                                                    "when the session was created", examples=["525,525,319.5,239.5"]),
+    intrinsics: str | None = Form(None, description="fx,fy,cx,cy: required on the first frame (of each agent) "
+                                                    "unless given when the session was created",
+                                  examples=["525,525,319.5,239.5"]),
+    agent: str | None = Form(None, description=f"the camera (agent) of a collaborative stream, 0..{MAX_AGENTS - 1}; "
+                                               "default 0. Each agent's frames are indexed from 0",
+                             examples=["0"]),
     manager: SessionManager = Depends(get_manager),
 ) -> FrameAccepted:
     stream = manager.stream(check_session_id(session_id))
+    agent_id = 0 if agent in (None, "") else parse_agent(agent)
     color_bytes, depth_bytes = await color.read(), await depth.read()
     index = await run_in_threadpool(stream.add_frame, color_bytes, depth_bytes, timestamp=timestamp,
-                                    depth_scale=depth_scale, intrinsics=intrinsics)
-    return FrameAccepted(index=index, frames_received=stream.frames_received)
+                                    depth_scale=depth_scale, intrinsics=intrinsics, agent=agent_id)
+    return FrameAccepted(index=index, frames_received=stream.frames_received, agent=agent_id)
 
 
 @router.post("/{session_id}/finish", response_model=StreamFinished, dependencies=[Depends(require_token)],
@@ -81,7 +89,7 @@ def decode_binary_frame(message: bytes) -> tuple[float, bytes, bytes]:
 
 def decode_json_frame(data: dict) -> tuple[object, bytes, bytes, dict]:
     """Text frame message -> (timestamp, colour bytes, depth bytes, extra options)."""
-    unknown = set(data) - {"timestamp", "color", "depth", "intrinsics", "depth_scale", "type"}
+    unknown = set(data) - {"timestamp", "color", "depth", "intrinsics", "depth_scale", "agent", "type"}
     if unknown:
         raise UploadError(f"frame: unknown key(s) {sorted(unknown)}")
     images = []
@@ -93,6 +101,8 @@ def decode_json_frame(data: dict) -> tuple[object, bytes, bytes, dict]:
         except (binascii.Error, ValueError):
             raise UploadError(f"frame: '{key}' is not valid base64") from None
     options = {k: data[k] for k in ("intrinsics", "depth_scale") if k in data}
+    if "agent" in data:
+        options["agent"] = parse_agent(data["agent"], "frame: agent")
     return data.get("timestamp"), images[0], images[1], options
 
 
@@ -132,12 +142,20 @@ async def _read_header(websocket: WebSocket) -> dict | None:
         await websocket.send_json({"type": "error", "status": 400, "detail": f"header: expected a JSON object ({error})"})
         await websocket.close(code=status.WS_1003_UNSUPPORTED_DATA)
         return None
-    unknown = set(header) - {"intrinsics", "depth_scale", "type"}
+    unknown = set(header) - {"intrinsics", "depth_scale", "agent", "type"}
     if unknown:
         await websocket.send_json({"type": "error", "status": 422, "detail": f"header: unknown key(s) {sorted(unknown)}"})
         await websocket.close(code=status.WS_1003_UNSUPPORTED_DATA)
         return None
-    return {k: header[k] for k in ("intrinsics", "depth_scale") if k in header}
+    options = {k: header[k] for k in ("intrinsics", "depth_scale") if k in header}
+    if header.get("agent") is not None:
+        try:
+            options["agent"] = parse_agent(header["agent"], "header: agent")
+        except UploadError as error:
+            await _send_error(websocket, error)
+            await websocket.close(code=status.WS_1003_UNSUPPORTED_DATA)
+            return None
+    return options
 
 
 async def _serve_frames(websocket: WebSocket, stream: StreamInput, options: dict) -> None:
@@ -161,11 +179,13 @@ async def _serve_frames(websocket: WebSocket, stream: StreamInput, options: dict
                     return
                 timestamp, color, depth, extra = decode_json_frame(data)
             frame_options = {**options, **extra}
+            agent = frame_options.get("agent", 0)
             index = await run_in_threadpool(stream.add_frame, color, depth, timestamp=timestamp,
                                             depth_scale=frame_options.get("depth_scale"),
-                                            intrinsics=frame_options.get("intrinsics"))
-            # Intrinsics and scale are remembered by the stream after the first frame.
-            await websocket.send_json({"type": "ack", "index": index})
+                                            intrinsics=frame_options.get("intrinsics"), agent=agent)
+            # Intrinsics and scale are remembered by the stream after each agent's first frame.
+            await websocket.send_json({"type": "ack", "index": index} if agent == 0 else
+                                      {"type": "ack", "index": index, "agent": agent})
         except json.JSONDecodeError as error:
             await _send_error(websocket, UploadError(f"frame: not valid JSON ({error})", status=400))
         except UploadError as error:

@@ -51,17 +51,34 @@ class SessionCreateJSON(Strict):
     """A session without an upload: the synthetic generator, or frames streamed later."""
 
     source: Literal["synthetic", "stream"] = Field(examples=["synthetic"])
-    spec: str = Field("orbit?frames=120&width=320&height=240", max_length=200,
-                      description="synthetic scene spec (kind?frames=&width=&height=&seed=&noise=)",
-                      examples=["orbit?frames=60&width=160&height=120"])
+    spec: str | list[str] = Field(
+        "orbit?frames=120&width=320&height=240",
+        description="synthetic scene spec (kind?frames=&width=&height=&seed=&noise=&agent=&agents=), or a "
+                    "list of specs for a collaborative session: one agent each, in order "
+                    "(e.g. ['agents?agent=0&agents=2', 'agents?agent=1&agents=2'])",
+        examples=["orbit?frames=60&width=160&height=120"])
     preset: Literal["test", "cpu", "paper"] | None = Field(None, description="config preset; default cpu without a GPU")
     intrinsics: str | None = Field(None, description="stream: 'fx,fy,cx,cy' (else on the first frame)",
                                    examples=["525,525,319.5,239.5"])
     depth_scale: float | None = Field(None, gt=0, description="stream: raw depth units per metre (default 1000)")
     max_frames: int | None = Field(None, ge=1)
 
+    @field_validator("spec")
+    @classmethod
+    def _spec_lengths(cls, value: str | list[str]) -> str | list[str]:
+        from server.upload import MAX_AGENTS
+
+        if isinstance(value, list) and not 1 <= len(value) <= MAX_AGENTS:
+            raise ValueError(f"a list of specs has one per agent: 1 to {MAX_AGENTS}, got {len(value)}")
+        for text in [value] if isinstance(value, str) else value:
+            if len(text) > 200:
+                raise ValueError(f"a synthetic spec has at most 200 characters, got {len(text)}")
+        return value
+
     model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
         {"source": "synthetic", "spec": "orbit?frames=60&width=160&height=120", "preset": "test"},
+        {"source": "synthetic", "spec": ["agents?agent=0&agents=2&frames=60", "agents?agent=1&agents=2&frames=60"],
+         "preset": "test"},
         {"source": "stream", "intrinsics": "525,525,319.5,239.5", "depth_scale": 5000, "preset": "cpu"}]})
 
 
@@ -85,8 +102,10 @@ class SessionOut(BaseModel):
     frames_total: int | None = Field(examples=[120], description="None for streams")
     fps: float = Field(examples=[3.5])
     keyframes: int
-    maps: int
-    loops: int
+    maps: int = Field(examples=[2], description="maps (submaps) of all agents")
+    loops: int = Field(examples=[1], description="accepted loop closures")
+    agents: int = Field(1, examples=[1], description="agents (cameras): an upload's file parts, or the agents "
+                                                      "a stream has seen")
     error: str | None = Field(examples=[None])
     created: str = Field(examples=["2025-01-01T12:00:00+00:00"])
     source: str = Field(examples=["synthetic:orbit?frames=120&width=320&height=240"])
@@ -95,8 +114,9 @@ class SessionOut(BaseModel):
 
 
 class FrameAccepted(BaseModel):
-    index: int = Field(examples=[0])
-    frames_received: int = Field(examples=[1])
+    index: int = Field(examples=[0], description="the frame's index among its agent's frames (from 0)")
+    frames_received: int = Field(examples=[1], description="frames of all agents together")
+    agent: int = Field(0, examples=[0])
 
 
 class StreamFinished(BaseModel):

@@ -29,14 +29,15 @@ from collections import deque
 from dataclasses import asdict, dataclass, field, replace
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Sequence
 
 import numpy as np
 
 from server.settings import Settings
 from server.stream import StreamInput
-from server.worker import SourceSpec, WorkerDone, WorkerJob, WorkerStarted, run_worker
-from slam.events import FinishedEvent, MapUpdateEvent, PoseEvent, StatsEvent
+from server.tracks import Tracks, transform_points
+from server.worker import SourceSpec, WorkerDone, WorkerJob, WorkerStarted, describe_sources, run_worker
+from slam.events import FinishedEvent, LoopEvent, MapUpdateEvent, PoseEvent, StatsEvent, SubmapEvent
 
 STATUSES = ("queued", "running", "finished", "failed", "cancelled")
 ENDED = ("finished", "failed", "cancelled")
@@ -73,8 +74,17 @@ class SessionStatus:
     keyframes: int = 0
     maps: int = 0
     loops: int = 0
+    agents: int = 1
+    """Agents (cameras) of the session: the upload's parts, or those a stream has seen so far."""
     error: str | None = None
     spec: SourceSpec = field(default_factory=lambda: SourceSpec(kind="synthetic"))
+    """The (first agent's) source."""
+    specs: tuple[SourceSpec, ...] = ()
+    """Every agent's source, in agent order, for a collaborative session; () for one source."""
+
+    @property
+    def sources(self) -> tuple[SourceSpec, ...]:
+        return self.specs or (self.spec,)
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -82,10 +92,16 @@ class SessionStatus:
     @staticmethod
     def from_json(data: dict) -> "SessionStatus":
         data = dict(data)
-        spec = data.pop("spec")
-        if spec.get("intrinsics") is not None:
-            spec["intrinsics"] = tuple(spec["intrinsics"])
-        return SessionStatus(spec=SourceSpec(**spec), **data)
+        spec = _spec_from_json(data.pop("spec"))
+        specs = tuple(_spec_from_json(s) for s in data.pop("specs", None) or ())
+        return SessionStatus(spec=spec, specs=specs, **data)
+
+
+def _spec_from_json(spec: dict) -> SourceSpec:
+    spec = dict(spec)
+    if spec.get("intrinsics") is not None:
+        spec["intrinsics"] = tuple(spec["intrinsics"])
+    return SourceSpec(**spec)
 
 
 @dataclass
@@ -106,9 +122,11 @@ class _Session:
     delete_when_stopped: bool = False
     dirty_since: float | None = None
     live_meshes: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=dict)
-    """Latest mesh per map from MapUpdateEvents: (V, 3) float32, (F, 3) int32, (V, 3) uint8."""
-    poses: dict[int, tuple[float, np.ndarray]] = field(default_factory=dict)
-    """frame index -> (timestamp, (4, 4) T_world_cam) from PoseEvents: the trajectory so far."""
+    """Latest mesh per map from MapUpdateEvents, in the map's frame: (V, 3) float32, (F, 3)
+    int32, (V, 3) uint8 (placed in the world by ``tracks.maps``)."""
+    tracks: Tracks = field(default_factory=Tracks)
+    """Poses from PoseEvents per (agent, frame), following their maps: the trajectory so far."""
+    loop_events: int = 0
 
 
 def new_session_id() -> str:
@@ -193,7 +211,7 @@ class SessionManager:
             if status.status not in ENDED:
                 status = replace(status, status="failed",
                                  error=f"interrupted: the server stopped while the session was {status.status}")
-            job = WorkerJob(session_id=status.id, source=status.spec, preset=status.preset,
+            job = WorkerJob(session_id=status.id, sources=status.sources, preset=status.preset,
                             out_dir=str(meta.parent))
             session = _Session(status=status, directory=meta.parent, job=job)
             self._sessions[status.id] = session
@@ -204,13 +222,17 @@ class SessionManager:
     def session_dir(self, session_id: str) -> Path:
         return self.settings.sessions_dir / check_session_id(session_id)
 
-    def create(self, session_id: str, spec: SourceSpec, preset: str) -> SessionStatus:
-        """Register and queue a session whose folder (with ``input/`` for uploads) exists."""
+    def create(self, session_id: str, spec: SourceSpec | Sequence[SourceSpec], preset: str) -> SessionStatus:
+        """Register and queue a session whose folder (with ``input/`` for uploads) exists.
+
+        ``spec``: one source, or one per agent (agent k = k-th) for a collaborative session."""
+        specs = (spec,) if isinstance(spec, SourceSpec) else tuple(spec)
         directory = self.session_dir(session_id)
+        job = WorkerJob(session_id=session_id, sources=specs, preset=preset, out_dir=str(directory))
+        spec = specs[0]
         directory.mkdir(parents=True, exist_ok=True)
-        status = SessionStatus(id=session_id, status="queued", created=_now_iso(), source=spec.describe(),
-                               preset=preset, spec=spec)
-        job = WorkerJob(session_id=session_id, source=spec, preset=preset, out_dir=str(directory))
+        status = SessionStatus(id=session_id, status="queued", created=_now_iso(), source=describe_sources(specs),
+                               preset=preset, spec=spec, specs=specs if len(specs) > 1 else (), agents=len(specs))
         session = _Session(status=status, directory=directory, job=job)
         session.stop_event = self._ctx.Event()
         session.event_queue = self._ctx.Queue()
@@ -249,23 +271,36 @@ class SessionManager:
         return session.stream
 
     def live_meshes(self, session_id: str) -> dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]]:
-        """The latest mesh per map seen in this session's events (empty before the first)."""
+        """The latest mesh per map seen in this session's events (empty before the first), in
+        the world frame as the maps are placed now: (V, 3) float32, (F, 3) int32, (V, 3) uint8."""
         session = self._get(session_id)
         with self._lock:
-            return dict(session.live_meshes)
+            items = list(session.live_meshes.items())
+            placements = {m: session.tracks.maps.T_world_map(m) for m, _ in items}
+        return {m: (transform_points(placements[m], v).astype(np.float32), f, c) for m, (v, f, c) in items}
 
-    def tracked_poses(self, session_id: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Poses reported so far while this server ran the session: (N,) frame indices,
-        (N,) timestamps, (N, 4, 4) T_world_cam, sorted by frame index (empty after a restart)."""
+    def tracked_poses(self, session_id: str, agent: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Poses of one agent reported so far while this server ran the session: (N,) frame
+        indices, (N,) timestamps, (N, 4, 4) T_world_cam (moved with their maps by loop
+        closures), sorted by frame index (empty after a restart)."""
         session = self._get(session_id)
         with self._lock:
-            items = sorted(session.poses.items())
-        if not items:
-            return np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros((0, 4, 4))
-        indices = np.array([i for i, _ in items], dtype=np.int64)
-        stamps = np.array([t for _, (t, _) in items])
-        poses = np.stack([T for _, (_, T) in items])
-        return indices, stamps, poses
+            return session.tracks.world_poses(agent)
+
+    def tracked_agents(self, session_id: str) -> list[int]:
+        """Agents with at least one pose reported while this server ran the session."""
+        session = self._get(session_id)
+        with self._lock:
+            return session.tracks.agents()
+
+    def agent_count(self, session_id: str) -> int:
+        """Agents of the session: its sources, or for a stream the agents seen so far."""
+        session = self._get(session_id)
+        with self._lock:
+            count = session.status.agents
+            if session.stream is not None:
+                count = max(count, session.stream.agent_count)
+            return count
 
     def running_count(self) -> int:
         with self._lock:
@@ -380,20 +415,36 @@ class SessionManager:
             if isinstance(event, WorkerDone):
                 session.done = event
                 return
+            session.tracks.apply(event)
             if isinstance(event, StatsEvent):
                 session.status = replace(
                     session.status, frames_done=event.frames_done, frames_total=event.frames_total,
-                    fps=round(float(event.fps), 3), keyframes=event.keyframes, maps=event.maps,
-                    loops=event.loops)
+                    fps=round(float(event.fps), 3), keyframes=event.keyframes,
+                    maps=max(event.maps, len(session.tracks.maps.poses)),
+                    loops=max(event.loops, session.loop_events))
                 self._mark_dirty(session)
             elif isinstance(event, PoseEvent):
-                session.poses[event.frame_index] = (float(event.timestamp), np.asarray(event.T_world_cam))
                 # Stats come every few frames; poses give the progress in between.
-                if len(session.poses) > session.status.frames_done:
-                    session.status = replace(session.status, frames_done=len(session.poses))
+                frames = len(session.tracks)
+                agents = max(session.status.agents, int(event.agent) + 1)
+                if frames > session.status.frames_done or agents != session.status.agents:
+                    session.status = replace(session.status, frames_done=max(frames, session.status.frames_done),
+                                             agents=agents)
                     self._mark_dirty(session)
+            elif isinstance(event, SubmapEvent):
+                maps = len(session.tracks.maps.poses)
+                agents = max(session.status.agents, int(event.agent) + 1)
+                session.status = replace(session.status, maps=max(maps, session.status.maps), agents=agents)
+                self._mark_dirty(session)
+            elif isinstance(event, LoopEvent):
+                session.loop_events += 1
+                session.status = replace(session.status, loops=max(session.loop_events, session.status.loops))
+                self._mark_dirty(session)
             elif isinstance(event, MapUpdateEvent) and event.mesh_faces is not None and len(event.mesh_faces):
-                session.live_meshes[event.map_id] = (event.mesh_vertices, event.mesh_faces, event.mesh_colors)
+                # Into the map frame (the vertices are in the world as the map was placed then).
+                T_map_world = np.linalg.inv(np.asarray(event.T_world_map, dtype=np.float64))
+                vertices = transform_points(T_map_world, event.mesh_vertices).astype(np.float32)
+                session.live_meshes[event.map_id] = (vertices, event.mesh_faces, event.mesh_colors)
             elif isinstance(event, FinishedEvent) and session.done is None:
                 session.done = WorkerDone(status=event.status, error=event.error)
         if session.delete_when_stopped:
@@ -431,7 +482,10 @@ class SessionManager:
             status, error = "failed", _describe_exit(exitcode)
         if done is not None and done.frames:
             session.status = replace(session.status, frames_done=done.frames, keyframes=done.keyframes,
-                                     maps=done.maps, loops=done.loops, fps=round(done.fps, 3))
+                                     maps=done.maps, loops=done.loops, fps=round(done.fps, 3),
+                                     agents=done.agents or session.status.agents)
+        if session.stream is not None and session.stream.agent_count > session.status.agents:
+            session.status = replace(session.status, agents=session.stream.agent_count)
         if process.is_alive():
             self._kill(session)
         elif session.worker_pid is not None:

@@ -2,11 +2,17 @@
 bounded queue (back-pressure instead of unbounded memory), and keep a copy of the raw bytes in
 the session folder so that the frames can be shown again later (AR ``frame:N`` backgrounds).
 
+A stream may carry several agents (cameras of one collaborative session): each frame names
+its ``agent`` (default 0). Frame indices, intrinsics and depth scale are per agent: each
+agent's frames count from 0, and each agent gives its camera on its first frame unless the
+session was created with one (which then applies to every agent).
+
 Layout of ``sessions/<id>/input/`` for a stream::
 
-    frames.jsonl          one JSON object per frame: index, timestamp, color, depth, depth_scale, K
-    color/000000.png      the colour bytes as sent (PNG or JPEG)
-    depth/000000.png      the 16-bit depth PNG as sent
+    frames.jsonl          one JSON object per frame: agent, index, timestamp, color, depth, depth_scale, K
+    color/000000.png      agent 0's colour bytes as sent (PNG or JPEG)
+    depth/000000.png      agent 0's 16-bit depth PNG as sent
+    color/agent1_000000.png, depth/agent1_000000.png     the other agents' frames
 """
 
 from __future__ import annotations
@@ -28,6 +34,7 @@ from server.upload import (
     decode_depth,
     decode_stream_frame,
     intrinsics_matrix,
+    parse_agent,
     parse_depth_scale,
     parse_intrinsics,
 )
@@ -65,42 +72,59 @@ class StreamInput:
                  depth_scale: float | None, put_timeout_s: float) -> None:
         self._queue = frame_queue
         self._input_dir = input_dir
-        self._K = None if intrinsics is None else intrinsics_matrix(*intrinsics[:4])
-        self._depth_scale = depth_scale
+        self._session_K = None if intrinsics is None else intrinsics_matrix(*intrinsics[:4])
+        self._session_depth_scale = depth_scale
+        self._K: dict[int, np.ndarray] = {}
+        """agent -> the camera its first frame (or the session) gave."""
+        self._depth_scale: dict[int, float] = {}
         self._put_timeout_s = put_timeout_s
         self._lock = threading.Lock()
         self._count = 0
+        self._agent_counts: dict[int, int] = {}
         self._closed_reason: str | None = None
         (input_dir / "color").mkdir(parents=True, exist_ok=True)
         (input_dir / "depth").mkdir(parents=True, exist_ok=True)
 
     @property
     def frames_received(self) -> int:
+        """Frames of all agents together."""
         return self._count
+
+    @property
+    def agent_count(self) -> int:
+        """1 + the highest agent id seen (1 before any frame: agent 0 is expected)."""
+        return max(self._agent_counts, default=0) + 1
+
+    def frames_of(self, agent: int) -> int:
+        return self._agent_counts.get(agent, 0)
 
     @property
     def finished(self) -> bool:
         return self._closed_reason is not None
 
     def add_frame(self, color: bytes, depth: bytes, *, timestamp: float | str | None = None,
-                  depth_scale: float | str | None = None, intrinsics: str | list | None = None) -> int:
-        """Validate one frame and queue it for the worker; returns its index.
+                  depth_scale: float | str | None = None, intrinsics: str | list | None = None,
+                  agent: int | str | None = None) -> int:
+        """Validate one frame of ``agent`` (default 0) and queue it for the worker; returns its
+        index among that agent's frames.
 
-        Raises UploadError: 422 bad frame or missing intrinsics, 409 after finish, 503 when the
-        worker has not taken frames for ``put_timeout_s`` (the client should retry later).
+        Raises UploadError: 422 bad frame, bad agent or missing intrinsics, 409 after finish,
+        503 when the worker has not taken frames for ``put_timeout_s`` (retry later).
         """
+        agent = 0 if agent in (None, "") else parse_agent(agent)
         with self._lock:
             self._check_open()
-            K = self._resolve_intrinsics(intrinsics)
-            scale = self._resolve_depth_scale(depth_scale)
-            stamp = self._count / DEFAULT_FPS if timestamp in (None, "") else _parse_timestamp(timestamp)
-            frame = decode_stream_frame(color, depth, stamp, scale, K)
+            K = self._resolve_intrinsics(intrinsics, agent)
+            scale = self._resolve_depth_scale(depth_scale, agent)
+            index = self._agent_counts.get(agent, 0)
+            stamp = index / DEFAULT_FPS if timestamp in (None, "") else _parse_timestamp(timestamp)
+            frame = decode_stream_frame(color, depth, stamp, scale, K, agent=agent)
             if not self._put(frame):
                 raise UploadError(f"the session has not taken a frame for {self._put_timeout_s:.0f} s "
                                   f"(its buffer is full); retry later", status=503)
-            index = self._count
-            self._record(index, frame, color, depth)
-            self._K, self._depth_scale = K, scale
+            self._record(agent, index, frame, color, depth)
+            self._K[agent], self._depth_scale[agent] = K, scale
+            self._agent_counts[agent] = index + 1
             self._count += 1
             return index
 
@@ -146,32 +170,38 @@ class StreamInput:
                 if time.monotonic() > deadline:
                     return False
 
-    def _resolve_intrinsics(self, intrinsics: str | list | None) -> np.ndarray:
+    def _resolve_intrinsics(self, intrinsics: str | list | None, agent: int) -> np.ndarray:
+        # The session's camera applies to every agent; without one, each agent's first frame names its own.
+        known = self._K.get(agent, self._session_K)
+        whose = "" if agent == 0 else f" of agent {agent}"
         if intrinsics not in (None, ""):
             K = intrinsics_matrix(*parse_intrinsics(intrinsics))
-            if self._K is not None and not np.allclose(K, self._K):
-                raise UploadError(f"intrinsics: changed mid-stream (was {_k_text(self._K)}, got {_k_text(K)}); "
-                                  f"start a new session for another camera")
+            if known is not None and not np.allclose(K, known):
+                raise UploadError(f"intrinsics{whose}: changed mid-stream (was {_k_text(known)}, got {_k_text(K)}); "
+                                  f"start a new session (or use another agent) for another camera")
             return K
-        if self._K is None:
-            raise UploadError("intrinsics: required on the first frame (or when creating the session) "
+        if known is None:
+            raise UploadError(f"intrinsics: required on the first frame{whose} (or when creating the session) "
                               "as 'fx,fy,cx,cy'")
-        return self._K
+        return known
 
-    def _resolve_depth_scale(self, depth_scale: float | str | None) -> float:
+    def _resolve_depth_scale(self, depth_scale: float | str | None, agent: int) -> float:
         if depth_scale not in (None, ""):
             return parse_depth_scale(depth_scale)
-        return self._depth_scale if self._depth_scale is not None else DEFAULT_DEPTH_SCALE
+        if agent in self._depth_scale:
+            return self._depth_scale[agent]
+        return self._session_depth_scale if self._session_depth_scale is not None else DEFAULT_DEPTH_SCALE
 
-    def _record(self, index: int, frame: StreamFrame, color: bytes, depth: bytes) -> None:
+    def _record(self, agent: int, index: int, frame: StreamFrame, color: bytes, depth: bytes) -> None:
         extension = "png" if color.startswith(PNG_SIGNATURE) else "jpg"
-        color_name = f"color/{index:06d}.{extension}"
-        depth_name = f"depth/{index:06d}.png"
+        stem = f"{index:06d}" if agent == 0 else f"agent{agent}_{index:06d}"
+        color_name = f"color/{stem}.{extension}"
+        depth_name = f"depth/{stem}.png"
         (self._input_dir / color_name).write_bytes(color)
         (self._input_dir / depth_name).write_bytes(depth)
         K = frame.K
-        row = {"index": index, "timestamp": frame.timestamp, "color": color_name, "depth": depth_name,
-               "depth_scale": frame.depth_scale, "K": [K[0, 0], K[1, 1], K[0, 2], K[1, 2]]}
+        row = {"agent": agent, "index": index, "timestamp": frame.timestamp, "color": color_name,
+               "depth": depth_name, "depth_scale": frame.depth_scale, "K": [K[0, 0], K[1, 1], K[0, 2], K[1, 2]]}
         with open(self._input_dir / "frames.jsonl", "a") as log:
             log.write(json.dumps(row) + "\n")
 
@@ -190,18 +220,19 @@ def _k_text(K: np.ndarray) -> str:
     return f"{K[0, 0]:g},{K[1, 1]:g},{K[0, 2]:g},{K[1, 2]:g}"
 
 
-def read_recorded_frame(input_dir: Path, index: int) -> RecordedFrame:
-    """Frame ``index`` of a recorded stream. Raises KeyError when there is no such frame."""
+def read_recorded_frame(input_dir: Path, index: int, agent: int = 0) -> RecordedFrame:
+    """Frame ``index`` of ``agent`` in a recorded stream. KeyError when there is no such frame."""
     log = input_dir / "frames.jsonl"
     if not log.is_file():
         raise KeyError(f"no streamed frames recorded in {input_dir}")
     with open(log) as rows:
         for line in rows:
             row = json.loads(line)
-            if row["index"] == index:
+            if row["index"] == index and row.get("agent", 0) == agent:
                 break
         else:
-            raise KeyError(f"frame {index} was not streamed to this session")
+            whose = "" if agent == 0 else f" of agent {agent}"
+            raise KeyError(f"frame {index}{whose} was not streamed to this session")
     # Names come from our own log, but are still checked to stay inside the input folder.
     color_path = (input_dir / row["color"]).resolve()
     depth_path = (input_dir / row["depth"]).resolve()

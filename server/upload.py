@@ -28,6 +28,8 @@ _IGNORED_TOP_LEVEL = {"__MACOSX", ".DS_Store", "Thumbs.db"}
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 MAX_FRAME_SIDE = 4096
 """Largest streamed image side; bigger headers are refused before decoding (decompression bombs)."""
+MAX_AGENTS = 16
+"""Most agents (cameras) in one collaborative session: file parts of an upload, or stream agent ids."""
 
 
 class UploadError(ValueError):
@@ -182,6 +184,7 @@ class StreamFrame:
         depth_raw: (H, W) uint16 raw depth units; metres = depth_raw / depth_scale, 0 = invalid.
         depth_scale: raw units per metre.
         K: (3, 3) float64 intrinsics.
+        agent: the camera (agent) of a collaborative stream, 0 for a single one.
     """
 
     timestamp: float
@@ -189,6 +192,23 @@ class StreamFrame:
     depth_raw: np.ndarray
     depth_scale: float
     K: np.ndarray
+    agent: int = 0
+
+
+def parse_agent(value: int | str, what: str = "agent") -> int:
+    """An agent id (``0``, ``"1"``, ...) -> int in 0..MAX_AGENTS-1; UploadError (422) otherwise."""
+    if isinstance(value, bool) or not isinstance(value, (int, str)):
+        raise UploadError(f"{what}: expected a whole number >= 0 (the camera of a collaborative stream), "
+                          f"got {value!r}")
+    if isinstance(value, str):
+        text = value.strip()
+        if not (text.isascii() and text.isdigit()):
+            raise UploadError(f"{what}: expected a whole number >= 0 (the camera of a collaborative stream), "
+                              f"got {value!r}")
+        value = int(text)
+    if not 0 <= value < MAX_AGENTS:
+        raise UploadError(f"{what}: must be between 0 and {MAX_AGENTS - 1}, got {value}")
+    return value
 
 
 def parse_intrinsics(text: str | list | tuple, what: str = "intrinsics") -> tuple[float, float, float, float]:
@@ -272,7 +292,7 @@ def decode_depth(data: bytes, what: str = "depth") -> np.ndarray:
 
 
 def decode_stream_frame(color: bytes, depth: bytes, timestamp: float, depth_scale: float,
-                        K: np.ndarray) -> StreamFrame:
+                        K: np.ndarray, agent: int = 0) -> StreamFrame:
     """Decode and cross-check one streamed frame (see :class:`StreamFrame`)."""
     if not np.isfinite(timestamp):
         raise UploadError(f"timestamp: must be a finite number, got {timestamp!r}")
@@ -282,4 +302,5 @@ def decode_stream_frame(color: bytes, depth: bytes, timestamp: float, depth_scal
         raise UploadError(
             f"color is {rgb.shape[1]}x{rgb.shape[0]} but depth is {depth_raw.shape[1]}x{depth_raw.shape[0]}: "
             f"they must have the same size")
-    return StreamFrame(timestamp=float(timestamp), rgb=rgb, depth_raw=depth_raw, depth_scale=depth_scale, K=K)
+    return StreamFrame(timestamp=float(timestamp), rgb=rgb, depth_raw=depth_raw, depth_scale=depth_scale, K=K,
+                       agent=agent)

@@ -5,10 +5,23 @@ Scene tree (slash paths; a parent's pose and visibility apply to its children)::
     /sessions/<id>                          one session (only the selected one is visible)
     /sessions/<id>/meshes/map_<m>           posed at T_world_map
     /sessions/<id>/meshes/map_<m>/c_<i>_<j>_<k>   a mesh chunk (map frame, vertex colours)
-    /sessions/<id>/keyframes/map_<m>        keyframe frustums, in the map's colour
-    /sessions/<id>/trajectory/part_<k>      tracked camera path in blocks of TRAJECTORY_BLOCK poses
-    /sessions/<id>/camera                   the current camera frustum with its thumbnail
-    /sessions/<id>/loops                    loop edges between the matched keyframes
+    /sessions/<id>/meshes/map_<m>/bounds    the map's extent in its colour (sessions with several maps)
+    /sessions/<id>/keyframes/map_<m>        posed at T_world_map: keyframe frustums in the map's colour
+    /sessions/<id>/trajectory/agent_<a>/part_<k>   an agent's camera path in its colour, in blocks
+                                            of TRAJECTORY_BLOCK poses
+    /sessions/<id>/camera/frustum[_<a>]     each agent's current camera frustum with its thumbnail
+    /sessions/<id>/loops/edges              loop edges between the matched keyframes
+
+Several agents (collaborative sessions) share the scene: each has its own trajectory colour
+and camera frustum; map ids are unique across agents. Everything that belongs to a map is kept
+in that map's frame: its mesh, its keyframes, the trajectory frames tracked in it (and so the
+loop edges that end at them). A ``PosesUpdatedEvent`` (loop closure, final refinement) moves
+the map nodes, which moves meshes and keyframes without resending them, and redraws the
+trajectories and loop edges at ``T_world_map_new @ inv(T_world_map_at_tracking)``. A map's
+first placement (its SubmapEvent, which comes after the pose of the frame that started it)
+moves nothing. A loop edge ends at the two frames in the trajectories; frames the viewer never
+saw are drawn at the LoopEvent's poses, which are kept in their maps' frames from the
+PosesUpdatedEvent that follows the loop (the event's poses are already optimised ones).
 
 Events only update the adapter's pending state (cheap, in the supervisor thread); a flusher
 thread pushes that state to viser at most ``UPDATE_HZ`` times a second per session and meshes
@@ -32,7 +45,8 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from slam.events import KeyframeEvent, LoopEvent, MapUpdateEvent, PoseEvent, StatsEvent, SubmapEvent
+from server.tracks import inverse, rigid, transform_points
+from slam.events import KeyframeEvent, LoopEvent, MapUpdateEvent, PoseEvent, PosesUpdatedEvent, StatsEvent, SubmapEvent
 from slam.geometry import matrix_to_quat_wxyz, quat_wxyz_to_matrix
 
 UPDATE_HZ = 5.0
@@ -46,11 +60,33 @@ NO_SESSION = "(no session yet)"
 LAYERS = ("meshes", "trajectory", "camera", "keyframes", "loops")
 
 
+LOOP_COLOR = (255, 40, 200)
+_AGENT_COLORS = ((230, 60, 40), (30, 110, 230), (30, 160, 70), (215, 140, 10), (140, 60, 200), (0, 160, 170),
+                 (210, 70, 150), (90, 90, 90))
+
+
 def map_color(map_id: int) -> tuple[int, int, int]:
     """A distinct, saturated RGB colour per map id (golden-ratio hue steps)."""
     hue = (0.08 + 0.618034 * map_id) % 1.0
     r, g, b = colorsys.hsv_to_rgb(hue, 0.75, 0.95)
     return int(r * 255), int(g * 255), int(b * 255)
+
+
+def agent_color(agent: int) -> tuple[int, int, int]:
+    """A distinct RGB colour per agent (camera) for its trajectory and frustum: a fixed
+    palette of darker, strong colours (apart from the maps' lighter ones), then hue steps."""
+    if 0 <= agent < len(_AGENT_COLORS):
+        return _AGENT_COLORS[agent]
+    hue = (0.6 + 0.381966 * agent) % 1.0
+    r, g, b = colorsys.hsv_to_rgb(hue, 0.9, 0.7)
+    return int(r * 255), int(g * 255), int(b * 255)
+
+
+def box_segments(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """(12, 2, 3) float32 edges of the axis-aligned box [lo, hi]."""
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    edges = [(i, j) for i in range(8) for j in range(i + 1, 8) if bin(i ^ j).count("1") == 1]
+    return corners[np.array(edges)].astype(np.float32)
 
 
 def _wxyz(T: np.ndarray) -> np.ndarray:
@@ -156,34 +192,115 @@ class ViewerCamera:
 @dataclass
 class _MapState:
     T_world_map: np.ndarray = field(default_factory=lambda: np.eye(4))
+    placed: bool = False
+    """An event has said where the map is (until then T_world_map is the identity)."""
+    agent: int | None = None
+    reason: str = "start"
+    """Why the map started (SubmapEvent.reason)."""
     keyframe_poses: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))
+    """(K, 4, 4) keyframe poses in the map's frame."""
     pending_chunks: dict | None = None
     """Chunks of the newest mesh not yet pushed (map frame)."""
     sent_chunks: dict = field(default_factory=dict)
+    bounds: tuple[np.ndarray, np.ndarray] | None = None
+    """(lo, hi) of the newest mesh in the map frame."""
     pose_dirty: bool = True
     keyframes_dirty: bool = False
+    bounds_dirty: bool = False
+
+
+@dataclass
+class _AgentTrack:
+    """One agent's tracked frames in arrival order, each in the frame of the map it was tracked in."""
+
+    points: list[np.ndarray] = field(default_factory=list)
+    """(3,) camera centres in their map's frame."""
+    maps: list[int] = field(default_factory=list)
+    slots: dict[int, int] = field(default_factory=dict)
+    """frame index -> position in ``points``."""
+    sent_blocks: int = 0
+    """Trajectory blocks (of TRAJECTORY_BLOCK poses) that are complete and sent."""
+    dirty: bool = False
+    latest: tuple[int, np.ndarray, np.ndarray | None] | None = None
+    """(map id, (4, 4) T_map_cam, thumbnail) of the newest frame."""
+    camera_dirty: bool = False
+    K: np.ndarray | None = None
+    image_size: tuple[int, int] | None = None
+
+
+@dataclass
+class _Loop:
+    """A loop edge: two keyframes, each found by (agent, frame index) in the trajectories (so it
+    moves with them), else at its event pose. The event's poses are those after the loop's
+    optimisation, whose map poses come in the PosesUpdatedEvent that follows: until then they
+    are world points; from then on they are kept in their maps' frames."""
+
+    agent: int
+    frame_index: int
+    map_id: int
+    point: np.ndarray
+    match_agent: int
+    match_frame_index: int
+    match_map: int
+    match_point: np.ndarray
+    anchored: bool = False
+    """``point``/``match_point`` are in their maps' frames (else in the world frame)."""
 
 
 @dataclass
 class _SessionState:
     session_id: str
     maps: dict[int, _MapState] = field(default_factory=dict)
-    positions: list[np.ndarray] = field(default_factory=list)
-    position_maps: list[int] = field(default_factory=list)
-    sent_blocks: int = 0
-    """Trajectory blocks (of TRAJECTORY_BLOCK poses) that are complete and sent."""
-    latest_pose: PoseEvent | None = None
-    camera_dirty: bool = False
-    trajectory_dirty: bool = False
-    loops: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
+    agents: dict[int, _AgentTrack] = field(default_factory=dict)
+    loops: list[_Loop] = field(default_factory=list)
     loops_dirty: bool = False
     last_update: float = 0.0
     last_mesh_update: float = 0.0
-    K: np.ndarray | None = None
-    image_size: tuple[int, int] | None = None
 
     def map(self, map_id: int) -> _MapState:
-        return self.maps.setdefault(map_id, _MapState())
+        return self.maps.setdefault(int(map_id), _MapState())
+
+    def agent(self, agent: int) -> _AgentTrack:
+        return self.agents.setdefault(int(agent), _AgentTrack())
+
+    @property
+    def pose_count(self) -> int:
+        return sum(len(track.points) for track in self.agents.values())
+
+    @property
+    def K(self) -> np.ndarray | None:
+        """Intrinsics of the first agent that reported them (for keyframe frustums)."""
+        return next((t.K for _, t in sorted(self.agents.items()) if t.K is not None), None)
+
+    @property
+    def image_size(self) -> tuple[int, int] | None:
+        return next((t.image_size for _, t in sorted(self.agents.items()) if t.K is not None), None)
+
+    def world_point(self, map_id: int, point_map: np.ndarray) -> np.ndarray:
+        T = self.maps[map_id].T_world_map if map_id in self.maps else np.eye(4)
+        return T[:3, :3] @ point_map + T[:3, 3]
+
+    def frame_position(self, agent: int, frame_index: int) -> np.ndarray | None:
+        """World position now of an agent's tracked frame, or None if it was not seen."""
+        track = self.agents.get(agent)
+        slot = None if track is None else track.slots.get(frame_index)
+        if slot is None:
+            return None
+        return self.world_point(track.maps[slot], track.points[slot])
+
+    def world_positions(self, agent: int) -> np.ndarray:
+        """(N, 3) world positions now of an agent's frames, in arrival order."""
+        track = self.agents[agent]
+        if not track.points:
+            return np.zeros((0, 3))
+        points = np.asarray(track.points, dtype=np.float64)
+        maps = np.asarray(track.maps)
+        out = np.empty_like(points)
+        for map_id in np.unique(maps):
+            rows = maps == map_id
+            out[rows] = transform_points(self.maps[int(map_id)].T_world_map if int(map_id) in self.maps
+                                         else np.eye(4), points[rows])
+        return out
 
 
 @dataclass
@@ -212,6 +329,7 @@ class ViewerAdapter:
         self._layers = {name: True for name in LAYERS}
         self._hidden_maps: set[int] = set()
         self._tint_by_map = False
+        self._trajectory_by_map = False
         self._follow = False
         self._sessions_changed = False
         self._last_stats: tuple[str, StatsEvent] | None = None
@@ -265,6 +383,9 @@ class ViewerAdapter:
                 box.on_update(lambda _, n=name, b=box: self._set_layer(n, b.value))
             self._tint_box = gui.add_checkbox("Colour meshes by map", False)
             self._tint_box.on_update(lambda _: self._set_tint(self._tint_box.value))
+            self._trajectory_tint_box = gui.add_checkbox("Colour trajectories by map", False,
+                                                         hint="otherwise each agent (camera) has its own colour")
+            self._trajectory_tint_box.on_update(lambda _: self._set_trajectory_tint(self._trajectory_tint_box.value))
         self._maps_folder = gui.add_folder("Maps")
         self._map_boxes: dict[int, object] = {}
         self._status_md = gui.add_markdown("Waiting for a session.")
@@ -323,6 +444,20 @@ class ViewerAdapter:
                     map_state.sent_chunks = {}
                 state.last_mesh_update = 0.0
 
+    def _set_trajectory_tint(self, value: bool) -> None:
+        with self._lock:
+            self._trajectory_by_map = bool(value)
+            for state in self._sessions.values():
+                self._redraw_trajectories(state)
+
+    @staticmethod
+    def _redraw_trajectories(state: _SessionState, agents=None) -> None:
+        """Resend every block of these agents' trajectories (all agents by default)."""
+        for agent, track in state.agents.items():
+            if agents is None or agent in agents:
+                track.sent_blocks = 0
+                track.dirty = track.camera_dirty = True
+
     def _refresh_map_boxes(self) -> None:
         state = self._sessions.get(self._selected) if self._selected else None
         wanted = sorted(state.maps) if state else []
@@ -363,44 +498,144 @@ class ViewerAdapter:
             if isinstance(event, PoseEvent):
                 self._on_pose(state, event)
             elif isinstance(event, KeyframeEvent):
-                poses = state.map(event.map_id).keyframe_poses
-                state.map(event.map_id).keyframe_poses = np.concatenate([poses, event.T_world_cam[None]])
-                state.map(event.map_id).keyframes_dirty = True
+                map_state = state.map(event.map_id)
+                T_map_cam = inverse(map_state.T_world_map) @ rigid(event.T_world_cam)
+                map_state.keyframe_poses = np.concatenate([map_state.keyframe_poses, T_map_cam[None]])
+                map_state.keyframes_dirty = True
             elif isinstance(event, MapUpdateEvent):
                 self._on_map_update(state, event)
             elif isinstance(event, SubmapEvent):
                 map_state = state.map(event.map_id)
-                map_state.T_world_map = np.asarray(event.T_world_map, dtype=np.float64)
+                map_state.agent, map_state.reason = int(event.agent), str(event.reason)
+                self._move_map(state, event.map_id, event.T_world_map)
                 map_state.pose_dirty = True
+            elif isinstance(event, PosesUpdatedEvent):
+                self._on_poses_updated(state, event)
             elif isinstance(event, LoopEvent):
-                state.loops.append((np.asarray(event.T_world_src)[:3, 3], np.asarray(event.T_world_tar)[:3, 3]))
-                state.loops_dirty = True
+                self._on_loop(state, event)
             elif isinstance(event, StatsEvent):
                 self._last_stats = (session_id, event)
 
+    def _move_map(self, state: _SessionState, map_id: int, T_world_map) -> bool:
+        """Place a map at ``T_world_map``: its nodes move, and the trajectory frames tracked in
+        it and the loop edges are redrawn where the map now puts them. True if it moved.
+
+        The first placement of a map (its SubmapEvent comes after the pose of the frame that
+        started it) moves nothing: what was seen in the map stays where it was reported."""
+        map_state = state.map(map_id)
+        T = rigid(T_world_map)
+        if not map_state.placed:
+            map_state.placed = True
+            T_map_world = inverse(T)
+            for track in state.agents.values():
+                for i, m in enumerate(track.maps):
+                    if m == map_id:
+                        track.points[i] = T_map_world[:3, :3] @ track.points[i] + T_map_world[:3, 3]
+                if track.latest is not None and track.latest[0] == map_id:
+                    track.latest = (map_id, T_map_world @ track.latest[1], track.latest[2])
+            map_state.keyframe_poses = T_map_world[None] @ map_state.keyframe_poses
+            map_state.T_world_map = T
+            map_state.pose_dirty = True
+            return False
+        if np.allclose(T, map_state.T_world_map, atol=1e-9):
+            return False
+        map_state.T_world_map = T
+        map_state.pose_dirty = True
+        moved_agents = {agent for agent, track in state.agents.items() if map_id in set(track.maps)}
+        self._redraw_trajectories(state, moved_agents)
+        state.loops_dirty = state.loops_dirty or bool(state.loops)
+        return True
+
     def _on_pose(self, state: _SessionState, event: PoseEvent) -> None:
-        state.latest_pose = event
-        state.positions.append(np.asarray(event.T_world_cam, dtype=np.float64)[:3, 3].copy())
-        state.position_maps.append(event.map_id)
-        state.camera_dirty = state.trajectory_dirty = True
-        state.map(event.map_id)
+        map_state = state.map(event.map_id)
+        if map_state.agent is None:
+            map_state.agent = int(event.agent)
+        track = state.agent(event.agent)
+        T_map_cam = inverse(map_state.T_world_map) @ rigid(event.T_world_cam)
+        slot = track.slots.get(int(event.frame_index))
+        if slot is None:
+            track.slots[int(event.frame_index)] = len(track.points)
+            track.points.append(T_map_cam[:3, 3].copy())
+            track.maps.append(int(event.map_id))
+        else:  # the same frame again (re-tracked): replace it, resend its block
+            track.points[slot], track.maps[slot] = T_map_cam[:3, 3].copy(), int(event.map_id)
+            track.sent_blocks = min(track.sent_blocks, slot // TRAJECTORY_BLOCK)
+        track.latest = (int(event.map_id), T_map_cam, event.thumbnail)
+        track.dirty = track.camera_dirty = True
         if event.K is not None and event.image_size is not None:
-            state.K, state.image_size = np.asarray(event.K), tuple(event.image_size)
+            track.K, track.image_size = np.asarray(event.K), tuple(event.image_size)
 
     def _on_map_update(self, state: _SessionState, event: MapUpdateEvent) -> None:
         map_state = state.map(event.map_id)
-        T_world_map = np.asarray(event.T_world_map, dtype=np.float64)
-        if not np.allclose(T_world_map, map_state.T_world_map):
-            map_state.T_world_map = T_world_map
-            map_state.pose_dirty = True
+        T_world_map = rigid(event.T_world_map)
+        self._move_map(state, event.map_id, T_world_map)
+        T_map_world = inverse(T_world_map)
         if len(event.keyframe_poses):
-            map_state.keyframe_poses = np.asarray(event.keyframe_poses, dtype=np.float64)
+            map_state.keyframe_poses = T_map_world[None] @ np.asarray(event.keyframe_poses, dtype=np.float64)
             map_state.keyframes_dirty = True
         if event.mesh_vertices is not None and event.mesh_faces is not None:
             # Into the map frame, so that a later correction of T_world_map moves the node only.
-            T_map_world = np.linalg.inv(T_world_map)
-            vertices = np.asarray(event.mesh_vertices, dtype=np.float64) @ T_map_world[:3, :3].T + T_map_world[:3, 3]
+            vertices = transform_points(T_map_world, event.mesh_vertices)
             map_state.pending_chunks = mesh_chunks(vertices, event.mesh_faces, event.mesh_colors)
+            if len(vertices):
+                map_state.bounds = (vertices.min(axis=0), vertices.max(axis=0))
+                map_state.bounds_dirty = True
+
+    def _on_poses_updated(self, state: _SessionState, event: PosesUpdatedEvent) -> None:
+        for map_id, agent in (event.agents or {}).items():
+            state.map(map_id).agent = int(agent)
+        for map_id, T in (event.map_poses or {}).items():
+            self._move_map(state, int(map_id), T)
+        for loop in state.loops:  # the loops this optimisation closed: their poses are in these placements
+            if not loop.anchored:
+                loop.point = self._to_map(state, loop.map_id, loop.point)
+                loop.match_point = self._to_map(state, loop.match_map, loop.match_point)
+                loop.anchored = True
+        for map_id, poses in (event.keyframe_poses or {}).items():
+            map_state = state.map(map_id)
+            poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
+            map_state.keyframe_poses = inverse(map_state.T_world_map)[None] @ poses
+            map_state.keyframes_dirty = True
+
+    @staticmethod
+    def _to_map(state: _SessionState, map_id: int, point: np.ndarray) -> np.ndarray:
+        return transform_points(inverse(state.map(map_id).T_world_map), point[None])[0]
+
+    def _on_loop(self, state: _SessionState, event: LoopEvent) -> None:
+        state.map(event.map_id)
+        state.map(event.match_map)
+        state.loops.append(_Loop(
+            int(event.agent), int(event.frame_index), int(event.map_id), rigid(event.T_world_cam)[:3, 3].copy(),
+            int(event.match_agent), int(event.match_frame_index), int(event.match_map),
+            rigid(event.T_world_match)[:3, 3].copy()))
+        state.loops_dirty = True
+
+    def loop_segments(self, session_id: str) -> np.ndarray:
+        """(L, 2, 3) world end points of the session's loop edges as they are drawn now."""
+        with self._lock:
+            state = self._sessions.get(session_id)
+            return np.zeros((0, 2, 3)) if state is None else self._loop_points(state)
+
+    @staticmethod
+    def _loop_points(state: _SessionState) -> np.ndarray:
+        points = []
+        for loop in state.loops:
+            a = state.frame_position(loop.agent, loop.frame_index)
+            b = state.frame_position(loop.match_agent, loop.match_frame_index)
+            if a is None:
+                a = state.world_point(loop.map_id, loop.point) if loop.anchored else loop.point
+            if b is None:
+                b = state.world_point(loop.match_map, loop.match_point) if loop.anchored else loop.match_point
+            points.append([a, b])
+        return np.asarray(points, dtype=np.float64).reshape(-1, 2, 3)
+
+    def trajectory_positions(self, session_id: str, agent: int = 0) -> np.ndarray:
+        """(N, 3) world camera centres of one agent as they are drawn now (arrival order)."""
+        with self._lock:
+            state = self._sessions.get(session_id)
+            if state is None or agent not in state.agents:
+                return np.zeros((0, 3))
+            return state.world_positions(agent)
 
     def remove_session(self, session_id: str) -> None:
         with self._lock:
@@ -414,12 +649,13 @@ class ViewerAdapter:
                 self._selected = None
             self._sessions_changed = True
 
-    def load_finished(self, session_id: str, mesh_path: Path, trajectory_positions: np.ndarray | None) -> None:
+    def load_finished(self, session_id: str, mesh_path: Path,
+                      trajectory_positions: np.ndarray | dict[int, np.ndarray] | None) -> None:
         """Show a finished session read back from disk (after a restart): its mesh as map 0.
 
         Args:
             mesh_path: the session's ``mesh.ply`` (world frame; may be missing).
-            trajectory_positions: (N, 3) camera centres, or None.
+            trajectory_positions: (N, 3) camera centres (agent 0), {agent: (N, 3)}, or None.
         """
         chunks = None
         if mesh_path.is_file():
@@ -433,10 +669,18 @@ class ViewerAdapter:
             self._sessions_changed = True
             if chunks is not None:
                 state.map(0).pending_chunks = chunks
-            if trajectory_positions is not None and len(trajectory_positions):
-                state.positions = list(np.asarray(trajectory_positions, dtype=np.float64))
-                state.position_maps = [0] * len(state.positions)
-                state.trajectory_dirty = True
+            if trajectory_positions is None:
+                trajectory_positions = {}
+            elif not isinstance(trajectory_positions, dict):
+                trajectory_positions = {0: trajectory_positions}
+            for agent, positions in sorted(trajectory_positions.items()):
+                if positions is None or not len(positions):
+                    continue
+                track = state.agent(agent)
+                track.points = list(np.asarray(positions, dtype=np.float64).reshape(-1, 3))
+                track.maps = [0] * len(track.points)
+                track.slots = {i: i for i in range(len(track.points))}
+                track.dirty = True
 
     # -- the browser camera ------------------------------------------------------------------
 
@@ -549,71 +793,103 @@ class ViewerAdapter:
         self._ensure_root(state.session_id)
         sent = False
         new_map = False
+        several_maps = len(state.maps) > 1
         for map_id, map_state in state.maps.items():
             if f"{root}/meshes/map_{map_id}" not in self._handles:
                 new_map = True
             if map_state.pose_dirty:
                 self._map_node(state, "meshes", map_id, map_state.T_world_map)
+                if f"{root}/keyframes/map_{map_id}" in self._handles:
+                    self._map_node(state, "keyframes", map_id, map_state.T_world_map)
                 map_state.pose_dirty, sent = False, True
             if map_state.keyframes_dirty and len(map_state.keyframe_poses) and state.K is not None:
-                self._map_node(state, "keyframes", map_id, None)
+                self._map_node(state, "keyframes", map_id, map_state.T_world_map)
                 w, h = state.image_size
                 segments = frustum_segments(map_state.keyframe_poses, state.K, w, h, depth=0.1)
-                scene.add_line_segments(f"{root}/keyframes/map_{map_id}/frusta", segments,
-                                        colors=map_color(map_id), thickness=1.5, thickness_units="screen")
+                name = f"{root}/keyframes/map_{map_id}/frusta"
+                self._handles[name] = scene.add_line_segments(name, segments, colors=map_color(map_id),
+                                                              thickness=1.5, thickness_units="screen")
                 map_state.keyframes_dirty, sent = False, True
+            if map_state.bounds_dirty and several_maps and map_state.bounds is not None:
+                self._map_node(state, "meshes", map_id, map_state.T_world_map)
+                name = f"{root}/meshes/map_{map_id}/bounds"
+                self._handles[name] = scene.add_line_segments(name, box_segments(*map_state.bounds),
+                                                              colors=map_color(map_id), thickness=1.0,
+                                                              thickness_units="screen")
+                map_state.bounds_dirty, sent = False, True
         if new_map:
             self._refresh_map_boxes()
-        if state.trajectory_dirty:
-            self._send_trajectory(state)
-            state.trajectory_dirty, sent = False, True
-        if state.camera_dirty and state.latest_pose is not None:
-            self._send_camera(state)
-            state.camera_dirty, sent = False, True
+            if several_maps:  # the first map's outline too, now that there are several
+                for map_state in state.maps.values():
+                    map_state.bounds_dirty = map_state.bounds is not None
+        for agent in sorted(state.agents):
+            track = state.agents[agent]
+            if track.dirty:
+                self._send_trajectory(state, agent)
+                track.dirty, sent = False, True
+            if track.camera_dirty and track.latest is not None:
+                self._send_camera(state, agent)
+                track.camera_dirty, sent = False, True
         if state.loops_dirty:
-            points = np.array([[a, b] for a, b in state.loops], dtype=np.float32)
-            scene.add_line_segments(f"{root}/loops/edges", points, colors=(255, 40, 200), thickness=3.0,
-                                    thickness_units="screen")
+            name = f"{root}/loops/edges"
+            points = self._loop_points(state).astype(np.float32)
+            if len(points):
+                self._handles[name] = scene.add_line_segments(name, points, colors=LOOP_COLOR, thickness=3.0,
+                                                              thickness_units="screen")
             state.loops_dirty, sent = False, True
         if sent:
             self._update_status_text(state)
         return sent
 
-    def _send_trajectory(self, state: _SessionState) -> None:
-        """Resend only the open block; complete blocks stay as they are in the browser."""
-        positions = np.asarray(state.positions, dtype=np.float32)
-        maps = np.asarray(state.position_maps)
-        first_open = state.sent_blocks * TRAJECTORY_BLOCK
+    def _send_trajectory(self, state: _SessionState, agent: int) -> None:
+        """Resend only the open blocks of one agent's path; complete blocks stay as they are in the
+        browser (until a map they pass through moves). No segment joins a frame to one in a map
+        that started after a tracking failure: such a map floats apart until a loop joins it."""
+        track = state.agents[agent]
+        positions = state.world_positions(agent).astype(np.float32)
+        maps = np.asarray(track.maps)
+        base = f"/sessions/{state.session_id}/trajectory/agent_{agent}"
+        if base not in self._handles:
+            self._handles[base] = self._server.scene.add_frame(base, show_axes=False)
+        first_open = track.sent_blocks * TRAJECTORY_BLOCK
         for start in range(first_open, max(len(positions) - 1, first_open), TRAJECTORY_BLOCK):
             stop = min(start + TRAJECTORY_BLOCK + 1, len(positions))
             if stop - start < 2:
                 break
-            points = np.stack([positions[start:stop - 1], positions[start + 1:stop]], axis=1)
-            colors = np.array([map_color(int(m)) for m in maps[start + 1:stop]], dtype=np.uint8)
-            self._server.scene.add_line_segments(
-                f"/sessions/{state.session_id}/trajectory/part_{start // TRAJECTORY_BLOCK}", points,
-                colors=np.repeat(colors[:, None, :], 2, axis=1), thickness=2.0, thickness_units="screen")
+            keep = np.array([maps[i] == maps[i + 1] or state.map(int(maps[i + 1])).reason != "tracking_failure"
+                             for i in range(start, stop - 1)], dtype=bool)
+            points = np.stack([positions[start:stop - 1], positions[start + 1:stop]], axis=1)[keep]
+            if self._trajectory_by_map:
+                colors = np.array([map_color(int(m)) for m in maps[start + 1:stop]], dtype=np.uint8)[keep]
+            else:
+                colors = np.broadcast_to(np.array(agent_color(agent), dtype=np.uint8), (len(points), 3))
+            name = f"{base}/part_{start // TRAJECTORY_BLOCK}"
+            if len(points):
+                self._handles[name] = self._server.scene.add_line_segments(
+                    name, points, colors=np.repeat(colors[:, None, :], 2, axis=1), thickness=2.0,
+                    thickness_units="screen")
             if stop - start == TRAJECTORY_BLOCK + 1:
-                state.sent_blocks += 1
+                track.sent_blocks += 1
 
-    def _send_camera(self, state: _SessionState) -> None:
-        pose = state.latest_pose
-        T = np.asarray(pose.T_world_cam, dtype=np.float64)
-        name = f"/sessions/{state.session_id}/camera/frustum"
+    def _send_camera(self, state: _SessionState, agent: int) -> None:
+        track = state.agents[agent]
+        map_id, T_map_cam, thumbnail = track.latest
+        T = state.maps[map_id].T_world_map @ T_map_cam if map_id in state.maps else T_map_cam
+        name = f"/sessions/{state.session_id}/camera/frustum" + ("" if agent == 0 else f"_{agent}")
         handle = self._handles.get(name)
-        if handle is None and state.K is not None:
-            w, h = state.image_size
-            fov = 2.0 * np.arctan(0.5 * h / state.K[1, 1])
+        if handle is None and track.K is not None:
+            w, h = track.image_size
+            fov = 2.0 * np.arctan(0.5 * h / track.K[1, 1])
             handle = self._server.scene.add_camera_frustum(
-                name, fov=float(fov), aspect=w / h, scale=0.2, color=(230, 60, 40), image=pose.thumbnail,
+                name, fov=float(fov), aspect=w / h, scale=0.2, color=agent_color(agent), image=thumbnail,
                 wxyz=_wxyz(T), position=T[:3, 3])
             self._handles[name] = handle
         elif handle is not None:
             handle.wxyz = _wxyz(T)
             handle.position = T[:3, 3]
-            if pose.thumbnail is not None:
-                handle.image = pose.thumbnail
-        if self._follow:
+            if thumbnail is not None:
+                handle.image = thumbnail
+        if self._follow and agent == min(state.agents):
             self._move_browsers_behind(T)
 
     def _move_browsers_behind(self, T_world_cam: np.ndarray) -> None:
@@ -657,16 +933,19 @@ class ViewerAdapter:
 
     def _update_status_text(self, state: _SessionState) -> None:
         stats = self._last_stats[1] if self._last_stats and self._last_stats[0] == state.session_id else None
-        text = f"**{state.session_id}**: {len(state.positions)} poses, {len(state.maps)} map(s), " \
+        agents = max(1, len(state.agents))
+        text = f"**{state.session_id}**: {state.pose_count} poses, {len(state.maps)} map(s), " \
                f"{len(state.loops)} loop(s)"
+        if agents > 1:
+            text += f", {agents} agents"
         if stats is not None:
             text += f", {stats.fps:.1f} frames/s"
         self._status_md.content = text
 
 
 def _scene_bounds(state: _SessionState) -> tuple[np.ndarray, np.ndarray] | None:
-    """(lo, hi) world corners around the session's trajectory and mesh chunks, or None if empty."""
-    points = [np.asarray(state.positions, dtype=np.float64).reshape(-1, 3)]
+    """(lo, hi) world corners around the session's trajectories and mesh chunks, or None if empty."""
+    points = [np.zeros((0, 3))] + [state.world_positions(agent) for agent in state.agents]
     for map_state in state.maps.values():
         T = map_state.T_world_map
         for chunk in list(map_state.sent_chunks.values())[:200]:

@@ -1,7 +1,9 @@
 """The SLAM worker process of one session (started by ``server.sessions`` with spawn).
 
-The worker opens its source, runs ``slam.runtime.run_slam`` (which starts the mapping process
-itself, so this process is not daemonic) and forwards every runtime event to the API process
+The worker opens its sources (one per agent: several for a collaborative session; a stream
+session is one :class:`AgentFrames` source whose frames name their agent), runs
+``slam.runtime.run_slam`` (which starts the mapping process itself, so this process is not
+daemonic) and forwards every runtime event to the API process
 through ``event_queue``, followed by one :class:`WorkerDone`. It puts itself in a new process
 group first, so that a cancel that runs out of patience can kill it together with the mapping
 process it started. Its stdout and stderr (and the mapping process's) go to ``worker.log`` in
@@ -50,13 +52,37 @@ class SourceSpec:
         return "stream"
 
 
+def describe_sources(specs: "tuple[SourceSpec, ...] | list[SourceSpec]") -> str:
+    """The session list's label for one source, or for the agents of a collaborative session."""
+    if len(specs) == 1:
+        return specs[0].describe()
+    labels = [s.describe() for s in specs]
+    if len(set(labels)) == 1:
+        return f"{labels[0]} x {len(specs)} agents"
+    return f"{len(specs)} agents: " + " | ".join(labels)
+
+
 @dataclass(frozen=True)
 class WorkerJob:
+    """One session's work: ``sources`` holds one spec per agent (agent k = k-th), in order.
+    A stream session has one ``stream`` spec; its frames say which agent they belong to."""
+
     session_id: str
-    source: SourceSpec
+    sources: tuple[SourceSpec, ...]
     preset: str
     out_dir: str
     use_gt_poses: bool = False
+
+    def __post_init__(self) -> None:
+        if not self.sources:
+            raise ValueError("a worker job needs at least one source")
+        if any(s.kind == "stream" for s in self.sources) and len(self.sources) != 1:
+            raise ValueError("a stream is the only source of its session (its frames name their agents)")
+
+    @property
+    def source(self) -> SourceSpec:
+        """The first agent's source."""
+        return self.sources[0]
 
 
 @dataclass(frozen=True)
@@ -78,14 +104,16 @@ class WorkerDone:
     maps: int = 0
     loops: int = 0
     fps: float = 0.0
+    agents: int = 0
+    """Agents in ``run.json`` (0: not known)."""
 
 
 END_OF_STREAM = None
 """Put on a stream session's frame queue to end its input."""
 
 
-def open_source(source: SourceSpec, frame_queue, stop_event):
-    """The iterable of frames ``run_slam`` reads for this source."""
+def open_source(source: SourceSpec, frame_queue=None, stop_event=None):
+    """The iterable ``run_slam`` reads for this source: frames, or (agent, frame) for a stream."""
     from slam.data import open_sequence
 
     if source.kind == "dataset":
@@ -95,8 +123,14 @@ def open_source(source: SourceSpec, frame_queue, stop_event):
         return open_sequence(f"synthetic:{source.path}", "synthetic", stride=source.stride,
                              max_frames=source.max_frames)
     if source.kind == "stream":
-        return stream_frames(frame_queue, stop_event)
+        return stream_source(frame_queue, stop_event)
     raise ValueError(f"unknown source kind {source.kind!r}")
+
+
+def slam_sources(job: WorkerJob, frame_queue, stop_event) -> list:
+    """What the worker hands to ``run_slam`` as ``sources``: one frame iterable per agent (read
+    round-robin), or for a stream one ``AgentStream`` (its only element) yielding (agent, frame)."""
+    return [open_source(spec, frame_queue, stop_event) for spec in job.sources]
 
 
 def frame_from_stream(index: int, item) -> Frame:
@@ -110,9 +144,10 @@ def frame_from_stream(index: int, item) -> Frame:
     )
 
 
-def stream_frames(frame_queue, stop_event, poll_s: float = 0.25) -> Iterator[Frame]:
-    """Frames as the API process hands them over, until END_OF_STREAM or a stop request."""
-    index = 0
+def stream_frames(frame_queue, stop_event, poll_s: float = 0.25) -> Iterator[tuple[int, Frame]]:
+    """(agent, frame) as the API process hands them over, until END_OF_STREAM or a stop
+    request. Frame indices count from 0 for each agent."""
+    counts: dict[int, int] = {}
     while not stop_event.is_set():
         try:
             item = frame_queue.get(timeout=poll_s)
@@ -120,8 +155,34 @@ def stream_frames(frame_queue, stop_event, poll_s: float = 0.25) -> Iterator[Fra
             continue
         if item is END_OF_STREAM:
             return
-        yield frame_from_stream(index, item)
-        index += 1
+        agent = int(getattr(item, "agent", 0))
+        index = counts.get(agent, 0)
+        counts[agent] = index + 1
+        yield agent, frame_from_stream(index, item)
+
+
+def stream_source(frame_queue, stop_event, poll_s: float = 0.25):
+    """The stream as ``run_slam`` wants it: an ``AgentStream`` yielding (agent, Frame)."""
+    from slam.runtime import AgentStream
+
+    class AgentFrames(AgentStream):
+        """A live stream whose frames name their agent (``slam.runtime.AgentStream``)."""
+
+        def __iter__(self) -> Iterator[tuple[int, Frame]]:
+            return stream_frames(frame_queue, stop_event, poll_s)
+
+    return AgentFrames()
+
+
+def _run_agents(out_dir: Path) -> int:
+    """How many agents ``run.json`` lists (0 when it does not say)."""
+    import json
+
+    try:
+        agents = json.loads((out_dir / "run.json").read_text()).get("agents")
+    except (OSError, ValueError, AttributeError):
+        return 0
+    return len(agents) if isinstance(agents, list) else 0
 
 
 def short_error(text: str | None) -> str | None:
@@ -158,14 +219,15 @@ def run_worker(job: WorkerJob, stop_event, event_queue, frame_queue) -> None:
         if stop_event.is_set():  # cancelled while this process was starting
             done = WorkerDone(status="cancelled", error=None)
         else:
-            source = open_source(job.source, frame_queue, stop_event)
-            result = run_slam([source], config, out_dir, use_gt_poses=job.use_gt_poses,
+            sources = slam_sources(job, frame_queue, stop_event)
+            result = run_slam(sources, config, out_dir, use_gt_poses=job.use_gt_poses,
                               on_event=event_queue.put, stop=stop_event)
             if result.error:
                 print(result.error, flush=True)  # the whole traceback, for worker.log
             done = WorkerDone(status=result.status, error=short_error(result.error), frames=result.frames,
                               keyframes=result.keyframes, maps=result.maps, loops=result.loops,
-                              fps=float(result.fps))
+                              fps=float(result.fps),
+                              agents=int(getattr(result, "agents", 0) or 0) or _run_agents(out_dir))
     except DataError as error:
         done = WorkerDone(status="failed", error=f"bad input data: {error}")
     except Exception as error:  # noqa: BLE001 - any crash fails only this session; traceback goes to the log

@@ -107,10 +107,19 @@ function readMatrix() {
 let sessions = [];
 let selectedId = null;
 
+const plural = (n, word) => `${n} ${word}${n === 1 ? "" : "s"}`;
+
 function describe(s) {
   const total = s.frames_total == null ? "" : ` / ${s.frames_total}`;
   return `${s.frames_done}${total} frames · ${s.fps.toFixed(1)} frames/s · ${s.keyframes} keyframes · ` +
-         `${s.maps} map${s.maps === 1 ? "" : "s"} · ${s.loops} loop${s.loops === 1 ? "" : "s"}`;
+         `${plural(s.maps, "map")} · ${plural(s.loops, "loop")} · ${plural(s.agents || 1, "agent")}`;
+}
+
+function showSelectedStatus() {
+  const s = sessions.find((x) => x.id === selectedId);
+  $("session-status").textContent = s
+    ? `· ${s.id}: ${s.status}, ${plural(s.agents || 1, "agent")}, ${plural(s.maps, "map")}, ${plural(s.loops, "loop")}`
+    : "";
 }
 
 // Items are created once per session and updated in place, so that polling never swaps an
@@ -144,7 +153,7 @@ function updateSessionItem(li, s) {
   const error = li.querySelector(".error");
   error.hidden = !s.error;
   error.textContent = s.error || "";
-  const actionsKey = `${s.status}|${s.outputs.mesh}|${s.outputs.trajectory}`;
+  const actionsKey = `${s.status}|${s.outputs.mesh}|${s.outputs.trajectory}|${s.agents}`;
   if (li.dataset.actions !== actionsKey) {
     li.dataset.actions = actionsKey;
     li.querySelector(".actions").replaceChildren(...sessionActions(s));
@@ -157,7 +166,11 @@ function sessionActions(s) {
   if (s.outputs.mesh) {
     for (const fmt of ["ply", "glb", "obj"]) actions.push(link(withToken(`${base}/mesh?format=${fmt}`), fmt.toUpperCase()));
   }
-  if (s.outputs.trajectory) actions.push(link(withToken(`${base}/trajectory`), "trajectory"));
+  if (s.outputs.trajectory) {
+    const agents = s.agents || 1;
+    if (agents === 1) actions.push(link(withToken(`${base}/trajectory`), "trajectory"));
+    else for (let k = 0; k < agents; k++) actions.push(link(withToken(`${base}/trajectory?agent=${k}`), `trajectory ${k}`));
+  }
   if (s.status === "running" || s.status === "queued") actions.push(button("cancel", () => cancelSession(s.id)));
   actions.push(button("delete", () => deleteSession(s.id), "danger"));
   return actions;
@@ -199,6 +212,7 @@ function renderSessionList() {
     if (current.length !== wanted.length || current.some((li, i) => li !== wanted[i])) list.replaceChildren(...wanted);
   }
   $("render-session").textContent = selectedId ? `session ${selectedId}` : "(select a session)";
+  showSelectedStatus();
 }
 
 function emptyItem() {
@@ -251,10 +265,10 @@ function fillPresets() {
 
 function uploadDataset(event) {
   event.preventDefault();
-  const file = $("upload-file").files[0];
-  if (!file) return say("upload-message", "Choose a zip first.", "error");
+  const files = [...$("upload-file").files];
+  if (!files.length) return say("upload-message", "Choose a zip first.", "error");
   const form = new FormData();
-  form.append("file", file);
+  for (const file of files) form.append("file", file);  // several parts: one agent each, in this order
   form.append("format", $("upload-format").value);
   if ($("upload-preset").value) form.append("preset", $("upload-preset").value);
   if ($("upload-intrinsics").value.trim()) form.append("intrinsics", $("upload-intrinsics").value.trim());
@@ -275,7 +289,8 @@ function uploadDataset(event) {
     let body = {};
     try { body = JSON.parse(xhr.responseText); } catch (_) { /* not JSON */ }
     if (xhr.status === 201) {
-      say("upload-message", `Session ${body.id} created (${body.status}).`, "ok");
+      const agents = files.length > 1 ? `, ${files.length} agents` : "";
+      say("upload-message", `Session ${body.id} created (${body.status}${agents}).`, "ok");
       selectedId = body.id;
       refreshSessions().then(() => selectSession(body.id));
     } else {
@@ -289,7 +304,14 @@ function uploadDataset(event) {
 
 async function startDemo(event) {
   event.preventDefault();
-  const spec = `${$("demo-kind").value}?frames=${$("demo-frames").value}&width=320&height=240`;
+  const kind = $("demo-kind").value;
+  const frames = `frames=${$("demo-frames").value}&width=320&height=240`;
+  let spec = `${kind}?${frames}`;
+  if (kind === "agents") {
+    // A collaborative session: one spec per agent of the same scene.
+    const n = Math.max(1, Math.min(8, Number($("demo-agents").value) || 2));
+    spec = Array.from({ length: n }, (_, k) => `agents?agent=${k}&agents=${n}&${frames}`);
+  }
   const json = { source: "synthetic", spec };
   if ($("demo-preset").value) json.preset = $("demo-preset").value;
   try {
@@ -472,6 +494,7 @@ function start() {
   poseFromNumbers();
   $("upload-form").addEventListener("submit", uploadDataset);
   $("demo-form").addEventListener("submit", startDemo);
+  $("demo-kind").addEventListener("change", () => { $("demo-agents-label").hidden = $("demo-kind").value !== "agents"; });
   $("use-viewer-camera").addEventListener("click", useViewerCamera);
   $("use-last-pose").addEventListener("click", useLastPose);
   $("pose-from-numbers").addEventListener("click", poseFromNumbers);

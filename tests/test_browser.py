@@ -111,6 +111,8 @@ def test_page_upload_viewer_and_render(server_url, tmp_path):
         page.goto(server_url + "/")
         assert page.title().startswith("voxfusion")
         page.wait_for_selector(f"#session-list li[data-id='{session_id}'] .badge.finished", timeout=20_000)
+        stats = page.inner_text(f"#session-list li[data-id='{session_id}'] .stats")
+        assert "map" in stats and "loop" in stats and "1 agent" in stats, stats
 
         # Upload a dataset zip through the form (XMLHttpRequest with a progress bar).
         page.set_input_files("#upload-file", str(zip_path))
