@@ -14,8 +14,8 @@ cache so that the ray caster is not timed):
   both trajectories with one alignment, against agent 0 alone; mesh accuracy merged / alone.
 - ``real``: TUM fr1/rpy (150 frames) and fr1/desk: ATE and frames/s with loops / without.
 
-    python benchmarks/bench_loops.py [--scenarios laps,loss,agents,real] [--frames N]
-                                     [--width W] [--json FILE] [--out DIR]
+    python benchmarks/bench_loops.py [--scenarios laps,loss,agents,real] [--frames N] [--quick]
+                                     [--preset P] [--config F] [--width W] [--json FILE] [--out DIR]
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import SHARED_DATA, TUM_RPY, cache_sequence, load_line, markdown_table, write_json  # noqa: E402
+from common import SHARED_DATA, TUM_RPY, cache_sequence, load_line, write_json  # noqa: E402
 
 SCENARIOS = ("laps", "loss", "agents", "real")
 TUM_DESK = SHARED_DATA / "rgbd_dataset_freiburg1_desk"
@@ -51,10 +51,15 @@ def cached(spec: str):
     return cache_sequence(open_sequence(spec), CACHE / key)
 
 
+PRESET = "cpu"
+OVERRIDES: dict = {}
+
+
 def config_for(loops: bool, overrides: dict | None = None):
     from slam.config import config_from_dict, load_config
 
-    config = load_config("cpu")
+    config = load_config(PRESET)
+    overrides = {**OVERRIDES, **(overrides or {})}
     if overrides:
         merged = config.to_dict()
         for section, fields in overrides.items():
@@ -217,7 +222,7 @@ def scenario_real(args, out: Path) -> dict:
     from slam.data import open_sequence
 
     rows = {}
-    for name, path, frames in (("fr1/rpy", TUM_RPY, 150), ("fr1/desk", TUM_DESK, None)):
+    for name, path, frames in (("fr1/rpy", TUM_RPY, args.real_frames), ("fr1/desk", TUM_DESK, None)):
         if not path.is_dir():
             rows[name] = {"missing": str(path)}
             continue
@@ -239,9 +244,19 @@ def main() -> int:
     p.add_argument("--frames", type=int, default=780, help="frames of the laps path (780: its nominal speed)")
     p.add_argument("--agent-frames", type=int, default=100)
     p.add_argument("--width", type=int, default=160)
+    p.add_argument("--preset", default="cpu", choices=["test", "cpu", "paper"])
+    p.add_argument("--config", type=Path, default=None, help="JSON overrides of the preset, for every run")
+    p.add_argument("--real-frames", type=int, default=150, help="frames of TUM fr1/rpy")
+    p.add_argument("--quick", action="store_true", help="test preset, short sequences: a smoke run")
     p.add_argument("--out", type=Path, default=Path("/tmp/voxfusion-bench-loops"))
     p.add_argument("--json", type=Path, default=None)
     args = p.parse_args()
+    global PRESET, OVERRIDES
+    PRESET = "test" if args.quick else args.preset
+    if args.config is not None:
+        OVERRIDES = json.loads(args.config.read_text())
+    if args.quick:
+        args.frames, args.agent_frames, args.real_frames = 200, 40, 20
     chosen = [s for s in args.scenarios.split(",") if s]
     unknown = set(chosen) - set(SCENARIOS)
     if unknown:

@@ -240,10 +240,12 @@ class LoopConfig:
     """After a loop between two maps, candidates between them wait this many keyframes."""
     intra_map_iterations: int = 20
     """Global bundle-adjustment iterations of each joined map after a loop (intra-map)."""
-    sequential_sigma_m: float = 0.05
-    sequential_sigma_rad: float = 0.02
+    sequential_sigma_m: float = 0.2
+    sequential_sigma_rad: float = 0.05
     """Uncertainty of the tracking chain between a map and the one it continues: the drift
-    accumulated over one map, which loop edges may correct."""
+    accumulated over one map, which loop edges correct. Tighter than the real drift, and the
+    robust kernel rejects the first loop of a lap as an outlier (laps, test preset: 86 of
+    90 verified loops rejected at 5 cm / 0.02 rad)."""
     loop_sigma_m: float = 0.02
     loop_sigma_rad: float = 0.01
 
@@ -337,6 +339,11 @@ def _cpu() -> SLAMConfig:
         mapping=MappingConfig(num_rays=192, iterations=12, window_size=4, first_frame_iterations=100,
                               final_iterations=500, final_rays=512),
         mesh=MeshConfig(resolution=6),
+        # Maps of a 3 m region: a lap around a room then comes back into other maps than the
+        # ones it left, and loops between maps can correct the drift (synthetic laps hall, 780
+        # frames, 160 x 120: ATE 19.8 cm with loops, 41.8 cm without; in one map of 8 m the
+        # revisit is fused into the drifted map itself, and verification against it fails).
+        multimap=MultiMapConfig(region_size=3.0),
         runtime=RuntimeConfig(device="auto", input_width=320),
     )
 

@@ -447,7 +447,24 @@ class ProcessMapper:
                 return
             except queue.Full:
                 if not self.process.is_alive():
-                    raise MapperFailed(f"the mapping process died (exit code {self.process.exitcode})") from None
+                    self._raise_dead()
+                # While we wait, read what the mapper sent: a mapper that failed is flushing
+                # its traceback at exit and would wait for us forever.
+                self._early += self.poll()
+                for kind, payload in self._early:
+                    if kind == "error":
+                        raise MapperFailed(str(payload))
+
+    def _raise_dead(self) -> None:
+        """The mapping process is gone: raise with its traceback if it sent one."""
+        while True:
+            try:
+                reply = self.replies.get(timeout=_POLL_SECONDS)
+            except queue.Empty:
+                break
+            if reply[0] == "error":
+                raise MapperFailed(str(reply[1]))
+        raise MapperFailed(f"the mapping process died (exit code {self.process.exitcode})")
 
     def poll(self, block: bool = False) -> list[Reply]:
         out, self._early = self._early, []
@@ -482,3 +499,5 @@ class ProcessMapper:
         if self.process.is_alive():
             self.process.terminate()
             self.process.join(timeout=5)
+        # Frames still buffered for a reader that is gone would block this process's exit.
+        self.frames.cancel_join_thread()

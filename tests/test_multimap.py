@@ -211,3 +211,15 @@ def test_two_agents_are_joined_by_a_verified_loop(tmp_path):
     assert joint < 3 * max(a["ate_rmse_m"] for a in info["agents"])
     loop_events = [e for e in events if type(e).__name__ == "LoopEvent"]
     assert len(loop_events) == result.loops
+
+
+@pytest.mark.shared_data
+def test_agents_with_different_cameras_and_formats_run_together(shared_data, tmp_path):
+    """A real TUM sequence (640 x 480 Kinect, PNG folder) and a synthetic one (another camera,
+    another size) as two agents: both are tracked into their own maps and written."""
+    desk = open_sequence(str(shared_data / "rgbd_dataset_freiburg1_desk"), max_frames=4)
+    synth = open_sequence("synthetic:orbit?frames=100&width=120&height=90", max_frames=4)
+    result, events, info = _run([desk, synth], tmp_path)
+    assert result.agents == 2 and result.frames == 8 and result.maps == 2
+    for k in range(2):
+        assert len(read_tum(tmp_path / f"trajectory_{k}.txt").timestamps) == 4

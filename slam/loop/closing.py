@@ -81,7 +81,17 @@ class _Timings:
 
 
 def _np(T: torch.Tensor) -> np.ndarray:
-    return T.detach().cpu().numpy().astype(np.float64)
+    """(4, 4) float64 copy with its rotation re-orthonormalised: poses composed in float32
+    drift off SO(3) by ~1e-6 per product, more than the pose graph accepts."""
+    out = T.detach().cpu().numpy().astype(np.float64)
+    U, _, Vt = np.linalg.svd(out[:3, :3])
+    R = U @ Vt
+    if np.linalg.det(R) < 0:
+        U[:, -1] *= -1
+        R = U @ Vt
+    out[:3, :3] = R
+    out[3] = (0.0, 0.0, 0.0, 1.0)
+    return out
 
 
 class LoopCloser:
