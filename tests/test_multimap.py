@@ -193,6 +193,8 @@ def test_two_agents_are_joined_by_a_verified_loop(tmp_path):
     assert result.loops >= 1 and all(a["joined"] for a in info["agents"])
     reloaded = load_checkpoint(tmp_path / "map.pt")
     assert len(reloaded.maps) == 2 and set(reloaded.groups().values()) == {0}, "loop links are saved"
+    np.testing.assert_allclose(reloaded.maps[0].T_world_map.numpy(), np.eye(4), atol=1e-5,
+                               err_msg="the world is the first agent's first map, whichever side found the loop")
     np.testing.assert_allclose(reloaded.maps[1].T_world_map.numpy(), np.asarray(info["map_poses"]["1"]).reshape(4, 4),
                                atol=1e-5)
     gt = {k: {f.index: f.T_world_cam for f in seq} for k, seq in enumerate(seqs)}

@@ -243,13 +243,18 @@ class LoopCloser:
         maps = mapper.maps
         before = {m.map_id: m.T_world_map.clone() for m in maps.maps}
         groups = maps.groups()
-        if groups[source.map_id] != groups[target.map_id]:
-            # Not related yet: move the source's group rigidly onto the target first, so that
-            # the optimisation starts near its solution.
-            T_new = target.T_world_map @ torch.tensor(np.array(edge.T_a_b), dtype=torch.float32, device=self.device)
-            delta = T_new @ se3_inverse(source.T_world_map)
+        g_src, g_tar = groups[source.map_id], groups[target.map_id]
+        if g_src != g_tar:
+            # Not related yet: move the newer group (the one without the older root, so the
+            # world's first map never moves) rigidly onto the other first, so that the
+            # optimisation starts near its solution.
+            T_tar_src = torch.tensor(np.array(edge.T_a_b), dtype=torch.float32, device=self.device)
+            if g_src > g_tar:
+                moving, delta = g_src, target.T_world_map @ T_tar_src @ se3_inverse(source.T_world_map)
+            else:
+                moving, delta = g_tar, source.T_world_map @ se3_inverse(T_tar_src) @ se3_inverse(target.T_world_map)
             for m in maps.maps:
-                if groups[m.map_id] == groups[source.map_id]:
+                if groups[m.map_id] == moving:
                     m.T_world_map = delta @ m.T_world_map
         nodes = [PoseNode(m.map_id, _np(m.T_world_map)) for m in maps.maps]
         seq = self.config.loop
