@@ -356,8 +356,12 @@ def _mapping_process(config_dict: dict, device_name: str, out_dir: str, emit_mes
                 continue
             batch = [msg]
             # Drain what queued up while we optimised: integrate all, optimise once. qsize
-            # counts frames still in the queue's pipe, which get_nowait would miss.
-            while batch[-1] not in (END, END_NOW) and _queued(frames) > 0:
+            # counts frames still in the queue's pipe, which get_nowait would miss. At most
+            # what was queued when we looked: a producer faster than us would otherwise keep
+            # this loop draining forever.
+            waiting = _queued(frames)
+            while batch[-1] not in (END, END_NOW) and waiting > 0 and len(batch) <= config.runtime.queue_size + 1:
+                waiting -= 1
                 try:
                     batch.append(frames.get(timeout=_POLL_SECONDS))
                 except queue.Empty:

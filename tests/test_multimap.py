@@ -225,3 +225,21 @@ def test_agents_with_different_cameras_and_formats_run_together(shared_data, tmp
     assert result.agents == 2 and result.frames == 8 and result.maps == 2
     for k in range(2):
         assert len(read_tum(tmp_path / f"trajectory_{k}.txt").timestamps) == 4
+
+
+def test_a_mapper_that_fails_mid_run_is_reported_not_waited_for(tmp_path):
+    """The tracker keeps submitting while the mapping process has failed and is flushing its
+    traceback at exit: submit raises with that traceback instead of both processes waiting
+    for each other (a deadlock seen on the laps hall)."""
+    from slam.mapping_process import FrameMessage, MapperFailed, ProcessMapper
+
+    frame = next(iter(open_sequence("synthetic:orbit?frames=100&width=80&height=60", max_frames=1)))
+    mapper = ProcessMapper(NO_LOOPS, torch.device("cpu"), tmp_path, False, 0)
+    try:
+        bad = FrameMessage(0, frame, 7, np.eye(4, dtype=np.float32), True)  # map 7 was never started
+        with pytest.raises(MapperFailed, match="no map 7"):
+            for _ in range(50):  # as fast as it takes them: the mapper must not drain forever
+                mapper.submit(bad)
+    finally:
+        mapper.close()
+    assert not mapper.process.is_alive()
