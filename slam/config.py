@@ -186,7 +186,7 @@ class MultiMapConfig:
     enabled: bool = True
     region_size: float = 8.0
     """A new map starts when the camera leaves a cube of this edge (metres) centred on the
-    map's origin (the camera position of its first frame): it bounds a map's voxels, so the
+    camera position of the map's first frame: it bounds a map's voxels, so the
     cost of mapping and of publishing a map to the tracker stays constant."""
     new_map_on_tracking_failure: bool = True
     failures_before_new_map: int = 2
@@ -219,8 +219,14 @@ class LoopConfig:
     neighbour_ratio: float = 0.65
     """...and this share of the keyframe's similarity to its own map's latest keyframes (the
     threshold adapts to how alike views of this scene are)."""
+    same_map: bool = False
+    """Also verify candidates in the query's own map. Off: a revisit inside one map is
+    tracked against the map that already holds it (the loop is closed by tracking and
+    bundle adjustment), and with bounded regions a drifting revisit comes back in another
+    map; on fr1/rpy (one map) in-map loops cost 29 % of frames/s for no ATE gain."""
     min_frame_gap: int = 30
-    """Same-map candidates must be at least this many frames older than the query."""
+    """Same-map (and same-group, same-agent) candidates must be at least this many frames
+    older than the query."""
     min_inliers: int = 25
     """PnP inliers the relative pose from features needs."""
     pnp_reprojection_px: float = 3.0

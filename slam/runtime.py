@@ -123,6 +123,9 @@ class _TrackingSide:
     map_poses: dict[int, np.ndarray] = field(default_factory=dict)
     """map id -> T_world_map (4, 4) as the tracker knows it."""
     map_parent: dict[int, int | None] = field(default_factory=dict)
+    map_centre: dict[int, np.ndarray] = field(default_factory=dict)
+    """map id -> the centre of its region in the map frame: its first camera's position (the
+    world's first map is the world frame, and its first camera is wherever GT puts it)."""
     next_map_id: int = 0
     busy: float = 0.0
     mapper_stats: MapperStats | None = None
@@ -203,7 +206,9 @@ def _start_map(side: _TrackingSide, track: AgentTrack, reason: str, T_world_cam:
     side.map_poses[map_id] = T_world_map
     side.map_parent[map_id] = track.active_map if reason == "region" else None
     track.active_map = map_id
-    return map_id, T_world_map, np.linalg.inv(T_world_map) @ T_world_cam
+    T_map_cam = np.linalg.inv(T_world_map) @ T_world_cam
+    side.map_centre[map_id] = T_map_cam[:3, 3].copy()
+    return map_id, T_world_map, T_map_cam
 
 
 def _track_map(side: _TrackingSide, track: AgentTrack, channel, emit) -> int:
@@ -306,7 +311,8 @@ def _estimate_pose(side: _TrackingSide, track: AgentTrack, frame: Frame, raw: Fr
         track.failures_in_row = 0
         track.good_poses = (track.good_poses + [T])[-3:]
         T_active = np.linalg.inv(side.map_poses[track.active_map]) @ T
-        if mm.enabled and float(np.abs(T_active[:3, 3]).max()) > mm.region_size / 2:
+        offset = T_active[:3, 3] - side.map_centre[track.active_map]
+        if mm.enabled and float(np.abs(offset).max()) > mm.region_size / 2:
             # The camera left the active map's region: this frame starts the next map.
             new_id, T_wm, T_mc = _start_map(side, track, "region", T, first_ever=False)
             map_id, new_map = new_id, ("region", new_id, T_wm.astype(np.float32))

@@ -243,3 +243,15 @@ def test_a_mapper_that_fails_mid_run_is_reported_not_waited_for(tmp_path):
     finally:
         mapper.close()
     assert not mapper.process.is_alive()
+
+
+def test_the_region_is_centred_on_the_first_camera_not_the_world_origin(tmp_path):
+    """A dataset whose ground truth puts the first camera 5 m from the world origin (as
+    TUM's motion capture does) is not split at its first tracked frame."""
+    shift = np.eye(4)
+    shift[:3, 3] = [5.0, -4.0, 1.0]
+    frames = [Frame(f.index, f.timestamp, f.rgb, f.depth, f.K, shift @ f.T_world_cam)
+              for f in open_sequence("synthetic:orbit?frames=100&width=80&height=60", max_frames=6)]
+    cfg = replace(NO_LOOPS, multimap=replace(NO_LOOPS.multimap, region_size=3.0))
+    result, events, info = _run([frames], tmp_path, cfg)
+    assert result.maps == 1, info["map_reasons"]

@@ -185,6 +185,8 @@ class LoopCloser:
         """A candidate of the query's own group (whose relative pose is already known) must
         be ``min_frame_gap`` frames older if it is the same agent's: the maps just before
         share the view across a region border without closing any loop."""
+        if entry.map_id == submap.map_id and not self.config.loop.same_map:
+            return False
         same_group = groups.get(entry.map_id) == groups.get(submap.map_id)
         if not same_group or entry.agent != submap.agent:
             return True
