@@ -28,7 +28,7 @@ import torch
 
 from .config import SLAMConfig, config_from_dict
 from .data.frame import Frame
-from .events import KeyframeEvent, LoopEvent, MapUpdateEvent, PosesUpdatedEvent
+from .events import KeyframeEvent, MapUpdateEvent, PosesUpdatedEvent
 from .frames import prepare_frame
 from .mapping import Mapper, NewMap, TrackedFrame
 
@@ -220,10 +220,7 @@ def _close_loops(side: _MapperSide, submap, frame: Frame) -> list[Reply]:
         mapper.version += 1
         out.append(("map_poses", map_poses(mapper)))
         out.append(("event", poses_event(mapper, "loop")))
-    for c in closures:
-        out.append(("event", LoopEvent(c.agent, c.map_id, c.frame_index, c.timestamp, c.match_agent, c.match_map,
-                                       c.match_frame_index, c.match_timestamp, c.T_world_cam, c.T_world_match,
-                                       c.scores)))
+    out += [("event", c) for c in closures]
     if closures:
         for active in mapper.active.values():
             out.append(("snapshot", mapper.snapshot(active)))

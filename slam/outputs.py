@@ -84,20 +84,27 @@ def world_poses(records: list[FrameRecord], map_poses: dict[int, np.ndarray]) ->
     return np.stack([np.asarray(map_poses[r.map_id], np.float64) @ r.T_map_cam for r in records])
 
 
-def running_ate(records: list[FrameRecord], map_poses: dict[int, np.ndarray]) -> float | None:
-    """ATE RMSE (m) of the raw world poses so far (None without GT)."""
-    if len(records) < 3 or any(r.gt is None for r in records):
-        return None
+def aligned_rmse(est: np.ndarray, gt: np.ndarray) -> float | None:
+    """RMSE (m) of positions est (N, 3) against gt (N, 3) after one rigid alignment (None
+    when fewer than 3 or degenerate)."""
     from .eval.ate import umeyama_alignment
 
-    est = world_poses(records, map_poses)[:, :3, 3]
-    gt = np.stack([r.gt[:3, 3] for r in records])  # type: ignore[index]
+    if len(est) < 3:
+        return None
     try:
         R, t, _ = umeyama_alignment(est, gt)
     except ValueError:
         return None
     err = np.linalg.norm(est @ R.T + t - gt, axis=1)
     return float(np.sqrt((err ** 2).mean()))
+
+
+def running_ate(records: list[FrameRecord], map_poses: dict[int, np.ndarray]) -> float | None:
+    """ATE RMSE (m) of the raw world poses so far (None without GT)."""
+    if len(records) < 3 or any(r.gt is None for r in records):
+        return None
+    gt = np.stack([r.gt[:3, 3] for r in records])  # type: ignore[index]
+    return aligned_rmse(world_poses(records, map_poses)[:, :3, 3], gt)
 
 
 @dataclass(frozen=True)
@@ -128,21 +135,12 @@ def agent_trajectory(track: "AgentTrack", stats: "MapperStats | None", fallback_
 def _ate(trajectories: list[AgentTrajectory]) -> float | None:
     """ATE RMSE (m) of the trajectories together, one rigid alignment for all (None when a
     pose has no GT)."""
-    from .eval.ate import umeyama_alignment
-
-    est = [t.poses[:, :3, 3] for t in trajectories if len(t.poses)]
-    if not est or any(g is None for t in trajectories for g in t.gt):
+    kept = [t for t in trajectories if len(t.poses)]
+    if not kept or any(g is None for t in kept for g in t.gt):
         return None
-    est_all = np.concatenate(est)
-    gt_all = np.concatenate([np.stack([g[:3, 3] for g in t.gt]) for t in trajectories if len(t.poses)])  # type: ignore[index]
-    if len(est_all) < 3:
-        return None
-    try:
-        R, t, _ = umeyama_alignment(est_all, gt_all)
-    except ValueError:
-        return None
-    err = np.linalg.norm(est_all @ R.T + t - gt_all, axis=1)
-    return float(np.sqrt((err ** 2).mean()))
+    est = np.concatenate([t.poses[:, :3, 3] for t in kept])
+    gt = np.concatenate([np.stack([g[:3, 3] for g in t.gt]) for t in kept])  # type: ignore[index]
+    return aligned_rmse(est, gt)
 
 
 def _agent_joined(agent: int, stats: "MapperStats | None") -> bool:

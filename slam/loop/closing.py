@@ -31,6 +31,7 @@ import torch
 
 from ..config import SLAMConfig
 from ..data.frame import Frame
+from ..events import LoopEvent
 from ..features import detect_features
 from ..geometry import se3_inverse
 from ..maps import Keyframe, SubMap
@@ -39,27 +40,12 @@ from .pose_graph import PoseNode, RelativePoseEdge, optimise_pose_graph
 from .verification import LoopVerification, frozen_in_map_frame, refinement_tracker, verify_candidate
 
 
-@dataclass(frozen=True)
-class LoopClosure:
-    """An accepted loop; poses (4, 4) are the two keyframes' world poses after optimisation."""
-
-    agent: int
-    map_id: int
-    frame_index: int
-    timestamp: float
-    match_agent: int
-    match_map: int
-    match_frame_index: int
-    match_timestamp: float
-    T_world_cam: np.ndarray
-    T_world_match: np.ndarray
-    scores: dict
-
-    def to_json(self) -> dict:
-        return {"timestamp": self.timestamp, "match_timestamp": self.match_timestamp, "map": self.map_id,
-                "match_map": self.match_map, "agent": self.agent, "match_agent": self.match_agent,
-                "frame_index": self.frame_index, "match_frame_index": self.match_frame_index,
-                "scores": self.scores}
+def loop_json(loop: LoopEvent) -> dict:
+    """An accepted loop as ``run.json``'s ``loop_closures`` lists it (poses left out)."""
+    return {"timestamp": loop.timestamp, "match_timestamp": loop.match_timestamp, "map": loop.map_id,
+            "match_map": loop.match_map, "agent": loop.agent, "match_agent": loop.match_agent,
+            "frame_index": loop.frame_index, "match_frame_index": loop.match_frame_index,
+            "scores": loop.scores}
 
 
 @dataclass
@@ -114,7 +100,7 @@ class LoopCloser:
         self._orb_verify = cv2.ORB_create(count, fastThreshold=7, edgeThreshold=15, patchSize=15)
         self._tracker = refinement_tracker(config, device, seed)
         self._gen = torch.Generator().manual_seed(seed + 7)
-        self.closures: list[LoopClosure] = []
+        self.closures: list[LoopEvent] = []
         self.candidates: list[dict] = []
         """Every verified candidate's record (accepted or not), for the user to inspect."""
         self.rejected = 0
@@ -126,7 +112,7 @@ class LoopCloser:
         """(map, other map) -> the map's keyframe count when a loop last joined them."""
 
     # ----------------------------------------------------------------- public
-    def add_keyframe(self, mapper, submap: SubMap, keyframe: Keyframe, frame: Frame) -> list[LoopClosure]:
+    def add_keyframe(self, mapper, submap: SubMap, keyframe: Keyframe, frame: Frame) -> list[LoopEvent]:
         """Detect and close loops for ``keyframe`` (just added to ``submap``; ``frame`` its
         images as numpy, at pipeline resolution). Returns the accepted loops (at most one)."""
         c = self.config.loop
@@ -146,7 +132,7 @@ class LoopCloser:
         self.timings.add("query", time.perf_counter() - t0)
         self.database.add(KeyframeEntry(submap.map_id, submap.agent, keyframe.frame_index, keyframe.timestamp,
                                         descriptor, features))
-        out: list[LoopClosure] = []
+        out: list[LoopEvent] = []
         for cand in candidates[:c.top_k]:
             t0 = time.perf_counter()
             target = mapper.maps.by_id(cand.entry.map_id)
@@ -175,7 +161,7 @@ class LoopCloser:
         return out
 
     def closures_json(self) -> list[dict]:
-        return [c.to_json() for c in self.closures]
+        return [loop_json(c) for c in self.closures]
 
     def timings_ms(self) -> dict[str, float]:
         return self.timings.summary()
@@ -212,7 +198,7 @@ class LoopCloser:
         return fmap
 
     def _close(self, mapper, source: SubMap, keyframe: Keyframe, target: SubMap, match_kf: Keyframe,
-               result: LoopVerification, record: dict) -> LoopClosure | None:
+               result: LoopVerification, record: dict) -> LoopEvent | None:
         """Hierarchical pose optimisation for a verified loop (None: the pose graph refused it)."""
         c = self.config.loop
         assert result.T_map_query is not None
@@ -228,7 +214,7 @@ class LoopCloser:
         for submap in {id(source): source, id(target): target}.values():
             mapper.refine_map(submap, c.intra_map_iterations, self.config.mapping.final_rays)
             self._map_revision[submap.map_id] = self._map_revision.get(submap.map_id, 0) + 1
-        closure = LoopClosure(
+        closure = LoopEvent(
             source.agent, source.map_id, keyframe.frame_index, keyframe.timestamp, target.agent, target.map_id,
             match_kf.frame_index, match_kf.timestamp, _np(source.T_world_map @ keyframe.T_map_cam),
             _np(target.T_world_map @ match_kf.T_map_cam), {k: v for k, v in record.items() if k not in (

@@ -28,7 +28,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 import torch
 
-from ..config import LoopConfig, SLAMConfig
+from ..config import SLAMConfig
 from ..features import FrameFeatures, match_features, pnp_ransac
 from ..frames import TensorFrame, sample_pixels
 from ..geometry import se3_inverse, se3_log
@@ -171,5 +171,3 @@ def refinement_tracker(config: SLAMConfig, device: torch.device, seed: int = 0) 
                 max_jump_rad=max(config.tracking.max_jump_rad, 2 * config.loop.max_refinement_rad))
     return Tracker(replace(config, tracking=t), device, seed=seed)
 
-
-LoopConfigFields = LoopConfig  # re-exported for the docs of the thresholds above
