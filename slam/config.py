@@ -99,6 +99,12 @@ class TrackingConfig:
     motion model). Off by default: when an iteration budget leaves part of the error, the
     velocity guess feeds it back and it compounds (synthetic orbit, cpu preset: 0.8 cm ATE over
     40 frames with the last pose, divergence after 15 frames with constant velocity)."""
+    motion_prior: float = 0.0
+    """Gauss-Newton only: weight of a prior holding the pose at its initial guess, relative
+    to the data term's mean curvature (per translation and rotation block, so it is free of
+    units and of the ray count). Directions the view does not observe (a plain wall fixes 3
+    of 6) then stay at the guess instead of following noise up to the step limit; observed
+    directions, whose curvature is far larger, barely feel it (0: off)."""
     sample_band: float = 2.0
     """Sample only within this many truncations of the observed depth (0: the whole ray, as
     the paper; see ``slam.tracking.tracking_bounds`` for why this gives the same weights)."""
@@ -136,10 +142,16 @@ class TrackingConfig:
     """RANSAC PnP inlier threshold (pixels): only its inliers enter the loss."""
     feature_min_inliers: int = 20
     """Fewer PnP inliers than this: the frame is tracked without features."""
+    feature_dense_check: bool = False
+    """Gauss-Newton only: drop a frame's features when the dense loss is lower at the motion
+    model's guess than at their PnP pose (repeated texture lets RANSAC agree on a pose one
+    period off, which the depth does not support)."""
 
     def __post_init__(self) -> None:
         if self.feature_count < 0 or self.feature_weight < 0 or self.feature_huber_px <= 0:
             raise ConfigError("tracking.feature_count and feature_weight must be >= 0 and feature_huber_px > 0")
+        if self.motion_prior < 0:
+            raise ConfigError("tracking.motion_prior must be >= 0")
         if self.optimizer not in ("adam", "gauss_newton"):
             raise ConfigError(f"tracking.optimizer must be 'adam' or 'gauss_newton', got {self.optimizer!r}")
 
@@ -332,8 +344,13 @@ def _cpu() -> SLAMConfig:
         # loss under-rotates in fast turns (fr1/rpy 150 frames, process mode: 4.2-4.9 cm ATE
         # over 5 runs against 5-9 cm without; per-match weights from 0.001 to 0.0045 all gave
         # 4.1-4.8 cm; slam.features and benchmarks/README.md).
+        # The motion prior (1 % of the data's curvature) and the dense check on the features'
+        # PnP pose keep textureless walls and a checkerboard from rattling the pose: synthetic
+        # laps hall, 780 frames, no loops: frame-to-frame error 2.66 -> 1.35 cm, ATE 39.6 ->
+        # 36.8 cm; fr1/rpy 150 frames: 3.8-4.6 cm over 3 runs (4.2-4.9 before over 5).
         tracking=TrackingConfig(optimizer="gauss_newton", num_rays=512, iterations=6,
-                                feature_count=1000, feature_weight=0.003),
+                                feature_count=1000, feature_weight=0.003, motion_prior=0.01,
+                                feature_dense_check=True),
         # The end-of-sequence global bundle adjustment gives every keyframe iterations the
         # window never had. Replica room0, 10 frames mapped, 10 held-out views: 21.4 dB
         # without it; 23.3 with 150 x 512 rays, 23.8-24.0 with 300-400, 24.2-24.35 with 500
@@ -347,8 +364,9 @@ def _cpu() -> SLAMConfig:
         mesh=MeshConfig(resolution=6),
         # Maps of a 3 m region: a lap around a room then comes back into other maps than the
         # ones it left, and loops between maps can correct the drift (synthetic laps hall, 780
-        # frames, 160 x 120: ATE 19.8 cm with loops, 41.8 cm without; in one map of 8 m the
-        # revisit is fused into the drifted map itself, and verification against it fails).
+        # frames, 160 x 120: ATE 20.0 cm with loops, 35.1 cm without; one map of 100 m drifts
+        # to 59.9 cm; in one map of 8 m the revisit is fused into the drifted map itself, and
+        # verification against it fails).
         multimap=MultiMapConfig(region_size=3.0),
         runtime=RuntimeConfig(device="auto", input_width=320),
     )

@@ -214,6 +214,31 @@ def damped_step(lin: Linearisation, damping: float) -> torch.Tensor:
     return -torch.linalg.solve(H, lin.g)
 
 
+@dataclass(frozen=True)
+class MotionPrior:
+    """A quadratic prior ``sum_k w_k xi_k^2`` on the twist ``xi = log(T0^-1 T)`` from the
+    initial pose, w (6,) per coordinate (translation first)."""
+
+    w: torch.Tensor
+
+    @staticmethod
+    def scaled_to(lin: Linearisation, ratio: float) -> "MotionPrior":
+        """Weights ``ratio`` times the mean diagonal curvature of the data term's translation
+        and rotation blocks at ``lin``."""
+        d = torch.diagonal(lin.H)
+        w = torch.cat([d[:3].mean().expand(3), d[3:].mean().expand(3)]) * ratio
+        return MotionPrior(w)
+
+    def cost(self, xi: torch.Tensor) -> float:
+        return float((self.w * xi * xi).sum())
+
+    def added_to(self, lin: Linearisation, xi: torch.Tensor) -> Linearisation:
+        """``lin`` with the prior at twist ``xi`` (6,) added: the step is taken on the right
+        of the current pose, and for the small twists of one frame d log / d step ~ I."""
+        return Linearisation(lin.cost + self.cost(xi), lin.H + torch.diag(2 * self.w).to(lin.H.dtype),
+                             lin.g + (2 * self.w * xi).to(lin.g.dtype), lin.depth, lin.hit, lin.residual)
+
+
 def limit_step(delta: torch.Tensor, max_m: float, max_rad: float) -> torch.Tensor:
     """Scale a twist (6,) down so its translation <= max_m and its rotation <= max_rad (a
     trust region: at frame rate one step never needs to be large, and a far step taken

@@ -9,12 +9,16 @@ residual exceeds ``outlier_factor`` times the median are dropped.
 Two optimisers: ``adam`` (the paper's; new pixels each iteration if ``resample_rays``, the
 lowest-loss pose is returned) and ``gauss_newton`` (Levenberg-Marquardt on the same loss with
 the closed-form model of ``slam.gauss_newton``; one ray set, steps accepted only when the
-loss falls). Tracking reports failure when too few rays hit the map, the median depth
-residual stays too large or the estimate jumped implausibly far (then the guess is returned).
+loss falls; optionally a prior towards the initial guess, ``tracking.motion_prior``, for the
+directions a plain wall leaves unobserved). Tracking reports failure when too few rays hit
+the map, the median depth residual stays too large or the estimate jumped implausibly far
+(then the guess is returned).
 
 Optionally (``tracking.feature_count`` > 0, the ``cpu`` preset) sparse ORB correspondences
 to the previous frame (``slam.features``) start the optimisation at their PnP pose and add
-their reprojection cost to the loss, for either optimiser.
+their reprojection cost to the loss, for either optimiser; with ``feature_dense_check``
+(Gauss-Newton) a frame's features are dropped when the dense loss prefers the motion model's
+guess to their PnP pose.
 """
 
 from __future__ import annotations
@@ -28,7 +32,7 @@ from .config import SLAMConfig, TrackingConfig
 from .decoder import Decoder
 from .features import Correspondences, reprojection_cost, reprojection_terms
 from .frames import TensorFrame, sample_pixels
-from .gauss_newton import Linearisation, damped_step, limit_step, linearise
+from .gauss_newton import Linearisation, MotionPrior, damped_step, limit_step, linearise
 from .geometry import se3_exp, se3_inverse, se3_log
 from .losses import LossWeights, compute_losses
 from .mapping import MapSnapshot, training_far
@@ -143,12 +147,14 @@ class Tracker:
         """
         T_init = T_init.to(self.device)
         sparse = None
+        T_guess_map = fmap.T_map_world @ T_init
         if matches is not None and self._plausible(matches, T_init):
             T_init = torch.as_tensor(matches.T_world_cam_pnp, dtype=T_init.dtype, device=self.device)
             sparse = _SparseTerm.in_map(matches, fmap.T_map_world, self.config.tracking)
         T0_map = fmap.T_map_world @ T_init
         if self.config.tracking.optimizer == "gauss_newton":
-            it, loss, T_best_map, hit_ratio, residual_med = self._levenberg_marquardt(frame, fmap, T0_map, sparse)
+            it, loss, T_best_map, hit_ratio, residual_med = self._levenberg_marquardt(
+                frame, fmap, T0_map, sparse, T_guess_map if sparse is not None else None)
         else:
             it, loss, T_best_map, hit_ratio, residual_med = self._adam(frame, fmap, T0_map, sparse)
         return self._result(fmap, T0_map, T_best_map, it, loss, hit_ratio, residual_med)
@@ -163,29 +169,50 @@ class Tracker:
         return float(jump[:3].norm()) <= c.max_jump_m and float(jump[3:].norm()) <= c.max_jump_rad
 
     def _levenberg_marquardt(self, frame: TensorFrame, fmap: FrozenMap, T0_map: torch.Tensor,
-                             sparse: _SparseTerm | None):
+                             sparse: _SparseTerm | None, T_guess_map: torch.Tensor | None = None):
         """Damped Gauss-Newton on the paper's loss (``slam.gauss_newton``): one set of rays,
-        outliers fixed at the initial pose, a step accepted only if it lowers the loss."""
+        outliers fixed at the initial pose, a step accepted only if it lowers the loss.
+
+        ``T_guess_map``: the motion model's guess when ``T0_map`` is the features' PnP pose.
+        With ``tracking.feature_dense_check`` the features are dropped for this frame when
+        the dense loss is lower at the guess than at their pose: repeated texture can make
+        RANSAC agree on a pose one period off, which the depth does not support."""
         c, r = self.config.tracking, self.config.render
         batch = sample_pixels(frame, c.num_rays, self._gen)
         near, far = tracking_bounds(batch.depth, r.truncation, c.sample_band, r.max_distance)
         # A ray that leaves the map costs as much as one off by the truncation in depth and SDF.
         miss_cost = self.weights.depth * r.truncation + self.weights.sdf * r.truncation ** 2
 
+        def dense_at(T: torch.Tensor, ray_weight: torch.Tensor | None) -> Linearisation:
+            return linearise(T, batch.dirs_cam, batch.rgb, batch.depth, ray_weight, fmap.view,
+                             fmap.decoder, near=near, far=far,
+                             step=r.step_ratio * fmap.view.voxel_size, truncation=r.truncation,
+                             max_hits=r.max_hits, weights=self.weights, max_depth=r.max_distance,
+                             color_weight_eps=c.color_weight_eps, miss_cost=miss_cost)
+
         def linearise_at(T: torch.Tensor, ray_weight: torch.Tensor | None) -> Linearisation:
-            lin = linearise(T, batch.dirs_cam, batch.rgb, batch.depth, ray_weight, fmap.view,
-                            fmap.decoder, near=near, far=far,
-                            step=r.step_ratio * fmap.view.voxel_size, truncation=r.truncation,
-                            max_hits=r.max_hits, weights=self.weights, max_depth=r.max_distance,
-                            color_weight_eps=c.color_weight_eps, miss_cost=miss_cost)
+            lin = dense_at(T, ray_weight)
             return lin if sparse is None else sparse.added_to(lin, T)
 
-        first = linearise_at(T0_map, None)
+        first = dense_at(T0_map, None)
+        if sparse is not None and T_guess_map is not None and c.feature_dense_check:
+            at_guess = dense_at(T_guess_map, None)
+            if at_guess.cost < first.cost:
+                sparse, T0_map, first = None, T_guess_map, at_guess
         if not bool(first.hit.any()):
             return 0, float("inf"), T0_map, 0.0, float("inf")
         med = first.residual[first.hit].median()
         inlier = (first.hit & (first.residual <= c.outlier_factor * med + 1e-6)).float()
-        T, best = T0_map, linearise_at(T0_map, inlier)
+        data_at = linearise_at
+        start = data_at(T0_map, inlier)
+        if c.motion_prior > 0:
+            prior = MotionPrior.scaled_to(start, c.motion_prior)
+
+            def linearise_at(T: torch.Tensor, ray_weight: torch.Tensor | None) -> Linearisation:
+                return prior.added_to(data_at(T, ray_weight), se3_log(se3_inverse(T0_map) @ T))
+
+            start = prior.added_to(start, torch.zeros(6, dtype=T0_map.dtype))
+        T, best = T0_map, start
         damping = c.lm_damping
         it = 0
         for it in range(1, c.iterations + 1):

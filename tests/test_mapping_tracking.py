@@ -447,3 +447,74 @@ def test_keyframes_get_keyframe_iterations_also_when_batched(frames, monkeypatch
     assert not mapper.process(TrackedFrame(f, moved)).is_keyframe   # batch of two, one keyframe
     mapper.process(TrackedFrame(f, moved))
     assert calls == [3, 2, 7, 2]
+
+
+def test_motion_prior_holds_directions_the_data_does_not_observe():
+    """A plain wall: the data term fixes depth (z) and the two tilts, not x, y and roll. With
+    a (noisy) gradient in every direction, the undamped step follows the noise along the
+    unobserved ones; the prior keeps them near zero and leaves the observed ones alone."""
+    from slam.gauss_newton import Linearisation, MotionPrior, damped_step
+
+    H = torch.diag(torch.tensor([1e-6, 1e-6, 100.0, 30.0, 30.0, 1e-6]))
+    g = torch.tensor([1e-4, -1e-4, -1.0, 0.3, -0.3, 1e-4])
+    empty = torch.zeros(0)
+    lin = Linearisation(1.0, H, g, empty, empty.bool(), empty)
+    free = damped_step(lin, 1e-3)
+    prior = MotionPrior.scaled_to(lin, 0.01)
+    held = damped_step(prior.added_to(lin, torch.zeros(6)), 1e-3)
+    assert float(free[[0, 1, 5]].abs().min()) > 10.0, "the noise direction runs away without the prior"
+    assert float(held[[0, 1, 5]].abs().max()) < 0.1
+    observed = [2, 3, 4]
+    assert torch.allclose(held[observed], free[observed], rtol=0.02)
+    # The prior's own terms: cost w xi^2, gradient 2 w xi, curvature 2 w.
+    xi = torch.tensor([0.01, 0.0, 0.0, 0.0, 0.02, 0.0])
+    at = prior.added_to(lin, xi)
+    assert at.cost == pytest.approx(1.0 + float((prior.w * xi * xi).sum()))
+    assert torch.allclose(at.g - g, 2 * prior.w * xi) and torch.allclose(at.H - H, torch.diag(2 * prior.w))
+    from slam.config import ConfigError, TrackingConfig
+
+    with pytest.raises(ConfigError, match="motion_prior"):
+        TrackingConfig(motion_prior=-0.1)
+
+
+def test_tracking_with_a_motion_prior_still_recovers_a_perturbed_pose(trained, frames):
+    """On a view that observes all six directions the prior (1 % of the curvature) must not
+    hold the pose back from the data's optimum."""
+    config = replace(CONFIG, tracking=replace(CONFIG.tracking, optimizer="gauss_newton", motion_prior=0.01))
+    fmap = FrozenMap(trained.mapper.snapshot(), config, CPU)
+    T_gt = gt_pose(frames[0])
+    T_init = _offset(T_gt, 0.02, 1.0)
+    with_prior = Tracker(config, CPU).track(frames[0], fmap, T_init)
+    plain = Tracker(replace(config, tracking=replace(config.tracking, motion_prior=0.0)), CPU).track(
+        frames[0], fmap, T_init)
+    assert with_prior.ok
+    t0, r0 = pose_error(T_init, T_gt)
+    t1, r1 = pose_error(with_prior.T_world_cam, plain.T_world_cam)
+    assert t1 < 0.25 * t0 and r1 < 0.25 * r0, (t1, r1)
+
+
+def _matches_seen_from(frame: TensorFrame, T_cam: torch.Tensor, n: int = 60) -> Correspondences:
+    """Matches that agree with each other on the camera pose ``T_cam`` (their PnP pose)
+    rather than the frame's GT: RANSAC agreeing on a wrong pose (repeated texture)."""
+    exact = _exact_matches(frame, T_cam, n)
+    D = (T_cam.double() @ se3_inverse(gt_pose(frame).double())).numpy()
+    return replace(exact, points_world=exact.points_world @ D[:3, :3].T + D[:3, 3])
+
+
+def test_dense_check_drops_features_whose_pose_the_depth_does_not_support(trained, frames):
+    config = replace(CONFIG, tracking=replace(CONFIG.tracking, optimizer="gauss_newton", feature_weight=0.02,
+                                              feature_dense_check=True))
+    unchecked = replace(config, tracking=replace(config.tracking, feature_dense_check=False))
+    fmap = FrozenMap(trained.mapper.snapshot(), config, CPU)
+    T_gt = gt_pose(frames[0])
+    guess = _offset(T_gt, 0.01, 0.5)
+    wrong = _matches_seen_from(frames[0], _offset(T_gt, 0.08, 0.0))
+    checked = Tracker(config, CPU).track(frames[0], fmap, guess, wrong)
+    pulled = Tracker(unchecked, CPU).track(frames[0], fmap, guess, wrong)
+    dense_only = Tracker(config, CPU).track(frames[0], fmap, guess)
+    assert torch.allclose(checked.T_world_cam, dense_only.T_world_cam)
+    assert pose_error(pulled.T_world_cam, T_gt)[0] > 2 * pose_error(checked.T_world_cam, T_gt)[0]
+    # Right matches and a far guess (fast motion): the check keeps them.
+    right = _exact_matches(frames[0], _offset(T_gt, 0.005, 0.2))
+    kept = Tracker(config, CPU).track(frames[0], fmap, _offset(T_gt, 0.15, 6.0), right)
+    assert kept.ok and pose_error(kept.T_world_cam, T_gt)[0] < 0.01
