@@ -140,7 +140,7 @@ class LoopCloser:
             if match_kf is None or keyframe.frame is None:
                 continue
             result = verify_candidate(keyframe.frame, features, cand.entry.features, match_kf.T_map_cam,
-                                      self._frozen(mapper, target), self.config, self._tracker, self._gen)
+                                      lambda: self._frozen(mapper, target), self.config, self._tracker, self._gen)
             self.timings.add("verification", time.perf_counter() - t0)
             record = {"agent": submap.agent, "map": submap.map_id, "frame_index": keyframe.frame_index,
                       "timestamp": keyframe.timestamp, "match_agent": target.agent, "match_map": target.map_id,

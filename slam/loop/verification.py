@@ -23,6 +23,7 @@ not accepted. Pure functions of frames, features and a frozen map view.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -126,12 +127,14 @@ def frozen_in_map_frame(snapshot: MapSnapshot, config: SLAMConfig, device: torch
 
 
 def verify_candidate(query_frame: TensorFrame, query_features: FrameFeatures, match_features_: FrameFeatures,
-                     T_map_match: torch.Tensor, target: FrozenMap, config: SLAMConfig, tracker: Tracker,
-                     generator: torch.Generator | None = None) -> LoopVerification:
+                     T_map_match: torch.Tensor, target: "FrozenMap | Callable[[], FrozenMap]", config: SLAMConfig,
+                     tracker: Tracker, generator: torch.Generator | None = None) -> LoopVerification:
     """Verify that the query keyframe sees the place of a candidate keyframe of the target map.
 
     ``T_map_match`` (4, 4): the candidate keyframe's pose in the target map; ``target``: the
-    target map frozen in its own frame (:func:`frozen_in_map_frame`); ``tracker``: a tracker
+    target map frozen in its own frame (:func:`frozen_in_map_frame`), or a function that
+    builds it, called only once the features agree (most candidates stop at PnP, and
+    freezing a map copies its snapshot and rebuilds its view); ``tracker``: a tracker
     set up for the refinement (``loop.inter_map_iterations`` steps).
     """
     lc = config.loop
@@ -140,6 +143,8 @@ def verify_candidate(query_frame: TensorFrame, query_features: FrameFeatures, ma
                                            lc.min_inliers)
     if T_mq is None or inliers < lc.min_inliers:
         return LoopVerification(False, f"{inliers} PnP inliers < {lc.min_inliers}", matches, inliers)
+    if callable(target):
+        target = target()
     device = T_map_match.device
     T_pnp = T_map_match @ torch.as_tensor(T_mq, dtype=torch.float32, device=device)
     result = tracker.track(query_frame, target, T_pnp)
