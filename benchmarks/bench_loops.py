@@ -31,7 +31,16 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import SHARED_DATA, TUM_RPY, cache_sequence, load_line, write_json  # noqa: E402
+from common import (  # noqa: E402
+    SHARED_DATA,
+    TUM_RPY,
+    Figure,
+    cache_sequence,
+    figures_payload,
+    figures_table,
+    load_line,
+    write_json,
+)
 
 SCENARIOS = ("laps", "loss", "agents", "real")
 TUM_DESK = SHARED_DATA / "rgbd_dataset_freiburg1_desk"
@@ -238,6 +247,42 @@ def scenario_real(args, out: Path) -> dict:
     return rows
 
 
+def target_figures(results: dict) -> list[Figure]:
+    """Issue 17's figures from the scenarios that ran."""
+    figs: list[Figure] = []
+    laps = results.get("laps")
+    if laps:
+        on, off = laps["with_loops"], laps["no_loops"]
+        figs += [Figure("laps: ATE with loops / --no-loops", laps["ate_ratio"], "", "<= 0.5"),
+                 Figure("laps: ATE with loops", on["ate_cm"], "cm", "<= 5"),
+                 Figure("laps: false loops", on["false_loops"], "", "<= 0"),
+                 Figure("laps: s/frame, last 100 / first 100 (loops)", on["last100_s"] / on["first100_s"], "",
+                        "<= 1.25"),
+                 Figure("laps: loop precision", on["precision"], "", "report"),
+                 Figure("laps: loop recall (keyframes)", on["recall"], "", "report")]
+    loss = results.get("loss")
+    if loss:
+        figs += [Figure("loss: ATE / run without the loss", loss["ate_ratio"], "", "<= 2"),
+                 Figure("loss: map groups at the end", loss["map_groups"], "", "<= 1"),
+                 Figure("loss: false loops", loss["false_loops"], "", "<= 0")]
+    agents = results.get("agents")
+    if agents:
+        figs += [Figure("agents: joint ATE / agent 0 alone", agents["ate_ratio"], "", "<= 2"),
+                 Figure("agents: mesh accuracy joint - alone", agents["joint_accuracy_cm"] - agents["alone_accuracy_cm"],
+                        "cm", "<= 1"),
+                 Figure("agents: false loops", agents["false_loops"], "", "<= 0")]
+    for name, row in (results.get("real") or {}).items():
+        if not isinstance(row, dict):  # bench_seconds
+            continue
+        if "missing" in row:
+            figs.append(Figure(f"{name}: frames/s loops / no loops", None, "", ">= 0.9", f"missing {row['missing']}"))
+            continue
+        figs += [Figure(f"{name}: frames/s loops / no loops", row["fps_ratio"], "", ">= 0.9"),
+                 Figure(f"{name}: ATE loops - no loops", row["loops"]["ate_cm"] - row["no_loops"]["ate_cm"], "cm",
+                        "report", "not worse: <= 0 within run-to-run noise")]
+    return figs
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--scenarios", default=",".join(SCENARIOS))
@@ -267,7 +312,10 @@ def main() -> int:
         results[name] = globals()[f"scenario_{name}"](args, args.out)
         results[name]["bench_seconds"] = time.perf_counter() - t0
         print(f"## {name}\n{json.dumps(results[name], indent=2, default=float)}", flush=True)
-    write_json(args.json, {"bench_loops": results})
+    figures = target_figures(results)
+    print(figures_table(figures))
+    write_json(args.json, figures_payload("Multi-maps and loop closure (issue 17)", figures,
+                                          {"bench_loops": results, "quick": args.quick}))
     return 0
 
 

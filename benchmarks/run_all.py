@@ -1,6 +1,6 @@
 """Run every core benchmark one after the other and write one markdown report.
 
-    python benchmarks/run_all.py [--quick] [--only mapping,iteration,slam] [--out FILE]
+    python benchmarks/run_all.py [--quick] [--only mapping,iteration,slam,loops] [--out FILE]
 
 Each script runs in its own process with ``--json``; the report holds a summary of every
 figure against its target, then each script's own output (its tables), with the time it took
@@ -25,6 +25,7 @@ SCRIPTS = {
     "mapping": "benchmarks/bench_mapping.py",
     "iteration": "benchmarks/bench_iteration.py",
     "slam": "benchmarks/bench_slam.py",
+    "loops": "benchmarks/bench_loops.py",
 }
 
 
