@@ -23,7 +23,7 @@ reference it is tested against, and ``render_rays`` under autograd for the Jacob
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 
@@ -235,8 +235,8 @@ class MotionPrior:
     def added_to(self, lin: Linearisation, xi: torch.Tensor) -> Linearisation:
         """``lin`` with the prior at twist ``xi`` (6,) added: the step is taken on the right
         of the current pose, and for the small twists of one frame d log / d step ~ I."""
-        return Linearisation(lin.cost + self.cost(xi), lin.H + torch.diag(2 * self.w).to(lin.H.dtype),
-                             lin.g + (2 * self.w * xi).to(lin.g.dtype), lin.depth, lin.hit, lin.residual)
+        return replace(lin, cost=lin.cost + self.cost(xi), H=lin.H + torch.diag(2 * self.w).to(lin.H.dtype),
+                       g=lin.g + (2 * self.w * xi).to(lin.g.dtype))
 
 
 def limit_step(delta: torch.Tensor, max_m: float, max_rad: float) -> torch.Tensor:

@@ -153,7 +153,9 @@ class Tracker:
             sparse = _SparseTerm.in_map(matches, fmap.T_map_world, self.config.tracking)
         T0_map = fmap.T_map_world @ T_init
         if self.config.tracking.optimizer == "gauss_newton":
-            it, loss, T_best_map, hit_ratio, residual_med = self._levenberg_marquardt(
+            # The start may fall back from the PnP pose to the guess (feature_dense_check):
+            # the jump test and a diverged estimate's fallback use the start it took.
+            it, loss, T_best_map, hit_ratio, residual_med, T0_map = self._levenberg_marquardt(
                 frame, fmap, T0_map, sparse, T_guess_map if sparse is not None else None)
         else:
             it, loss, T_best_map, hit_ratio, residual_med = self._adam(frame, fmap, T0_map, sparse)
@@ -171,7 +173,8 @@ class Tracker:
     def _levenberg_marquardt(self, frame: TensorFrame, fmap: FrozenMap, T0_map: torch.Tensor,
                              sparse: _SparseTerm | None, T_guess_map: torch.Tensor | None = None):
         """Damped Gauss-Newton on the paper's loss (``slam.gauss_newton``): one set of rays,
-        outliers fixed at the initial pose, a step accepted only if it lowers the loss.
+        outliers fixed at the initial pose, a step accepted only if it lowers the loss. Returns
+        (iterations, loss, pose, hit ratio, median depth residual, the pose it started from).
 
         ``T_guess_map``: the motion model's guess when ``T0_map`` is the features' PnP pose.
         With ``tracking.feature_dense_check`` the features are dropped for this frame when
@@ -190,9 +193,13 @@ class Tracker:
                              max_hits=r.max_hits, weights=self.weights, max_depth=r.max_distance,
                              color_weight_eps=c.color_weight_eps, miss_cost=miss_cost)
 
+        prior: MotionPrior | None = None
+
         def linearise_at(T: torch.Tensor, ray_weight: torch.Tensor | None) -> Linearisation:
             lin = dense_at(T, ray_weight)
-            return lin if sparse is None else sparse.added_to(lin, T)
+            if sparse is not None:
+                lin = sparse.added_to(lin, T)
+            return lin if prior is None else prior.added_to(lin, se3_log(se3_inverse(T0_map) @ T))
 
         first = dense_at(T0_map, None)
         if sparse is not None and T_guess_map is not None and c.feature_dense_check:
@@ -200,17 +207,12 @@ class Tracker:
             if at_guess.cost < first.cost:
                 sparse, T0_map, first = None, T_guess_map, at_guess
         if not bool(first.hit.any()):
-            return 0, float("inf"), T0_map, 0.0, float("inf")
+            return 0, float("inf"), T0_map, 0.0, float("inf"), T0_map
         med = first.residual[first.hit].median()
         inlier = (first.hit & (first.residual <= c.outlier_factor * med + 1e-6)).float()
-        data_at = linearise_at
-        start = data_at(T0_map, inlier)
+        start = linearise_at(T0_map, inlier)
         if c.motion_prior > 0:
             prior = MotionPrior.scaled_to(start, c.motion_prior)
-
-            def linearise_at(T: torch.Tensor, ray_weight: torch.Tensor | None) -> Linearisation:
-                return prior.added_to(data_at(T, ray_weight), se3_log(se3_inverse(T0_map) @ T))
-
             start = prior.added_to(start, torch.zeros(6, dtype=T0_map.dtype))
         T, best = T0_map, start
         damping = c.lm_damping
@@ -232,7 +234,7 @@ class Tracker:
                     break
         hit_ratio = float(best.hit.float().mean())
         residual_med = float(best.residual[best.hit].median()) if bool(best.hit.any()) else float("inf")
-        return it, best.cost, T, hit_ratio, residual_med
+        return it, best.cost, T, hit_ratio, residual_med, T0_map
 
     def _adam(self, frame: TensorFrame, fmap: FrozenMap, T0_map: torch.Tensor, sparse: _SparseTerm | None):
         """The paper's optimiser: Adam on the twist, new rays every iteration if configured."""
