@@ -2,7 +2,7 @@
 #   docker build -t voxfusion .
 #   docker run -p 8000:8000 -v voxfusion-data:/data -e VOXFUSION_TOKEN=change-me voxfusion
 # then open http://localhost:8000/?token=change-me (the 3D viewer is relayed through port 8000;
-# 8080 is viser's own port, published only if you want to reach it directly).
+# 8080 is viser's own port, which admits only that token-checked relay: no need to publish it).
 FROM python:3.11-slim
 
 ARG TORCH_VERSION=2.13.0

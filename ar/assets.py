@@ -59,7 +59,10 @@ def load_asset(
         # the per-corner colours of a face-coloured mesh).
         loaded = trimesh.load(io.BytesIO(data), file_type=extension, process=False)
     except Exception as error:  # noqa: BLE001 - trimesh raises anything from its parsers
-        raise AssetError(f"{name}: cannot parse as {extension.upper()} ({type(error).__name__}: {error})") from error
+        # The parser's own words ("buffer size must be a multiple of element size") mean
+        # nothing to the user; they stay on the chained exception.
+        raise AssetError(f"{name} could not be read as a {extension.upper()} file: it is damaged or "
+                         f"not a {extension.upper()} file") from error
     meshes = _triangle_meshes(loaded)
     if not meshes:
         raise AssetError(f"{name}: contains no triangles")
@@ -72,7 +75,8 @@ def load_asset(
     try:
         return _concatenate(meshes)
     except ValueError as error:
-        raise AssetError(f"{name}: invalid mesh data ({error})") from error
+        raise AssetError(f"{name} holds mesh data that cannot be used (faces that point at missing "
+                         f"vertices, or mismatched colours)") from error
 
 
 def _read_source(source: bytes | str | Path, filename: str | None) -> tuple[bytes, str]:

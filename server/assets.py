@@ -17,6 +17,13 @@ from ar.assets import SUPPORTED_EXTENSIONS
 ASSET_ID = re.compile(r"^[0-9a-f]{16}$")
 
 
+def display_name(filename: str) -> str:
+    """The client's file name as messages show it: its last part, one line, at most 80 characters."""
+    name = Path(filename.replace("\\", "/")).name.replace("\n", " ").replace("\r", " ").strip()
+    suffix = Path(name).suffix
+    return name if len(name) <= 80 else name[:80 - len(suffix) - 3] + "..." + suffix
+
+
 class AssetStore:
     def __init__(self, directory: Path) -> None:
         self._directory = directory
@@ -29,7 +36,7 @@ class AssetStore:
         if extension not in SUPPORTED_EXTENSIONS:
             raise AssetError(f"{filename!r}: unsupported asset type, expected a file ending in "
                              f"{', '.join('.' + e for e in SUPPORTED_EXTENSIONS)}")
-        mesh = load_asset(data, f"upload.{extension}")
+        mesh = load_asset(data, display_name(filename))
         asset_id = secrets.token_hex(8)
         self._directory.mkdir(parents=True, exist_ok=True)
         (self._directory / f"{asset_id}.{extension}").write_bytes(data)

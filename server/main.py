@@ -12,10 +12,12 @@ from contextlib import asynccontextmanager
 from dataclasses import dataclass
 
 from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from fastapi.staticfiles import StaticFiles
 
 from server.assets import AssetStore
+from server.errors import error_text, validation_message
 from server.rendering import MapCache, MeshFiles, NoMapYet
 from server.routes_pages import STATIC_DIR
 from server.sessions import SessionConflict, SessionManager, SessionNotFound
@@ -112,7 +114,7 @@ class _BodyTooLarge(Exception):
 def _error_handlers(app: FastAPI) -> None:
     def detail(status_code: int):
         async def handler(request: Request, error: Exception) -> JSONResponse:
-            message = str(error.args[0]) if isinstance(error, KeyError) and error.args else str(error)
+            message = error_text(error)
             if isinstance(error, SessionNotFound):
                 message = f"no session {message!r}"
             return JSONResponse({"detail": message}, status_code=status_code)
@@ -121,15 +123,56 @@ def _error_handlers(app: FastAPI) -> None:
     async def upload_error(request: Request, error: UploadError) -> JSONResponse:
         return JSONResponse({"detail": str(error)}, status_code=error.status)
 
+    async def invalid_request(request: Request, error: RequestValidationError) -> JSONResponse:
+        # One message, as every other error (FastAPI's default is a list of error objects).
+        return JSONResponse({"detail": validation_message(error.errors())}, status_code=422)
+
+    app.add_exception_handler(RequestValidationError, invalid_request)
     app.add_exception_handler(UploadError, upload_error)
     app.add_exception_handler(SessionNotFound, detail(404))
     app.add_exception_handler(SessionConflict, detail(409))
     app.add_exception_handler(NoMapYet, detail(409))
 
 
+_BODY_ERRORS = {"400": "the body cannot be parsed (not JSON, not UTF-8, a broken form)",
+                "413": "the body is larger than VOXFUSION_MAX_UPLOAD_MB"}
+
+
+def _one_error_shape(schema: dict) -> dict:
+    """The OpenAPI schema with every error documented as it is sent: ``ErrorOut``
+    (``{"detail": str}``) as JSON, also for 422 (FastAPI documents its list form) and for
+    routes whose success is not JSON (FastAPI gives their errors the success's media type);
+    an operation with a body also lists 400 and 413, which the body parser and the size
+    limit answer for any of them. In place, idempotent."""
+    error = {"application/json": {"schema": {"$ref": "#/components/schemas/ErrorOut"}}}
+    for operations in schema.get("paths", {}).values():
+        for operation in operations.values():
+            if not isinstance(operation, dict):
+                continue
+            responses = operation.setdefault("responses", {})
+            if "requestBody" in operation:
+                for code, description in _BODY_ERRORS.items():
+                    responses.setdefault(code, {"description": description})
+            for code, response in responses.items():
+                if code.isdigit() and int(code) >= 400:
+                    response["content"] = dict(error)
+    components = schema.get("components", {}).get("schemas", {})
+    for name in ("HTTPValidationError", "ValidationError"):
+        components.pop(name, None)
+    return schema
+
+
 def create_app(settings: Settings | None = None, demo: DemoSession | None = None) -> FastAPI:
     """The application; ``settings`` default to the environment's (``settings_from_env``)."""
-    from server import routes_ar, routes_assets, routes_pages, routes_render, routes_sessions, routes_stream
+    from server import (
+        routes_ar,
+        routes_assets,
+        routes_docs,
+        routes_pages,
+        routes_render,
+        routes_sessions,
+        routes_stream,
+    )
 
     settings = settings or settings_from_env()
 
@@ -169,13 +212,19 @@ def create_app(settings: Settings | None = None, demo: DemoSession | None = None
                 viewer.stop()
             torch.set_num_threads(threads_before)
 
+    # FastAPI's own /docs, /redoc and /openapi.json are off: routes_docs serves them with
+    # local assets (no CDN) and behind the token.
     app = FastAPI(title="voxfusion", version="0.1.0", description=DESCRIPTION, lifespan=lifespan,
+                  docs_url=None, redoc_url=None, openapi_url=None,
                   openapi_tags=[{"name": "sessions"}, {"name": "streaming"}, {"name": "render"},
                                 {"name": "ar"}, {"name": "viewer"}])
+    app.openapi = lambda: _one_error_shape(FastAPI.openapi(app))  # type: ignore[method-assign]
     app.state.settings = settings
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_upload_bytes)
     _error_handlers(app)
-    for module in (routes_sessions, routes_stream, routes_render, routes_ar, routes_assets, routes_pages):
+    for module in (routes_sessions, routes_stream, routes_render, routes_ar, routes_assets, routes_pages,
+                   routes_docs):
         app.include_router(module.router)
     app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
+    routes_docs.mount_assets(app)
     return app

@@ -39,6 +39,11 @@ def intrinsics_matrix(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
     return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
 
 
+MAX_POSITION_M = 1e5
+"""Farthest camera position from the world origin a render accepts (100 km): beyond, ray
+arithmetic in float32 loses the scene entirely and may overflow."""
+
+
 def check_pose(T: np.ndarray, what: str = "T_world_cam") -> np.ndarray:
     """(4, 4) rigid transform or ValueError saying what is wrong."""
     T = np.asarray(T, dtype=np.float64)
@@ -46,6 +51,8 @@ def check_pose(T: np.ndarray, what: str = "T_world_cam") -> np.ndarray:
         raise ValueError(f"{what}: expected a 4x4 matrix, got shape {T.shape}")
     if not np.all(np.isfinite(T)):
         raise ValueError(f"{what}: contains NaN or infinity")
+    if np.abs(T[:3, 3]).max() > MAX_POSITION_M:
+        raise ValueError(f"{what}: the position is more than {MAX_POSITION_M:g} m from the world origin")
     if not np.allclose(T[3], [0, 0, 0, 1], atol=1e-6):
         raise ValueError(f"{what}: the last row must be [0, 0, 0, 1]")
     R = T[:3, :3]

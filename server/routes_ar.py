@@ -12,6 +12,7 @@ from starlette.concurrency import run_in_threadpool
 from ar import ObjectSpecError, composite, load_objects_json
 from server.assets import AssetStore
 from server.deps import get_assets, get_manager, get_map_cache, require_token
+from server.errors import error_text, strip_paths
 from server.rendering import Camera, MapCache, check_pose, intrinsics_matrix, png_from_rgb, render
 from server.routes_render import load_map
 from server.schemas import ARRequest, ErrorOut
@@ -105,7 +106,8 @@ async def background_for(request: ARRequest, session_id: str, manager: SessionMa
         rgb, depth, frame_K, stamp = await run_in_threadpool(input_frame, state.spec, manager.session_dir(session_id),
                                                              index)
     except (KeyError, DataError) as error:
-        raise HTTPException(status.HTTP_404_NOT_FOUND, f"background frame:{index}: {error}") from None
+        message = strip_paths(error_text(error), manager.session_dir(session_id) / "input", "the input")
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"background frame:{index}: {message}") from None
     height, width = depth.shape
     if size is not None and size != (width, height):
         raise HTTPException(422,
@@ -127,8 +129,8 @@ async def ar_view(session_id: str, request: ARRequest, manager: SessionManager =
     try:
         objects = await run_in_threadpool(
             load_objects_json, [o.model_dump(exclude_none=True) for o in request.objects], assets.resolve)
-    except (ObjectSpecError, ValueError) as error:
-        raise HTTPException(422, str(error)) from None
+    except (ObjectSpecError, ValueError, KeyError) as error:
+        raise HTTPException(422, error_text(error)) from None
     background = await background_for(request, session_id, manager, maps)
     camera = background.camera
     result = await run_in_threadpool(composite, background.rgb, background.depth, objects, camera.K,

@@ -5,8 +5,9 @@ FastAPI. The page therefore loads viser's (single-file) client from ``GET /viewe
 client connects back to ``ws://<api host>/viewer`` (its default: the page's own URL), which is
 relayed byte for byte to viser on loopback. One port to expose, and the token protects the
 viewer too: a page opened with ``?token=`` gets it as an HttpOnly cookie, which the browser
-then sends with the viewer's WebSocket handshake. viser's own port stays reachable directly
-when it is bound to a public interface (``GET /api/viewer`` tells the port).
+then sends with the viewer's WebSocket handshake. viser's own port refuses every WebSocket
+but this relay's (``server.viewer``: the relay proves itself with a secret header), so the
+scene is reached only through the token check.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from fastapi import APIRouter, Request, WebSocket, status
 from fastapi.responses import FileResponse, HTMLResponse, Response
 
 from server.deps import TOKEN_COOKIE, token_ok
+from server.viewer import RELAY_HEADER
 
 router = APIRouter(include_in_schema=False)
 
@@ -27,12 +29,17 @@ STATIC_DIR = Path(__file__).resolve().parent.parent / "static"
 _LOCKED_PAGE = """<!doctype html><meta charset="utf-8"><title>voxfusion: token needed</title>
 <body style="font-family:sans-serif;max-width:40em;margin:4em auto">
 <h1>This server needs a token</h1>
-<p>Open this page as <code>/?token=YOUR_TOKEN</code> (the value of <code>VOXFUSION_TOKEN</code> on the server).</p>
+<p>Open this page with <code>?token=YOUR_TOKEN</code> (the value of <code>VOXFUSION_TOKEN</code> on the server).</p>
 <form method="get"><input name="token" type="password" placeholder="token" autofocus> <button>Open</button></form>
 </body>"""
 
 
-def _with_token_cookie(response: Response, request: Request) -> Response:
+def locked_page() -> HTMLResponse:
+    """401 for a browser: a page that says how to give the token."""
+    return HTMLResponse(_LOCKED_PAGE, status_code=status.HTTP_401_UNAUTHORIZED)
+
+
+def with_token_cookie(response: Response, request: Request) -> Response:
     """Remember a ``?token=`` in a cookie so that the viewer's WebSocket carries it."""
     token = request.query_params.get("token")
     if token and request.app.state.settings.token is not None:
@@ -43,8 +50,8 @@ def _with_token_cookie(response: Response, request: Request) -> Response:
 @router.get("/")
 def index(request: Request) -> Response:
     if not token_ok(request):
-        return HTMLResponse(_LOCKED_PAGE, status_code=status.HTTP_401_UNAUTHORIZED)
-    return _with_token_cookie(FileResponse(STATIC_DIR / "index.html", media_type="text/html"), request)
+        return locked_page()
+    return with_token_cookie(FileResponse(STATIC_DIR / "index.html", media_type="text/html"), request)
 
 
 @lru_cache(maxsize=1)
@@ -57,12 +64,12 @@ def _viser_client_html() -> bytes:
 @router.get("/viewer")
 def viewer_page(request: Request) -> Response:
     if not token_ok(request):
-        return HTMLResponse(_LOCKED_PAGE, status_code=status.HTTP_401_UNAUTHORIZED)
+        return locked_page()
     viewer = request.app.state.viewer
     if viewer is None or not viewer.running:
         return HTMLResponse("<p style='font-family:sans-serif'>The 3D viewer is switched off on this server.</p>",
                             status_code=status.HTTP_503_SERVICE_UNAVAILABLE)
-    return _with_token_cookie(HTMLResponse(_viser_client_html()), request)
+    return with_token_cookie(HTMLResponse(_viser_client_html()), request)
 
 
 @router.websocket("/viewer")
@@ -80,7 +87,9 @@ async def viewer_socket(websocket: WebSocket) -> None:
     offered = websocket.scope.get("subprotocols") or []
     protocol = next((p for p in offered if p.startswith("viser-v")), None)
     try:
-        upstream = await websockets.connect(f"ws://127.0.0.1:{viewer.port}", subprotocols=[protocol] if protocol else None,
+        upstream = await websockets.connect(f"ws://127.0.0.1:{viewer.port}",
+                                            subprotocols=[protocol] if protocol else None,
+                                            additional_headers={RELAY_HEADER: viewer.relay_secret},
                                             max_size=None, compression=None, open_timeout=10)
     except (OSError, websockets.WebSocketException, asyncio.TimeoutError) as error:
         await websocket.close(code=status.WS_1011_INTERNAL_ERROR, reason=f"viewer unreachable: {error}")

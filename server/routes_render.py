@@ -6,9 +6,11 @@ from typing import Literal
 
 import numpy as np
 from fastapi import APIRouter, Depends, HTTPException, Query, Response, status
+from pydantic import ValidationError
 from starlette.concurrency import run_in_threadpool
 
 from server.deps import get_manager, get_map_cache, get_viewer, require_token
+from server.errors import validation_message
 from server.rendering import (
     Camera,
     MapCache,
@@ -139,5 +141,9 @@ def viewer_camera(width: int = Query(320, ge=16, le=2048, description="image wid
     if camera is None:
         raise HTTPException(status.HTTP_409_CONFLICT, "no browser is connected to the 3D viewer")
     fx, fy, cx, cy, w, h = camera.intrinsics(width)
-    return ViewerCameraOut(T_world_cam=camera.T_world_cam.tolist(),
-                           intrinsics=Intrinsics(fx=fx, fy=fy, cx=cx, cy=cy, width=w, height=min(h, 2048)))
+    try:
+        intrinsics = Intrinsics(fx=fx, fy=fy, cx=cx, cy=cy, width=w, height=min(h, 2048))
+    except ValidationError as error:  # a browser window so wide that the view is no pinhole camera
+        raise HTTPException(status.HTTP_409_CONFLICT,
+                            f"the viewer's camera cannot be rendered: {validation_message(error.errors())}") from None
+    return ViewerCameraOut(T_world_cam=camera.T_world_cam.tolist(), intrinsics=intrinsics)

@@ -14,6 +14,7 @@ from starlette.datastructures import UploadFile
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from server.deps import get_manager, get_map_cache, get_mesh_files, get_settings, require_token
+from server.errors import strip_paths, validation_message
 from server.rendering import MapCache, MeshFiles, NoMapYet, mesh_bytes_from_arrays
 from server.schemas import ErrorOut, SessionCreated, SessionCreateJSON, SessionOut, SessionOutputs
 from server.sessions import SessionManager, SessionStatus, check_session_id, new_session_id
@@ -159,10 +160,13 @@ def _unpack_dataset(settings: Settings, session_dir: Path, upload: UploadFile, s
                 raise DataError("the dataset has no frames")
             sequence[0]
         except DataError as error:
-            # Messages name files; show them relative to the archive, not as server paths.
-            message = str(error).replace(f"{input_dir.resolve()}/", "").replace(f"{input_dir}/", "")
-            raise UploadError(f"the dataset cannot be read: {message}") from None
+            raise UploadError(f"the dataset cannot be read: {error}") from None
         return replace(spec, path=str(root), format=fmt)
+    except UploadError as error:
+        # Messages name files: show them as the archive has them, never as server paths
+        # (which would also show the id of a session that is not created after all).
+        message = strip_paths(strip_paths(str(error), input_dir, "the top level of the zip"), zip_path, "the upload")
+        raise UploadError(message, status=error.status) from None
     finally:
         zip_path.unlink(missing_ok=True)
 
@@ -213,7 +217,8 @@ def _json_spec(body: SessionCreateJSON) -> tuple[list[SourceSpec], str]:
 
 @router.post("", status_code=status.HTTP_201_CREATED, response_model=SessionCreated,
              openapi_extra=_CREATE_OPENAPI,
-             responses={400: {"model": ErrorOut}, 413: {"model": ErrorOut}, 422: {"model": ErrorOut}},
+             responses={400: {"model": ErrorOut}, 413: {"model": ErrorOut}, 415: {"model": ErrorOut},
+                        422: {"model": ErrorOut}},
              summary="Create a session from a dataset zip, the synthetic source or a stream")
 async def create_session(request: Request, manager: SessionManager = Depends(get_manager),
                          settings: Settings = Depends(get_settings)) -> SessionCreated:
@@ -245,9 +250,11 @@ async def create_session(request: Request, manager: SessionManager = Depends(get
             body = SessionCreateJSON.model_validate(json.loads(await request.body()))
         except json.JSONDecodeError as error:
             raise UploadError(f"the body is not valid JSON ({error})", status=400) from None
+        except UnicodeDecodeError:
+            raise UploadError("the body is not valid JSON: it is not UTF-8 text", status=400) from None
         except ValidationError as error:
-            raise UploadError("; ".join(f"{'.'.join(map(str, e['loc'])) or 'body'}: {e['msg']}"
-                                        for e in error.errors())) from None
+            raise UploadError(validation_message(
+                {**e, "loc": ("body", *e["loc"])} for e in error.errors())) from None
         specs, preset = _json_spec(body)
     else:
         raise HTTPException(status.HTTP_415_UNSUPPORTED_MEDIA_TYPE,

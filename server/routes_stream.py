@@ -37,7 +37,8 @@ from server.sessions import SessionConflict, SessionManager, SessionNotFound, ch
 from server.stream import StreamInput
 from server.upload import MAX_AGENTS, UploadError, parse_agent
 
-router = APIRouter(prefix="/api/sessions", tags=["streaming"])
+router = APIRouter(prefix="/api/sessions", tags=["streaming"],
+                   responses={401: {"model": ErrorOut}, 404: {"model": ErrorOut}})
 
 BINARY_PREFIX = struct.Struct("<dI")
 

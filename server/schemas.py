@@ -4,7 +4,8 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 IDENTITY = [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]]
 EXAMPLE_POSE = [[1.0, 0.0, 0.0, 0.5], [0.0, 0.0, 1.0, -1.5], [0.0, -1.0, 0.0, 1.4], [0.0, 0.0, 0.0, 1.0]]
@@ -17,8 +18,32 @@ class Strict(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
 
+MAX_EDGE_ANGLE_DEG = 85.0
+"""How far from the optical axis an image edge may be (a pinhole camera's view is in front)."""
+MIN_VIEW_ANGLE_DEG = 0.001
+"""Narrowest field of view across the image (a longer focal length renders parallel rays)."""
+
+
+def _view_error(axis: str, f: float, c: float, size: int) -> str | None:
+    """Why focal length ``f`` and principal point ``c`` (pixels) cannot image ``size`` pixels
+    along ``axis``, or None. Checked here, at the edge: a focal length such as 1e-300 passed
+    ``> 0`` and then broke the ray traversal (a 500)."""
+    edges = np.degrees(np.arctan2(np.array([-0.5, size - 0.5]) - c, f))
+    if np.abs(edges).max() > MAX_EDGE_ANGLE_DEG:
+        return (f"f{axis}={f:g} and c{axis}={c:g} put an edge of the {size}-pixel image {np.abs(edges).max():.1f} "
+                f"degrees from the optical axis (at most {MAX_EDGE_ANGLE_DEG:g} for a pinhole camera): the focal "
+                f"length is too short or the principal point too far outside the image")
+    if edges[1] - edges[0] < MIN_VIEW_ANGLE_DEG:
+        return (f"f{axis}={f:g} gives a field of view under {MIN_VIEW_ANGLE_DEG:g} degrees across {size} pixels: "
+                f"the focal length is too long")
+    return None
+
+
 class Intrinsics(Strict):
-    """A pinhole camera: focal lengths and principal point in pixels, image size."""
+    """A pinhole camera: focal lengths and principal point in pixels, image size. The image
+    must lie within MAX_EDGE_ANGLE_DEG of the optical axis on both axes."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     fx: float = Field(gt=0, examples=[200.0])
     fy: float = Field(gt=0, examples=[200.0])
@@ -26,6 +51,14 @@ class Intrinsics(Strict):
     cy: float = Field(examples=[120.0])
     width: int = Field(ge=1, le=MAX_SIDE, examples=[320])
     height: int = Field(ge=1, le=MAX_SIDE, examples=[240])
+
+    @model_validator(mode="after")
+    def _sane_view(self) -> "Intrinsics":
+        problems = [p for p in (_view_error("x", self.fx, self.cx, self.width),
+                                _view_error("y", self.fy, self.cy, self.height)) if p]
+        if problems:
+            raise ValueError("; ".join(problems))
+        return self
 
 
 def _check_matrix(value: Matrix4) -> Matrix4:
@@ -106,7 +139,17 @@ class SessionOut(BaseModel):
     loops: int = Field(examples=[1], description="accepted loop closures")
     agents: int = Field(1, examples=[1], description="agents (cameras): an upload's file parts, or the agents "
                                                       "a stream has seen")
-    error: str | None = Field(examples=[None])
+    phase: Literal["queued", "tracking", "refining", "writing", "done"] = Field(
+        examples=["tracking"],
+        description="what a session does now: queued; tracking (frames are read and tracked, maps grow); refining "
+                    "(the input ended: final global bundle adjustment and mesh, minutes on a long run); writing "
+                    "(trajectories and run.json); done (ended, however: see status)")
+    ate_rmse_m: float | None = Field(
+        examples=[0.012], description="absolute trajectory error (RMSE, metres, after rigid alignment) of the first "
+                                      "agent against the input's ground truth: so far while tracking, final once "
+                                      "finished; null without ground truth")
+    error: str | None = Field(examples=[None], description="why the session failed; an interrupted session (the "
+                                                           "server stopped or was killed) says 'interrupted: ...'")
     created: str = Field(examples=["2025-01-01T12:00:00+00:00"])
     source: str = Field(examples=["synthetic:orbit?frames=120&width=320&height=240"])
     preset: str = Field(examples=["cpu"])
@@ -187,7 +230,8 @@ class ViewerCameraOut(BaseModel):
 
 class ViewerInfo(BaseModel):
     enabled: bool
-    port: int | None = Field(description="viser's own port (direct access; the page uses /viewer)")
+    port: int | None = Field(description="viser's own port (its client files; its WebSocket admits only the "
+                                          "token-checked relay at /viewer)")
     clients: int
 
 

@@ -11,7 +11,15 @@ the runtime starts a mapping process of its own). One supervisor thread in the A
 
 Outputs live in ``DATA_DIR/sessions/<id>/`` (``session.json`` metadata, ``input/``, and the
 runtime's ``trajectory.txt``, ``mesh.ply``, ``map.pt``, ``run.json``), so finished sessions are
-listed again after a restart.
+listed again after a restart. A session that was queued or running when the server went away
+(stopped, or killed) comes back as ``failed`` with an error that starts with ``interrupted:``,
+so a user can tell it from a session they cancelled; ``worker.pid`` in the folder names the
+worker's process group while it runs, so that a restart can end a worker that outlived its
+server (a worker also ends itself when its server is gone: ``server.worker``).
+
+``phase`` refines ``running``: ``tracking`` (frames are read), ``refining`` (the final bundle
+adjustment and mesh), ``writing`` (trajectories, ``run.json``); ``queued`` before and ``done``
+after, whatever the session's end (``status`` says which).
 """
 
 from __future__ import annotations
@@ -33,14 +41,27 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from server.errors import strip_paths
 from server.settings import Settings
 from server.stream import StreamInput
 from server.tracks import Tracks, transform_points
 from server.worker import SourceSpec, WorkerDone, WorkerJob, WorkerStarted, describe_sources, run_worker
-from slam.events import FinishedEvent, LoopEvent, MapUpdateEvent, PoseEvent, StatsEvent, SubmapEvent
+from slam.events import (
+    FinishedEvent,
+    KeyframeEvent,
+    LoopEvent,
+    MapUpdateEvent,
+    PhaseEvent,
+    PoseEvent,
+    StatsEvent,
+    SubmapEvent,
+)
 
 STATUSES = ("queued", "running", "finished", "failed", "cancelled")
 ENDED = ("finished", "failed", "cancelled")
+PHASES = ("queued", "tracking", "refining", "writing", "done")
+INTERRUPTED_RUNNING = "interrupted: the server stopped while the session was running"
+INTERRUPTED_QUEUED = "interrupted: the server stopped before the session started"
 SESSION_ID = re.compile(r"^[0-9a-f]{12}$")
 EventSink = Callable[[str, object], None]
 """Called with (session id, event) in the supervisor thread for every worker event."""
@@ -76,6 +97,10 @@ class SessionStatus:
     loops: int = 0
     agents: int = 1
     """Agents (cameras) of the session: the upload's parts, or those a stream has seen so far."""
+    phase: str = "queued"
+    """One of PHASES (see the module doc)."""
+    ate_rmse_m: float | None = None
+    """Agent 0's ATE RMSE in metres (so far while running, final after); None without ground truth."""
     error: str | None = None
     spec: SourceSpec = field(default_factory=lambda: SourceSpec(kind="synthetic"))
     """The (first agent's) source."""
@@ -92,6 +117,7 @@ class SessionStatus:
     @staticmethod
     def from_json(data: dict) -> "SessionStatus":
         data = dict(data)
+        data.setdefault("phase", "done" if data.get("status") in ENDED else "queued")
         spec = _spec_from_json(data.pop("spec"))
         specs = tuple(_spec_from_json(s) for s in data.pop("specs", None) or ())
         return SessionStatus(spec=spec, specs=specs, **data)
@@ -119,6 +145,11 @@ class _Session:
     worker_pid: int | None = None
     done: WorkerDone | None = None
     cancel_requested_at: float | None = None
+    end_reason: tuple[str, str] | None = None
+    """(status, error) the session ends with once its worker stopped, instead of ``cancelled``:
+    set when the server stops or a stream idles out (not a user's cancel)."""
+    started_at: float | None = None
+    """time.monotonic() when its worker started."""
     delete_when_stopped: bool = False
     dirty_since: float | None = None
     live_meshes: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=dict)
@@ -127,6 +158,7 @@ class _Session:
     tracks: Tracks = field(default_factory=Tracks)
     """Poses from PoseEvents per (agent, frame), following their maps: the trajectory so far."""
     loop_events: int = 0
+    keyframe_events: int = 0
 
 
 def new_session_id() -> str:
@@ -177,13 +209,18 @@ class SessionManager:
         self._thread.start()
 
     def stop(self, grace_s: float = 5.0) -> None:
-        """Cancel running sessions (they end as ``cancelled``), wait up to ``grace_s``, kill the rest."""
+        """Stop running sessions (they end as ``failed``, "interrupted: ...", with what they
+        wrote so far: not ``cancelled``, which is a user's doing), wait up to ``grace_s``,
+        kill the rest; queued ones are failed the same way."""
         with self._lock:
             running = [s for s in self._sessions.values() if s.process is not None] + self._stopping_sessions
             for session in running:
+                # A worker that already reported its end keeps it; a user's cancel stays one.
+                if session.end_reason is None and session.cancel_requested_at is None and session.done is None:
+                    session.end_reason = ("failed", INTERRUPTED_RUNNING)
                 self._request_stop(session)
             for session_id in list(self._queue):
-                self._set_status(self._sessions[session_id], "cancelled", "the server stopped before it started")
+                self._set_status(self._sessions[session_id], "failed", INTERRUPTED_QUEUED)
                 self._release_ipc(self._sessions[session_id])
             self._queue.clear()
         deadline = time.monotonic() + grace_s
@@ -201,7 +238,8 @@ class SessionManager:
                 self._persist(session)
 
     def _recover(self) -> None:
-        """List the sessions already on disk; those that were interrupted are marked failed."""
+        """List the sessions already on disk; those that were queued or running are marked
+        failed ("interrupted: ..."), and a worker of theirs that outlived its server is ended."""
         for meta in sorted(self.settings.sessions_dir.glob("*/session.json")):
             try:
                 status = SessionStatus.from_json(json.loads(meta.read_text()))
@@ -209,8 +247,9 @@ class SessionManager:
                 print(f"voxfusion: skipping unreadable {meta}: {error}")
                 continue
             if status.status not in ENDED:
-                status = replace(status, status="failed",
-                                 error=f"interrupted: the server stopped while the session was {status.status}")
+                end_orphaned_worker(meta.parent)
+                status = replace(status, status="failed", phase="done",
+                                 error=INTERRUPTED_QUEUED if status.status == "queued" else INTERRUPTED_RUNNING)
             job = WorkerJob(session_id=status.id, sources=status.sources, preset=status.preset,
                             out_dir=str(meta.parent))
             session = _Session(status=status, directory=meta.parent, job=job)
@@ -389,9 +428,30 @@ class SessionManager:
             self._stopping_sessions = [s for s in self._stopping_sessions if s.process is not None]
             self._start_queued()
             now = time.monotonic()
+            for session in active:
+                self._check_idle_stream(session, now)
             for session in self._sessions.values():
                 if session.dirty_since is not None and now - session.dirty_since >= _PERSIST_EVERY_S:
                     self._persist(session)
+
+    def _check_idle_stream(self, session: _Session, now: float) -> None:
+        """A running stream that got no frame for ``stream_idle_timeout_s`` would hold its slot
+        forever: finish it with what it has, or fail it when it has nothing."""
+        timeout = self.settings.stream_idle_timeout_s
+        stream = session.stream
+        if (not timeout or stream is None or session.process is None or session.started_at is None
+                or stream.finished or session.cancel_requested_at is not None or session.done is not None):
+            return
+        last = max(session.started_at, stream.last_frame_at or 0.0)
+        if now - last < timeout:
+            return
+        setting = f"{timeout:g} s (VOXFUSION_STREAM_IDLE_S)"
+        if stream.frames_received == 0:
+            session.end_reason = ("failed", f"the stream received no frame within {setting}")
+            self._request_stop(session)
+        elif stream.finish_if_idle(f"the stream was finished after no frame for {setting}"):
+            print(f"voxfusion: session {session.status.id}: no frame for {setting}; finishing with "
+                  f"{stream.frames_received} frames", flush=True)
 
     def _drain(self, session: _Session) -> None:
         for _ in range(_MAX_EVENTS_PER_TICK):
@@ -417,11 +477,22 @@ class SessionManager:
                 return
             session.tracks.apply(event)
             if isinstance(event, StatsEvent):
+                ate = getattr(event, "ate_rmse", None)
                 session.status = replace(
                     session.status, frames_done=event.frames_done, frames_total=event.frames_total,
-                    fps=round(float(event.fps), 3), keyframes=event.keyframes,
+                    fps=round(float(event.fps), 3), keyframes=max(event.keyframes, session.keyframe_events),
                     maps=max(event.maps, len(session.tracks.maps.poses)),
-                    loops=max(event.loops, session.loop_events))
+                    loops=max(event.loops, session.loop_events),
+                    ate_rmse_m=session.status.ate_rmse_m if ate is None else round(float(ate), 6))
+                self._mark_dirty(session)
+            elif isinstance(event, PhaseEvent) and event.phase in PHASES:
+                session.status = replace(session.status, phase=event.phase)
+                self._persist(session)
+            elif isinstance(event, KeyframeEvent):
+                # The mapper's statistics come at the end; keyframes as they are taken.
+                session.keyframe_events += 1
+                session.status = replace(session.status, keyframes=max(session.keyframe_events,
+                                                                       session.status.keyframes))
                 self._mark_dirty(session)
             elif isinstance(event, PoseEvent):
                 # Stats come every few frames; poses give the progress in between.
@@ -470,7 +541,11 @@ class SessionManager:
         process.join(timeout=1.0)
         exitcode = process.exitcode
         done = session.done
-        if session.cancel_requested_at is not None:
+        if session.end_reason is not None and not (done is not None and done.status == "failed"):
+            # Set only while the worker had not reported its end (see stop, _check_idle_stream):
+            # what it says now is its answer to the stop.
+            status, error = session.end_reason
+        elif session.cancel_requested_at is not None:
             status, error = "cancelled", None
             if done is not None and done.status == "failed":
                 status, error = "failed", done.error
@@ -481,9 +556,13 @@ class SessionManager:
         else:
             status, error = "failed", _describe_exit(exitcode)
         if done is not None and done.frames:
+            ate = getattr(done, "ate_rmse", None)
             session.status = replace(session.status, frames_done=done.frames, keyframes=done.keyframes,
                                      maps=done.maps, loops=done.loops, fps=round(done.fps, 3),
-                                     agents=done.agents or session.status.agents)
+                                     agents=done.agents or session.status.agents,
+                                     ate_rmse_m=session.status.ate_rmse_m if ate is None else round(float(ate), 6))
+        if error is not None:
+            error = strip_paths(error, session.directory / "input", "the input")
         if session.stream is not None and session.stream.agent_count > session.status.agents:
             session.status = replace(session.status, agents=session.stream.agent_count)
         if process.is_alive():
@@ -496,6 +575,7 @@ class SessionManager:
         except ValueError:
             pass
         session.process = None
+        (session.directory / WORKER_PID_FILE).unlink(missing_ok=True)
         self._close_inputs(session, f"the session {status}")
         self._release_ipc(session)
         session.live_meshes.clear()
@@ -535,13 +615,18 @@ class SessionManager:
             # a worker that dies mid-message gives EOF instead of a read that waits forever.
             session.event_queue._writer.close()
             session.process = process
+            session.started_at = time.monotonic()
+            _write_pid(session.directory / WORKER_PID_FILE, process.pid)
             self._set_status(session, "running", None)
             running += 1
 
     # -- status on disk ----------------------------------------------------------------------
 
     def _set_status(self, session: _Session, status: str, error: str | None) -> None:
-        session.status = replace(session.status, status=status, error=error)
+        phase = "done" if status in ENDED else session.status.phase
+        if status == "running" and phase == "queued":
+            phase = "tracking"
+        session.status = replace(session.status, status=status, error=error, phase=phase)
         self._persist(session)
 
     def _mark_dirty(self, session: _Session) -> None:
@@ -556,6 +641,56 @@ class SessionManager:
             _write_json_atomic(session.directory / "session.json", session.status.to_json())
         except OSError as error:
             print(f"voxfusion: cannot write {session.directory / 'session.json'}: {error}")
+
+
+WORKER_PID_FILE = "worker.pid"
+"""In a session folder while its worker runs: the worker's pid, which is its process group."""
+
+
+def _write_pid(path: Path, pid: int | None) -> None:
+    try:
+        path.write_text(f"{pid}\n")
+    except OSError as error:
+        print(f"voxfusion: cannot write {path}: {error}")
+
+
+def _stdout_target(pid: int) -> str | None:
+    try:
+        return os.readlink(f"/proc/{pid}/fd/1")
+    except OSError:
+        return None
+
+
+def _group_of(pid: int) -> int | None:
+    try:
+        return os.getpgid(pid)
+    except OSError:
+        return None
+
+
+def end_orphaned_worker(directory: Path) -> bool:
+    """SIGKILL what is left of the worker group named in ``directory/worker.pid`` (a worker
+    and mapping process that outlived a killed server). A process counts only if it is in
+    that group and its stdout is this session's ``worker.log`` (as every process of the group
+    has), so a reused pid is never hit. Linux (``/proc``); elsewhere it finds nothing.
+    Returns True when something was killed."""
+    pid_file = directory / WORKER_PID_FILE
+    try:
+        group = int(pid_file.read_text().strip())
+    except (OSError, ValueError):
+        return False
+    pid_file.unlink(missing_ok=True)
+    log = str((directory / "worker.log").resolve())
+    members = [int(p.name) for p in Path("/proc").glob("[0-9]*") if _group_of(int(p.name)) == group]
+    ours = [pid for pid in members if _stdout_target(pid) == log]
+    for pid in ours:
+        try:
+            os.kill(pid, signal.SIGKILL)
+        except OSError:
+            pass
+    if ours:
+        print(f"voxfusion: ended {len(ours)} leftover process(es) of session {directory.name}", flush=True)
+    return bool(ours)
 
 
 def _kill_group(group: int) -> None:

@@ -11,6 +11,7 @@
 | ``VOXFUSION_VIEWER_PORT`` | 8080 | viser's own port (0: any free port; -1: no viewer) |
 | ``VOXFUSION_CANCEL_GRACE_S`` | 10 | seconds a cancelled worker gets before it is killed |
 | ``VOXFUSION_RENDER_THREADS`` | 1 | torch threads of the API process (renders, meshes) |
+| ``VOXFUSION_STREAM_IDLE_S`` | 300 | a running stream without a frame for this long is finished (failed if it has none); 0: never |
 
 The data directory is outside the working directory on purpose: sessions survive restarts
 and do not depend on where the server was started (Docker sets ``/data``, a volume).
@@ -54,7 +55,8 @@ class Settings:
     max_sessions: int = 1
     """Sessions that run at once; later ones wait in a FIFO queue."""
     viewer_host: str = "127.0.0.1"
-    """Interface viser binds to. The page reaches it through the API's ``/viewer`` proxy."""
+    """Interface viser binds to. The page reaches it through the API's ``/viewer`` proxy, the
+    only client its WebSocket admits (``server.viewer``)."""
     viewer_port: int = 8080
     """viser's port (it moves to the next free one if taken); 0 = any free port, -1 = no viewer."""
     cancel_grace_s: float = 10.0
@@ -63,6 +65,10 @@ class Settings:
     """Streamed frames buffered between the API and a worker (back-pressure beyond that)."""
     stream_put_timeout_s: float = 30.0
     """How long a streamed frame waits for room in that buffer before 503."""
+    stream_idle_timeout_s: float = 300.0
+    """A running stream session that gets no frame for this long is finished with the frames it
+    has (failed when it has none), so that a forgotten stream does not hold a running slot
+    forever; 0 = never."""
     render_threads: int = 1
     """torch intra-op threads in the API process. One: the API shares the cores with the SLAM
     workers, and oversubscribed cores made a 160x120 render 3-6x slower (2 s -> 7-12 s)."""
@@ -136,4 +142,5 @@ def settings_from_env(env: Mapping[str, str] | None = None) -> Settings:
         viewer_port=_int(env, "VOXFUSION_VIEWER_PORT", 8080, -1),
         cancel_grace_s=_float(env, "VOXFUSION_CANCEL_GRACE_S", 10.0, 0.0),
         render_threads=_int(env, "VOXFUSION_RENDER_THREADS", 1, 1),
+        stream_idle_timeout_s=_float(env, "VOXFUSION_STREAM_IDLE_S", 300.0, 0.0),
     )

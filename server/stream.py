@@ -82,6 +82,7 @@ class StreamInput:
         self._count = 0
         self._agent_counts: dict[int, int] = {}
         self._closed_reason: str | None = None
+        self._last_frame_at: float | None = None
         (input_dir / "color").mkdir(parents=True, exist_ok=True)
         (input_dir / "depth").mkdir(parents=True, exist_ok=True)
 
@@ -101,6 +102,11 @@ class StreamInput:
     @property
     def finished(self) -> bool:
         return self._closed_reason is not None
+
+    @property
+    def last_frame_at(self) -> float | None:
+        """time.monotonic() of the latest accepted frame (None before the first)."""
+        return self._last_frame_at
 
     def add_frame(self, color: bytes, depth: bytes, *, timestamp: float | str | None = None,
                   depth_scale: float | str | None = None, intrinsics: str | list | None = None,
@@ -126,6 +132,7 @@ class StreamInput:
             self._K[agent], self._depth_scale[agent] = K, scale
             self._agent_counts[agent] = index + 1
             self._count += 1
+            self._last_frame_at = time.monotonic()
             return index
 
     def finish(self) -> int:
@@ -138,6 +145,26 @@ class StreamInput:
                     raise UploadError("the session's frame buffer stayed full; finish again later", status=503)
                 self._closed_reason = "the stream was finished"
             return self._count
+
+    def finish_if_idle(self, reason: str) -> bool:
+        """End the input as ``finish`` does, but only if no frame is being added and the worker
+        has taken every frame queued (never waits); True when it ended the input."""
+        from server.worker import END_OF_STREAM
+
+        if not self._lock.acquire(blocking=False):
+            return False
+        try:
+            frame_queue = self._queue
+            if self._closed_reason is not None or frame_queue is None or not frame_queue.empty():
+                return False
+            try:
+                frame_queue.put_nowait(END_OF_STREAM)
+            except queue.Full:
+                return False
+            self._closed_reason = reason
+            return True
+        finally:
+            self._lock.release()
 
     def close(self, reason: str) -> None:
         """Refuse further frames (the session ended or was cancelled). Does not wait for a
@@ -224,7 +251,7 @@ def read_recorded_frame(input_dir: Path, index: int, agent: int = 0) -> Recorded
     """Frame ``index`` of ``agent`` in a recorded stream. KeyError when there is no such frame."""
     log = input_dir / "frames.jsonl"
     if not log.is_file():
-        raise KeyError(f"no streamed frames recorded in {input_dir}")
+        raise KeyError("no frames were streamed to this session")
     with open(log) as rows:
         for line in rows:
             row = json.loads(line)

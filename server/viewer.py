@@ -31,12 +31,19 @@ map node, not the vertices) and a chunk is resent only when its triangles or col
 by more than a few millimetres; finished trajectory blocks are never resent. Only the selected
 session streams; another session's pending state is sent when it is selected.
 
+Only the API's token-checked relay (``GET /viewer`` WebSocket, ``server.routes_pages``) may
+talk to viser: the relay sends a secret made at start in the ``RELAY_HEADER`` header, and any
+other WebSocket on viser's port (any local user, or anyone when it is bound to a public
+interface) is closed before viser sends it a byte of the scene. viser's port still serves
+viser's own client files, which hold no data.
+
 Conventions as viser's: OpenCV camera axes, quaternions ``wxyz``, metres.
 """
 
 from __future__ import annotations
 
 import colorsys
+import secrets
 import threading
 import time
 from dataclasses import dataclass, field
@@ -59,6 +66,11 @@ TRAJECTORY_BLOCK = 256
 NO_SESSION = "(no session yet)"
 LAYERS = ("meshes", "trajectory", "camera", "keyframes", "loops")
 
+
+RELAY_HEADER = "X-Voxfusion-Relay"
+"""Header by which the API's relay proves itself to viser (its value: ``ViewerAdapter.relay_secret``)."""
+RELAY_ONLY_CLOSE_CODE = 1008
+"""WebSocket close code (policy violation) for a direct connection to viser's port."""
 
 LOOP_COLOR = (255, 40, 200)
 _AGENT_COLORS = ((230, 60, 40), (30, 110, 230), (30, 160, 70), (215, 140, 10), (140, 60, 200), (0, 160, 170),
@@ -336,6 +348,9 @@ class ViewerAdapter:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.stats = ViewerStats()
+        self.relay_secret = secrets.token_urlsafe(32)
+        """What the relay sends in RELAY_HEADER; nobody else knows it."""
+        self.refused_connections = 0
 
     # -- lifecycle ---------------------------------------------------------------------------
 
@@ -343,12 +358,36 @@ class ViewerAdapter:
         import viser
 
         self._server = viser.ViserServer(host=self._host, port=self._requested_port, verbose=False)
+        self._admit_relay_only()
         self._server.scene.set_up_direction("+z")
         self._server.gui.configure_theme(show_share_button=False, brand_color=(40, 110, 200))
         self._build_gui()
         self._server.on_client_connect(self._on_client_connect)
         self._thread = threading.Thread(target=self._flush_loop, name="viewer-flush", daemon=True)
         self._thread.start()
+
+    def _admit_relay_only(self) -> None:
+        """Close every WebSocket on viser's port that does not carry the relay's secret.
+
+        viser has no hook for this, so this reaches into its WebSocket server: a connect
+        callback there runs before viser sends a client anything, and the server's raw
+        connections carry the request headers. If a viser upgrade moves either, the check
+        fails closed (every connection is refused, and the viewer tests say so)."""
+        websock = self._server._websock_server
+        secret = self.relay_secret.encode()
+
+        async def check(connection) -> None:
+            raw = getattr(websock, "_live_connections", {}).get(connection.client_id)
+            request = getattr(raw, "request", None)
+            given = request.headers.get(RELAY_HEADER, "") if request is not None else ""
+            if secrets.compare_digest(given.encode(), secret):
+                return
+            self.refused_connections += 1
+            if raw is None:
+                raise ConnectionRefusedError("viser: cannot check a connection; refused")
+            await raw.close(RELAY_ONLY_CLOSE_CODE, "connect through the voxfusion API's /viewer")
+
+        websock.on_client_connect(check)
 
     def stop(self) -> None:
         self._stop.set()

@@ -6,8 +6,10 @@ session is one :class:`AgentFrames` source whose frames name their agent), runs
 daemonic) and forwards every runtime event to the API process
 through ``event_queue``, followed by one :class:`WorkerDone`. It puts itself in a new process
 group first, so that a cancel that runs out of patience can kill it together with the mapping
-process it started. Its stdout and stderr (and the mapping process's) go to ``worker.log`` in
-the session folder.
+process it started, and it watches its server: when the API process is gone (killed, crashed)
+the whole group ends at once, since nobody is left to read its events (a worker that went on
+finished its run and then blocked on its event pipe forever). Its stdout and stderr (and the
+mapping process's) go to ``worker.log`` in the session folder.
 
 Everything crossing the process boundary is a small frozen dataclass of plain values.
 """
@@ -16,7 +18,10 @@ from __future__ import annotations
 
 import os
 import queue
+import signal
 import sys
+import threading
+import time
 import traceback
 from dataclasses import dataclass
 from pathlib import Path
@@ -106,6 +111,8 @@ class WorkerDone:
     fps: float = 0.0
     agents: int = 0
     """Agents in ``run.json`` (0: not known)."""
+    ate_rmse: float | None = None
+    """Agent 0's final ATE RMSE (m), None without ground truth."""
 
 
 END_OF_STREAM = None
@@ -205,11 +212,49 @@ def _redirect_output(log_path: Path) -> None:
     sys.stderr = open(2, "w", buffering=1, closefd=False)
 
 
+PARENT_POLL_S = 0.5
+"""How often a worker without a parent sentinel (not started by multiprocessing) checks its parent."""
+
+
+def _wait_for_parent_death(poll_s: float = PARENT_POLL_S) -> None:
+    """Return once the process that started this one has exited: EOF on the sentinel pipe
+    multiprocessing gives a spawned child, else a change of ``getppid()``."""
+    import multiprocessing
+
+    parent = multiprocessing.parent_process()
+    if parent is not None and getattr(parent, "sentinel", None) is not None:
+        from multiprocessing.connection import wait
+
+        wait([parent.sentinel])
+        return
+    parent_pid = os.getppid()
+    while os.getppid() == parent_pid:
+        time.sleep(poll_s)
+
+
+def end_group_when_parent_dies(wait_for_death=_wait_for_parent_death) -> threading.Thread:
+    """A daemon thread that SIGKILLs this process's group (itself and the mapping process)
+    once the server is gone. Only a group leader (``os.setpgrp()`` first) ends its group; any
+    other process ends just itself."""
+
+    def watch() -> None:
+        wait_for_death()
+        print("worker: the server process is gone; ending this session's processes", flush=True)
+        if os.getpgrp() == os.getpid():
+            os.killpg(os.getpgrp(), signal.SIGKILL)
+        os._exit(1)
+
+    thread = threading.Thread(target=watch, name="parent-watch", daemon=True)
+    thread.start()
+    return thread
+
+
 def run_worker(job: WorkerJob, stop_event, event_queue, frame_queue) -> None:
     """Process entry point: run the session, report events, always end with WorkerDone."""
     os.setpgrp()
     out_dir = Path(job.out_dir)
     _redirect_output(out_dir / "worker.log")
+    end_group_when_parent_dies()
     event_queue.put(WorkerStarted(pid=os.getpid()))
     try:
         from slam.config import load_config
@@ -227,7 +272,8 @@ def run_worker(job: WorkerJob, stop_event, event_queue, frame_queue) -> None:
             done = WorkerDone(status=result.status, error=short_error(result.error), frames=result.frames,
                               keyframes=result.keyframes, maps=result.maps, loops=result.loops,
                               fps=float(result.fps),
-                              agents=int(getattr(result, "agents", 0) or 0) or _run_agents(out_dir))
+                              agents=int(getattr(result, "agents", 0) or 0) or _run_agents(out_dir),
+                              ate_rmse=result.ate_rmse)
     except DataError as error:
         done = WorkerDone(status="failed", error=f"bad input data: {error}")
     except Exception as error:  # noqa: BLE001 - any crash fails only this session; traceback goes to the log

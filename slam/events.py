@@ -1,4 +1,4 @@
-"""Events the SLAM runtime emits while it runs (pose, keyframe, map update, submap, loop, stats).
+"""Events the SLAM runtime emits while it runs (pose, keyframe, map update, submap, loop, stats, phase).
 
 They are plain frozen dataclasses of numbers and numpy arrays, so they pickle cheaply across
 process boundaries; the server forwards them to the viewer and the session status.
@@ -120,6 +120,23 @@ class StatsEvent:
     tracking_busy: float = 0.0
     """Share of wall time the tracker spent working (0-1)."""
     mapping_busy: float = 0.0
+    ate_rmse: float | None = None
+    """Agent 0's ATE RMSE in metres so far (the final one in the last StatsEvent); None
+    without ground truth."""
+
+
+PHASES = ("tracking", "refining", "writing")
+
+
+@dataclass(frozen=True)
+class PhaseEvent:
+    """The run entered a phase: ``tracking`` (frames are read and tracked, maps grow),
+    ``refining`` (the input ended: the final global bundle adjustment, then the final map
+    and mesh), ``writing`` (trajectories and ``run.json``). The last two take minutes on a
+    long run with nothing else to report, so a client can tell a run that works from one
+    that hangs."""
+
+    phase: str
 
 
 @dataclass(frozen=True)
@@ -130,4 +147,4 @@ class FinishedEvent:
 
 
 Event = (PoseEvent | KeyframeEvent | MapUpdateEvent | SubmapEvent | LoopEvent | PosesUpdatedEvent | StatsEvent
-         | FinishedEvent)
+         | PhaseEvent | FinishedEvent)

@@ -36,7 +36,7 @@ import torch
 from .config import SLAMConfig
 from .data.frame import Frame
 from .data.io import resize_rgbd
-from .events import Event, FinishedEvent, PoseEvent, StatsEvent, SubmapEvent
+from .events import Event, FinishedEvent, PhaseEvent, PoseEvent, StatsEvent, SubmapEvent
 from .features import FeatureOdometry
 from .frames import prepare_frame
 from .mapping import MapSnapshot
@@ -380,6 +380,7 @@ def run_slam(sources: list[Iterable[Frame]], config: SLAMConfig, out_dir: str | 
         mapper_cls = ProcessMapper if processes else InlineMapper
         channel = mapper_cls(config, device, out, on_event is not None, config.runtime.seed)
         side = _TrackingSide(config, device, Tracker(config, device, seed=config.runtime.seed))
+        emit(PhaseEvent("tracking"))
         for agent, raw in _interleave(sources):
             if stop is not None and stop.is_set():
                 status = "cancelled"
@@ -412,9 +413,15 @@ def run_slam(sources: list[Iterable[Frame]], config: SLAMConfig, out_dir: str | 
     finally:
         if bar is not None:
             bar.close()
+    if status == "finished" and stop is not None and stop.is_set():
+        # A source that ends because of the stop (a live stream) is a stop, not the end of the
+        # input: skip the final refinement, which would hold up the stop for minutes.
+        status = "cancelled"
     if channel is not None:
         try:
             if side is not None and (status != "failed" or side.snapshots):
+                if status == "finished":
+                    emit(PhaseEvent("refining"))
                 _handle_replies(channel.finish(refine=status == "finished"), side, emit)
         except KeyboardInterrupt:
             status = "cancelled"
@@ -424,11 +431,12 @@ def run_slam(sources: list[Iterable[Frame]], config: SLAMConfig, out_dir: str | 
         finally:
             channel.close()
     elapsed = time.perf_counter() - started
+    emit(PhaseEvent("writing"))
     tracks = sorted(side.agents.values(), key=lambda t: t.agent) if side is not None else []
     result = write_outputs(out, config, tracks, side.mapper_stats if side else None, status, error, elapsed, total,
                            side.busy if side else 0.0, use_gt_poses, side.map_poses if side else None)
     if side is not None:
-        emit(_stats_event(side, total, result.fps, started, done))
+        emit(_stats_event(side, total, result.fps, started, done, ate=result.ate_rmse))
     emit(FinishedEvent(status, error))
     return result
 
@@ -450,12 +458,17 @@ def _progress_fields(side: _TrackingSide, fps: float, done: int) -> dict[str, st
     return fields
 
 
-def _stats_event(side: _TrackingSide, total: int | None, fps: float, started: float, done: int) -> StatsEvent:
+def _stats_event(side: _TrackingSide, total: int | None, fps: float, started: float, done: int,
+                 ate: float | None = None) -> StatsEvent:
+    """Progress so far; ``ate`` (the final one) replaces agent 0's running ATE when given."""
     stats = side.mapper_stats
+    if ate is None:
+        track = side.agents.get(0)
+        ate = running_ate(track.records, side.map_poses) if track is not None else None
     wall = max(time.perf_counter() - started, 1e-9)
     voxels = stats.voxels if stats else sum(len(s.voxel_codes) for s in side.snapshots.values())
     return StatsEvent(
         frames_done=done, frames_total=total, fps=fps,
         keyframes=stats.keyframes if stats else 0, maps=max(side.next_map_id, 1), loops=side.loops,
         voxels=voxels, tracking_busy=min(1.0, side.busy / wall),
-        mapping_busy=min(1.0, stats.busy_seconds / wall) if stats else 0.0)
+        mapping_busy=min(1.0, stats.busy_seconds / wall) if stats else 0.0, ate_rmse=ate)

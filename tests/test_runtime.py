@@ -25,7 +25,7 @@ from slam.config import SLAMConfig, preset
 from slam.data import DataError, open_sequence
 from slam.data.frame import Frame
 from slam.eval.trajectory import read_tum
-from slam.events import FinishedEvent, KeyframeEvent, MapUpdateEvent, PoseEvent, StatsEvent, SubmapEvent
+from slam.events import FinishedEvent, KeyframeEvent, MapUpdateEvent, PhaseEvent, PoseEvent, StatsEvent, SubmapEvent
 from slam.runtime import run_slam
 
 NUM_FRAMES = 4
@@ -134,6 +134,17 @@ def test_map_checkpoint_loads_and_matches_run_json(run):
     assert mapset.num_voxels() == run.info["voxels"] > 0
     assert mapset.num_keyframes() == run.info["keyframes"] == run.result.keyframes >= 1
     assert mapset.config == run.config
+
+
+def test_phases_and_final_ate_are_reported(run):
+    """A client can tell tracking from the final refinement and the writing of outputs (they
+    take minutes on a long run with nothing else to say), and reads the ATE in the last stats."""
+    phases = [e.phase for e in run.events if isinstance(e, PhaseEvent)]
+    assert phases == ["tracking", "refining", "writing"]
+    order = [type(e) for e in run.events]
+    assert order.index(PhaseEvent) < order.index(PoseEvent), "tracking is announced before the first pose"
+    last_stats = [e for e in run.events if isinstance(e, StatsEvent)][-1]
+    assert last_stats.ate_rmse == pytest.approx(run.result.ate_rmse) and run.result.ate_rmse is not None
 
 
 def test_run_json_fields(run):

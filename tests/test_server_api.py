@@ -133,6 +133,8 @@ def test_synthetic_session_status_and_results(client, synthetic_session):
     assert state["frames_done"] == state["frames_total"] == 12
     assert state["fps"] > 0 and state["keyframes"] >= 1 and state["maps"] >= 1
     assert state["error"] is None and state["preset"] == "test"
+    assert state["phase"] == "done"
+    assert 0 <= state["ate_rmse_m"] < 0.5, "the synthetic scene has ground truth: its ATE is reported"
     assert state["outputs"] == {"trajectory": True, "mesh": True, "map": True}
     assert synthetic_session in [s["id"] for s in client.get("/api/sessions").json()]
 
@@ -173,8 +175,29 @@ def test_render_rejects_bad_cameras(client, synthetic_session):
     assert response.status_code == 422 and "last row" in response.json()["detail"]
     huge = {**camera, "intrinsics": {**camera["intrinsics"], "width": 5000}}
     response = client.post(url, json=huge)
-    assert response.status_code == 422 and "width" in response.text
+    assert response.status_code == 422 and response.json()["detail"].startswith("body.intrinsics.width: ")
     assert client.post("/api/sessions/000000000000/render", json=camera).status_code == 404
+    far = np.array(camera["T_world_cam"])
+    far[0, 3] = 1e300
+    response = client.post(url, json={**camera, "T_world_cam": far.tolist()})
+    assert response.status_code == 422 and "from the world origin" in response.json()["detail"]
+
+
+@needs_runtime
+@pytest.mark.parametrize("focal", [5e-324, 1e-300, 1e300])
+def test_render_pick_and_ar_refuse_degenerate_focal_lengths(client, synthetic_session, focal):
+    """A focal length that passed "> 0" (5e-324, 1e-300) broke the ray traversal (a 500)."""
+    camera = first_pose_camera(client, synthetic_session)
+    camera["intrinsics"]["fy"] = focal
+    url = f"/api/sessions/{synthetic_session}"
+    requests = [("render", camera), ("pick", {**camera, "u": 40, "v": 30}),
+                ("ar", {"background": "render", **camera, "objects": [{"shape": "cube"}]}),
+                ("ar", {"background": "frame:0", "intrinsics": camera["intrinsics"], "objects": [{"shape": "cube"}]})]
+    for call, body in requests:
+        response = client.post(f"{url}/{call}", json=body)
+        assert response.status_code == 422, (call, response.text)
+        message = response.json()["detail"]
+        assert message.startswith("body.intrinsics: fy=") and "focal length is too" in message, message
 
 
 @needs_runtime
@@ -202,7 +225,8 @@ def test_ar_composites_with_render_and_frame_backgrounds(client, synthetic_sessi
     bad = client.post(f"{url}/ar", json={"background": "frame:0", "objects": [{"shape": "teapot"}]})
     assert bad.status_code == 422
     missing = client.post(f"{url}/ar", json={"background": "frame:999", "objects": objects})
-    assert missing.status_code == 404 and "999" in missing.json()["detail"]
+    assert missing.status_code == 404
+    assert missing.json()["detail"] == "background frame:999: frame 999 does not exist (the input has 12 frames)"
 
 
 @needs_runtime
@@ -345,5 +369,10 @@ def test_demo_command_serves_and_starts_a_synthetic_session(tmp_path):
     assert "Application shutdown complete" in output
     import json
 
+    from server.sessions import INTERRUPTED_QUEUED, INTERRUPTED_RUNNING
+
     saved = [json.loads(p.read_text()) for p in tmp_path.glob("sessions/*/session.json")]
-    assert [s["status"] for s in saved] in (["cancelled"], ["finished"]), "the running session was stopped"
+    assert len(saved) == 1
+    assert (saved[0]["status"], saved[0]["error"]) in (("failed", INTERRUPTED_RUNNING), ("failed", INTERRUPTED_QUEUED),
+                                                        ("finished", None)), \
+        "a session that the server's stop interrupted says so (not 'cancelled', a user's doing)"

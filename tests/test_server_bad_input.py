@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import io
 import os
+import re
 import signal
 import time
 import zipfile
@@ -123,6 +124,52 @@ def test_bad_json_requests(client):
     assert response.status_code == 422 and "source" in detail(response)
     response = client.post("/api/sessions", json={"source": "stream", "intrinsics": "1,2"})
     assert response.status_code == 422 and "intrinsics" in detail(response)
+
+
+def test_invalid_utf8_json_is_a_400_not_a_500(client):
+    response = client.post("/api/sessions", content=bytes.fromhex("c3287b7d"),
+                           headers={"content-type": "application/json"})
+    assert response.status_code == 400 and "not UTF-8" in detail(response)
+
+
+def test_validation_errors_are_one_message_with_the_field_location(client):
+    response = client.get("/api/sessions/000000000000/mesh", params={"format": "stl"})
+    assert response.status_code == 422 and detail(response) == "query.format: Input should be 'ply', 'glb' or 'obj'"
+    response = client.post("/api/sessions/000000000000/render", json={"T_world_cam": 1})
+    assert response.status_code == 422
+    assert detail(response) == "body.T_world_cam: Input should be a valid list; body.intrinsics: Field required"
+    camera = {"T_world_cam": np.eye(4).tolist(),
+              "intrinsics": {"fx": 100, "fy": -1, "cx": 40, "cy": 30, "width": 80, "height": 60}}
+    response = client.post("/api/sessions/000000000000/pick", json={**camera, "u": 1, "v": 1})
+    assert response.status_code == 422 and detail(response) == "body.intrinsics.fy: Input should be greater than 0"
+    response = client.post("/api/sessions/000000000000/render", content=b"{not json",
+                           headers={"content-type": "application/json"})
+    assert response.status_code == 422 and detail(response).startswith("body (character 1): not valid JSON (")
+    response = client.post("/api/sessions", json={"source": "stream", "depth_scale": "much"})
+    assert response.status_code == 422 and detail(response).startswith("body.depth_scale: ")
+    schema = client.get("/openapi.json").json()
+    assert "HTTPValidationError" not in schema["components"]["schemas"], "422s are documented as they are sent"
+    render_422 = schema["paths"]["/api/sessions/{session_id}/render"]["post"]["responses"]["422"]
+    assert render_422["content"]["application/json"]["schema"] == {"$ref": "#/components/schemas/ErrorOut"}
+
+
+def test_upload_errors_name_the_upload_not_the_server_disk(client):
+    data_dir = str(client.app.state.settings.data_dir)
+    for entries in ({"readme.txt": b"hello"}, {"notes/readme.txt": b"hello"}):
+        response = client.post("/api/sessions", files={"file": ("data.zip", zip_bytes(entries), "application/zip")})
+        message = detail(response)
+        assert response.status_code == 422 and "cannot tell the dataset format of " in message, message
+        assert data_dir not in message and "/sessions/" not in message and "/tmp" not in message, message
+        assert not re.search(r"\b[0-9a-f]{12}\b", message), f"the id of a session never created: {message}"
+    assert "of the top level of the zip: " in detail(
+        client.post("/api/sessions", files={"file": ("d.zip", zip_bytes({"readme.txt": b"x"}), "application/zip")}))
+
+
+def test_a_bad_asset_names_the_users_file_in_a_plain_sentence(client):
+    response = client.post("/api/assets", files={"file": ("chair.glb", b"glTF\x02\x00\x00\x00" + bytes(16),
+                                                          "model/gltf-binary")})
+    assert response.status_code == 422
+    assert detail(response) == "chair.glb could not be read as a GLB file: it is damaged or not a GLB file"
 
 
 def start_streams_with_a_frame(client, count: int) -> list[str]:
