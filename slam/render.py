@@ -240,6 +240,30 @@ def sample_points_from_hits(hits: VoxelHits, step: float, offsets: torch.Tensor)
     return RaySamples(hits.ray_index[seg], t, hits.voxel_index[seg], Segments(seg, hits.voxel_index))
 
 
+def sample_points_in_band(origins: torch.Tensor, dirs: torch.Tensor, near: torch.Tensor, far: torch.Tensor,
+                          step: float, view: MapView, offset: float = 0.5) -> RaySamples:
+    """Samples at ``t = (k + offset) * step`` in [near, far) that lie in allocated voxels,
+    without the traversal: each grid point finds its voxel by lookup.
+
+    The same samples as ``ray_voxel_intersections`` then ``sample_points_from_hits`` with a
+    constant offset (but no M_h cap), at a cost that grows with the range instead of with
+    the voxels a ray crosses: for short ranges, such as a band around a known depth.
+    origins, dirs (R, 3); near, far (R,) -> RaySamples (no segments), sorted by ray, then t.
+    """
+    k0 = torch.ceil(near / step - offset)
+    counts = (torch.ceil(far / step - offset) - k0).clamp(min=0).long()
+    total = int(counts.sum())
+    ray = torch.repeat_interleave(torch.arange(counts.numel(), device=counts.device), counts)
+    first = torch.cumsum(counts, 0) - counts
+    j = torch.arange(total, device=counts.device) - first[ray]
+    t = (k0[ray] + j + offset) * step
+    points = origins[ray] + t[:, None] * dirs[ray]
+    ijk = torch.floor(points / view.voxel_size).long().clamp(-(1 << 20), (1 << 20) - 1)
+    voxel = lookup_sorted(view.voxel_codes, morton_encode(ijk))
+    keep = voxel >= 0
+    return RaySamples(ray[keep], t[keep], voxel[keep])
+
+
 # ------------------------------------------------------------- interpolation
 def _corner_products(ax: torch.Tensor, ay: torch.Tensor, az: torch.Tensor) -> torch.Tensor:
     """(S, 2) factors per axis -> (S, 8) products, corner c at (c & 1, (c >> 1) & 1, (c >> 2) & 1)."""
@@ -412,17 +436,22 @@ def accumulate_along_rays(weights: torch.Tensor, values: torch.Tensor, ray_index
 def render_rays(origins: torch.Tensor, dirs: torch.Tensor, view: MapView, decoder,
                 *, near: torch.Tensor, far: torch.Tensor, step: float, truncation: float,
                 max_hits: int, offsets: torch.Tensor | None = None,
-                color_weight_eps: float = 1e-5) -> RenderOutput:
+                color_weight_eps: float = 1e-5, traverse: bool = True) -> RenderOutput:
     """Render R rays of one map. origins, dirs (R, 3) map frame; near, far (R,) -> RenderOutput.
 
     The colour head only runs on samples whose weight exceeds ``color_weight_eps`` (the
     others add nothing to the normalised colour), which saves most of its cost.
+    ``traverse=False`` finds the samples by ``sample_points_in_band`` (short [near, far]
+    ranges; no M_h cap, no ``offsets``).
     """
     num_rays = origins.shape[0]
-    if offsets is None:
-        offsets = torch.full((num_rays,), 0.5, device=origins.device)
-    hits = ray_voxel_intersections(origins, dirs, near, far, view.voxel_codes, view.voxel_size, max_hits)
-    samples = sample_points_from_hits(hits, step, offsets)
+    if not traverse:
+        samples = sample_points_in_band(origins, dirs, near, far, step, view)
+    else:
+        if offsets is None:
+            offsets = torch.full((num_rays,), 0.5, device=origins.device)
+        hits = ray_voxel_intersections(origins, dirs, near, far, view.voxel_codes, view.voxel_size, max_hits)
+        samples = sample_points_from_hits(hits, step, offsets)
     r = samples.ray_index
     points = origins[r] + samples.t[:, None] * dirs[r]
     feats = interpolate_embeddings(points, samples.voxel_index, view)

@@ -12,6 +12,24 @@ the front face of the allocated region); a ray through free space (``s`` near 1)
 voxels with no surface has none, and stays empty: depth 0 and black. A per-ray weight
 threshold would not do: poorly trained free space (``s = 0.5``) adds weight on every sample,
 so long rays would pass it. Where several submaps see a surface, the nearest one wins.
+
+Two methods give nearly the same image:
+
+``full`` (the reference) samples every ray from ``near`` to D_max through all the voxels it
+meets, up to M_h of them, and decodes every sample.
+
+``banded`` (the default) renders first a coarse grid of every ``coarse_stride``-th pixel in
+each direction with the SDF head only, then every pixel only within a band around the
+depths its coarse neighbours saw: from the nearest to the farthest, widened on both sides by
+``BAND_WEIGHT_WIDTHS`` widths of the SDF weight (4 tr^2, 4 cm at tr = 0.1 m). The samples lie
+on the same grid in ``t`` whatever the ray's range, and they are found by lookup rather than
+by traversal (``slam.render.sample_points_in_band``), so a pixel gets the full render's
+samples near its surface, and drops only those whose weight is under 7 % of the peak: its
+depth moves by a fraction of a millimetre and its colour by a few levels (Replica room0,
+held-out views: 0.1 dB of PSNR), for about a third of the time. A pixel none of whose coarse
+neighbours (the 4 x 4 coarse cells around it) saw a surface stays empty: only a surface
+narrower than about ``coarse_stride`` pixels, or one hidden behind the first surface at
+every neighbour, can differ more.
 """
 
 from __future__ import annotations
@@ -30,6 +48,15 @@ DEFAULT_NEAR = 0.05
 # the peak weight is 0.25, so the colour moves by about 1 % (measured: at most 3.5/255),
 # and a 1200x680 view renders ~40 % faster than with the training default of 1e-5.
 VIEW_COLOR_WEIGHT_EPS = 1e-3
+VIEW_METHODS = ("banded", "full")
+# Every 4th pixel in each direction: 1/16 of the rays for the coarse pass, fine enough that a
+# 640x480 view's surfaces narrower than 4 pixels are all that can be missed.
+DEFAULT_COARSE_STRIDE = 4
+# The band reaches this many weight widths past the coarse neighbours' depths. The weight
+# sigmoid(s/tr) sigmoid(-s/tr) of a surface at distance d has s = d/tr, so it falls with
+# d / tr^2 (1 cm at tr = 0.1 m); beyond 4 widths it is under 7 % of its peak. Replica room0,
+# 5 held-out 640x363 views: PSNR 23.81 dB full, 23.73 banded with 4 widths, 23.71 with 3.
+BAND_WEIGHT_WIDTHS = 4.0
 
 
 @dataclass(frozen=True)
@@ -83,38 +110,138 @@ def rays_near_surface(sdf: torch.Tensor, ray_index: torch.Tensor, num_rays: int,
 
 @torch.no_grad()
 def _render_submap_chunk(submap, T_map_cam: torch.Tensor, dirs_cam: torch.Tensor, config,
-                         near: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Render (R, 3) camera-frame directions in one submap.
+                         near: torch.Tensor, far: torch.Tensor, *, with_color: bool = True,
+                         traverse: bool = True) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Render (R, 3) camera-frame directions in one submap between ``near`` and ``far`` (R,).
 
-    -> colour (R, 3), depth (R,), surface (R,) bool, all on the submap's device.
+    -> colour (R, 3) (zero without ``with_color``: the coarse pass needs depth only), depth
+    (R,), surface (R,) bool, all on the submap's device. ``traverse=False`` for short
+    ranges: samples by lookup instead of the voxel traversal (``render_rays``).
     """
     render = config.render
     step = render.step_ratio * submap.voxels.voxel_size
     origins, dirs = rays_in_map(T_map_cam, dirs_cam)
     num_rays = dirs.shape[0]
     # Voxels the mapper never optimised hold random embeddings: they render nothing.
-    out = render_rays(origins, dirs, submap.optimised_view(1), submap.decoder,
-                      near=torch.full((num_rays,), near, device=dirs.device),
-                      far=torch.full((num_rays,), render.max_distance, device=dirs.device),
+    out = render_rays(origins, dirs, submap.optimised_view(1), submap.decoder, near=near, far=far,
                       step=step, truncation=render.truncation, max_hits=render.max_hits,
-                      color_weight_eps=VIEW_COLOR_WEIGHT_EPS)
+                      color_weight_eps=VIEW_COLOR_WEIGHT_EPS if with_color else float("inf"),
+                      traverse=traverse)
     # s is in units of tr: one step of depth is step / tr of s.
     surface = rays_near_surface(out.sdf, out.samples.ray_index, num_rays, step / render.truncation)
     return out.color, out.depth, surface
 
 
+def _render_submap_full(submap, T_map_cam: torch.Tensor, dirs_cam: torch.Tensor, config,
+                        near: float, chunk: int, *, with_color: bool = True
+                        ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Every ray of (N, 3) ``dirs_cam`` from ``near`` to D_max, in chunks -> colour, depth, surface."""
+    far = config.render.max_distance
+    parts = []
+    for start in range(0, dirs_cam.shape[0], chunk):
+        d = dirs_cam[start:start + chunk]
+        parts.append(_render_submap_chunk(submap, T_map_cam, d, config, torch.full_like(d[:, 0], near),
+                                          torch.full_like(d[:, 0], far), with_color=with_color))
+    if not parts:
+        empty = dirs_cam.new_zeros(0)
+        return dirs_cam.new_zeros(0, 3), empty, empty.bool()
+    return tuple(torch.cat(p) for p in zip(*parts))
+
+
+def coarse_grid(size: int, stride: int) -> torch.Tensor:
+    """Coarse sample positions along one image axis: every ``stride``-th pixel and the last.
+
+    Example: size 10, stride 4 -> [0, 4, 8, 9].
+    """
+    ticks = list(range(0, size, stride))
+    if ticks[-1] != size - 1:
+        ticks.append(size - 1)
+    return torch.tensor(ticks, dtype=torch.long)
+
+
+def depth_bands(coarse_depth: torch.Tensor, coarse_surface: torch.Tensor, cu: torch.Tensor,
+                cv: torch.Tensor, width: int, height: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-pixel depth range of the surfaces seen by its coarse neighbours.
+
+    coarse_depth, coarse_surface (hc, wc) at pixel columns ``cu`` (wc,) and rows ``cv`` (hc,)
+    -> lo, hi (H * W,) row-major: the least and greatest depth over the 2 x 2 coarse cells
+    that bracket each pixel where one of them saw a surface (a smooth surface between them
+    lies within their range), else over the 4 x 4 around them (the edge of a surface that
+    the bracket just missed); lo = inf where none of those saw one.
+    """
+    inf = torch.tensor(float("inf"), dtype=coarse_depth.dtype, device=coarse_depth.device)
+    lo_c = torch.where(coarse_surface, coarse_depth, inf)
+    hi_c = torch.where(coarse_surface, coarse_depth, -inf)
+    u = torch.arange(width, device=cu.device)
+    v = torch.arange(height, device=cv.device)
+    u0 = (torch.searchsorted(cu, u, right=True) - 1).clamp(0, len(cu) - 1)
+    v0 = (torch.searchsorted(cv, v, right=True) - 1).clamp(0, len(cv) - 1)
+    u1, v1 = (u0 + 1).clamp(max=len(cu) - 1), (v0 + 1).clamp(max=len(cv) - 1)
+
+    def bracket(lo_grid: torch.Tensor, hi_grid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        lo = torch.minimum(torch.minimum(lo_grid[v0][:, u0], lo_grid[v0][:, u1]),
+                           torch.minimum(lo_grid[v1][:, u0], lo_grid[v1][:, u1]))
+        hi = torch.maximum(torch.maximum(hi_grid[v0][:, u0], hi_grid[v0][:, u1]),
+                           torch.maximum(hi_grid[v1][:, u0], hi_grid[v1][:, u1]))
+        return lo, hi
+
+    lo, hi = bracket(lo_c, hi_c)
+    # Grown by one coarse cell (3 x 3 pooling) for the pixels whose bracket saw nothing.
+    lo_grown, hi_grown = bracket(-torch.nn.functional.max_pool2d(-lo_c[None, None], 3, 1, 1)[0, 0],
+                                 torch.nn.functional.max_pool2d(hi_c[None, None], 3, 1, 1)[0, 0])
+    missed = torch.isinf(lo)
+    lo, hi = torch.where(missed, lo_grown, lo), torch.where(missed, hi_grown, hi)
+    return lo.reshape(-1), hi.reshape(-1)
+
+
+def _render_submap_banded(submap, T_map_cam: torch.Tensor, dirs_cam: torch.Tensor, config,
+                          near: float, chunk: int, width: int, height: int, stride: int
+                          ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The ``banded`` method for one submap: (H * W, 3) directions -> colour, depth, surface."""
+    device = dirs_cam.device
+    cu, cv = coarse_grid(width, stride).to(device), coarse_grid(height, stride).to(device)
+    coarse_index = (cv[:, None] * width + cu[None, :]).reshape(-1)
+    _, coarse_depth, coarse_surface = _render_submap_full(submap, T_map_cam, dirs_cam[coarse_index],
+                                                          config, near, chunk, with_color=False)
+    lo, hi = depth_bands(coarse_depth.reshape(len(cv), len(cu)), coarse_surface.reshape(len(cv), len(cu)),
+                         cu, cv, width, height)
+    # At least two steps, so that a coarse preset's band still holds the two samples that
+    # bracket the surface and one more on either side.
+    margin = max(BAND_WEIGHT_WIDTHS * config.render.truncation ** 2,
+                 2.0 * config.render.step_ratio * submap.voxels.voxel_size)
+    banded = torch.nonzero(torch.isfinite(lo), as_tuple=True)[0]
+    num_pixels = width * height
+    rgb = torch.zeros(num_pixels, 3, device=device)
+    depth = torch.zeros(num_pixels, device=device)
+    surface = torch.zeros(num_pixels, dtype=torch.bool, device=device)
+    for start in range(0, banded.numel(), chunk):
+        idx = banded[start:start + chunk]
+        band_near = (lo[idx] - margin).clamp(min=near)
+        band_far = (hi[idx] + margin).clamp(max=config.render.max_distance)
+        c, d, s = _render_submap_chunk(submap, T_map_cam, dirs_cam[idx], config, band_near, band_far,
+                                       traverse=False)
+        rgb[idx], depth[idx], surface[idx] = c, d, s
+    return rgb, depth, surface
+
+
 def render_view(mapset, T_world_cam, K, width: int, height: int, *, chunk_rays: int | None = None,
-                device: str | torch.device | None = None, near: float = DEFAULT_NEAR) -> RenderedView:
+                device: str | torch.device | None = None, near: float = DEFAULT_NEAR,
+                method: str = "banded", coarse_stride: int = DEFAULT_COARSE_STRIDE) -> RenderedView:
     """Render colour and depth of the whole map set seen by one pinhole camera.
 
     T_world_cam (4, 4) camera-to-world, OpenCV axes; K (3, 3) intrinsics of a
     ``width`` x ``height`` image (arrays or tensors). ``chunk_rays`` defaults to
     ``config.render.chunk_rays``; ``device`` to the first submap's. Rays run from ``near``
-    to ``config.render.max_distance`` (D_max) in z-depth.
+    to ``config.render.max_distance`` (D_max) in z-depth. ``method`` is ``banded`` (coarse
+    pass, then a depth band per pixel) or ``full`` (the reference); see the module docstring.
     """
     width, height = int(width), int(height)
     if width <= 0 or height <= 0:
         raise ValueError(f"image size must be positive, got {width}x{height}")
+    if method not in VIEW_METHODS:
+        raise ValueError(f"method must be one of {VIEW_METHODS}, got {method!r}")
+    if int(coarse_stride) < 1:
+        raise ValueError(f"coarse_stride must be at least 1, got {coarse_stride}")
     T_world_cam = _as_tensor(T_world_cam, "T_world_cam", (4, 4))
     K = _as_tensor(K, "K", (3, 3))
     config = mapset.config
@@ -135,13 +262,15 @@ def render_view(mapset, T_world_cam, K, width: int, height: int, *, chunk_rays: 
             continue
         T_world_map = _as_tensor(submap.T_world_map, "T_world_map", (4, 4))
         T_map_cam = (torch.linalg.inv(T_world_map) @ T_world_cam).to(device, torch.float32)
-        for start in range(0, num_pixels, chunk):
-            sl = slice(start, min(start + chunk, num_pixels))
-            color, depth, surface = _render_submap_chunk(submap, T_map_cam, dirs_cam[sl], config, near)
-            nearer = surface & (depth < best_depth[sl])
-            best_depth[sl] = torch.where(nearer, depth, best_depth[sl])
-            rgb[sl] = torch.where(nearer[:, None], color.clamp(0.0, 1.0), rgb[sl])
-            source[sl] = torch.where(nearer, torch.full_like(source[sl], map_index), source[sl])
+        if method == "full" or coarse_stride == 1:
+            color, depth, surface = _render_submap_full(submap, T_map_cam, dirs_cam, config, near, chunk)
+        else:
+            color, depth, surface = _render_submap_banded(submap, T_map_cam, dirs_cam, config, near, chunk,
+                                                          width, height, int(coarse_stride))
+        nearer = surface & (depth < best_depth)
+        best_depth = torch.where(nearer, depth, best_depth)
+        rgb = torch.where(nearer[:, None], color.clamp(0.0, 1.0), rgb)
+        source = torch.where(nearer, torch.full_like(source, map_index), source)
 
     depth_out = torch.where(source >= 0, best_depth, torch.zeros_like(best_depth))
     return RenderedView(

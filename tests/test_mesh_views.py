@@ -21,7 +21,7 @@ from slam.config import preset
 from slam.maps import MapSet, SubMap
 from slam.mesh import empty_mesh, export_mesh, extract_mesh, extract_submap_mesh, mesh_to_bytes
 from slam.render import camera_rays, interpolate_embeddings, rays_in_map
-from slam.views import RenderedView, rays_near_surface, render_view
+from slam.views import RenderedView, coarse_grid, depth_bands, rays_near_surface, render_view
 from slam.voxels import morton_decode
 
 CONFIG = preset("test")
@@ -405,3 +405,56 @@ def test_config_resolution_is_the_default(fitted):
     config = dataclasses.replace(CONFIG, mesh=dataclasses.replace(CONFIG.mesh, resolution=2))
     default = extract_mesh(MapSet(config, fitted.maps))
     assert len(default.faces) == len(extract_mesh(fitted, resolution=2).faces)
+
+
+# ------------------------------------------------------------ banded views
+def test_coarse_grid_keeps_the_last_pixel():
+    assert coarse_grid(10, 4).tolist() == [0, 4, 8, 9]
+    assert coarse_grid(9, 4).tolist() == [0, 4, 8]
+    assert coarse_grid(1, 4).tolist() == [0]
+
+
+def test_depth_bands_span_the_coarse_neighbours():
+    # A 3 x 3 coarse grid over a 9 x 9 image (stride 4): one cell sees nothing.
+    cu = cv = coarse_grid(9, 4)
+    depth = torch.tensor([[1.0, 2.0, 3.0], [1.0, 0.0, 3.0], [1.0, 2.0, 3.0]])
+    surface = depth > 0
+    lo, hi = depth_bands(depth, surface, cu, cv, 9, 9)
+    lo, hi = lo.reshape(9, 9), hi.reshape(9, 9)
+    assert lo.min() == 1.0 and hi.max() == 3.0 and torch.isfinite(lo).all()
+    # Nothing seen anywhere: every band is empty.
+    lo, _ = depth_bands(depth, torch.zeros_like(surface), cu, cv, 9, 9)
+    assert torch.isinf(lo).all()
+
+
+@pytest.mark.parametrize("camera", ["trained", "moved"])
+def test_banded_view_matches_the_full_render(fitted, camera):
+    """The fast path gives the reference's pixels: the same samples near the first crossing
+    less the far, light ones, so depth agrees within an eighth of the test preset's 4 cm step
+    and colour within a few levels; coverage but for a few pixels on silhouettes."""
+    T = torch.eye(4) if camera == "trained" else moved_camera()
+    full = render_view(fitted, T, SCENE_K, *SCENE_SIZE, method="full")
+    banded = render_view(fitted, T, SCENE_K, *SCENE_SIZE, method="banded", coarse_stride=4)
+    both = full.valid & banded.valid
+    assert both.sum() > 0.8 * full.valid.sum()
+    assert (full.valid != banded.valid).mean() < 0.01
+    depth_error = np.abs(banded.depth[both] - full.depth[both])
+    assert np.percentile(depth_error, 99) < 5e-3 and np.median(depth_error) < 1e-3
+    rgb_error = np.abs(banded.rgb[both] - full.rgb[both])
+    assert rgb_error.mean() < 0.01 and np.percentile(rgb_error, 99) < 0.05
+    assert (banded.map_index[both] == full.map_index[both]).all()
+
+
+def test_banded_view_composites_submaps_like_the_full_render():
+    far_map = exact_submap(patch(-3, 3), plane_z(0.13), map_id=0, T_world_map=translation(z=1.0))
+    near_map = exact_submap(patch(-3, 3), plane_z(0.13), map_id=1, T_world_map=translation(x=0.5, z=0.6))
+    mapset, K = MapSet(CONFIG, [far_map, near_map]), pinhole(40, 30, 20.0)
+    full = render_view(mapset, np.eye(4), K, 40, 30, method="full")
+    banded = render_view(mapset, np.eye(4), K, 40, 30)
+    assert (full.map_index != banded.map_index).mean() < 0.02
+    same = full.map_index == banded.map_index
+    np.testing.assert_allclose(banded.depth[same], full.depth[same], atol=5e-3)
+    with pytest.raises(ValueError, match="method"):
+        render_view(mapset, np.eye(4), K, 40, 30, method="fast")
+    with pytest.raises(ValueError, match="coarse_stride"):
+        render_view(mapset, np.eye(4), K, 40, 30, coarse_stride=0)

@@ -25,6 +25,7 @@ from slam.render import (
     rays_in_map,
     render_rays,
     sample_points_from_hits,
+    sample_points_in_band,
     sdf_weights,
     sdf_weights_and_slope,
     trilinear_weights,
@@ -493,3 +494,25 @@ def test_gradients_reach_embeddings_decoder_and_ray_geometry():
         assert p.grad is not None and bool(torch.isfinite(p.grad).all()), name
     assert float(decoder.sdf_head.weight.grad.abs().sum()) > 0
     assert float(decoder.color_head[-1].weight.grad.abs().sum()) > 0
+
+
+
+def test_band_samples_are_the_traversal_samples_on_random_rays():
+    """Lookup along the t grid gives the samples of traversal plus sampling (offset 0.5), for
+    ranges through occupied, empty and partly occupied space."""
+    view = slab_view()
+    gen = torch.Generator().manual_seed(3)
+    n = 64
+    origins = torch.cat([torch.rand(n, 2, generator=gen, dtype=torch.float64) * 1.2 - 0.6,
+                         torch.rand(n, 1, generator=gen, dtype=torch.float64) * 0.5 - 0.3], 1)
+    dirs = torch.cat([torch.rand(n, 2, generator=gen, dtype=torch.float64) * 1.0 - 0.5,
+                      torch.ones(n, 1, dtype=torch.float64)], 1)
+    near = torch.rand(n, generator=gen, dtype=torch.float64) * 1.5
+    far = near + torch.rand(n, generator=gen, dtype=torch.float64) * 0.4
+    step = 0.02
+    hits = ray_voxel_intersections(origins, dirs, near, far, view.voxel_codes, view.voxel_size, 0)
+    traversed = sample_points_from_hits(hits, step, torch.full((n,), 0.5, dtype=torch.float64))
+    looked_up = sample_points_in_band(origins, dirs, near, far, step, view)
+    assert traversed.t.numel() > 100 and torch.equal(looked_up.ray_index, traversed.ray_index)
+    assert torch.allclose(looked_up.t, traversed.t) and torch.equal(looked_up.voxel_index, traversed.voxel_index)
+    assert sample_points_in_band(origins, dirs, far, near, step, view).t.numel() == 0
