@@ -189,6 +189,15 @@ class MappingConfig:
     current submap (paper: intra-map optimisation), before the mesh and trajectory are written."""
     final_rays: int = 2048
     """Rays per global bundle-adjustment iteration, spread evenly over the keyframes."""
+    final_iterations_per_keyframe: int = 0
+    """Caps ``final_iterations`` at this many per keyframe of the run (0: no cap): a few
+    keyframes need fewer passes to agree with one map than a long sequence does."""
+    final_time_share: float = 0.0
+    """Caps the final bundle adjustment's wall time at this multiple of the run's time before
+    it (0: no cap), but never below ``final_min_seconds``: a short upload then does not spend
+    most of its run refining (a 9-frame upload spent 106 of 114 s there)."""
+    final_min_seconds: float = 10.0
+    """The least wall time the time cap leaves the final bundle adjustment."""
 
 
 @dataclass(frozen=True)
@@ -359,8 +368,13 @@ def _cpu() -> SLAMConfig:
         # 12 iterations of 192 rays per frame cost what 6 of 384 did and converge the newest
         # voxels further: tracking a frame from the previous GT pose against the map of the
         # frames before it (fr1/rpy 6-59, GT poses) errs 0.96 deg instead of 1.16 deg.
+        # The final bundle adjustment is budgeted: 500 iterations at most, 50 per keyframe, and
+        # no longer than the run before it (at least 10 s), so that it is at most about half
+        # of a short run's wall time (fr1/desk, 9 frames, 6 keyframes: 500 iterations took
+        # 16.8 of 28.8 s, ATE 0.26 cm; capped, 279 took 10.0 of 23.3 s, ATE 0.38 cm).
         mapping=MappingConfig(num_rays=192, iterations=12, window_size=4, first_frame_iterations=100,
-                              final_iterations=500, final_rays=512),
+                              final_iterations=500, final_rays=512, final_iterations_per_keyframe=50,
+                              final_time_share=1.0),
         mesh=MeshConfig(resolution=6),
         # Maps of a 3 m region: a lap around a room then comes back into other maps than the
         # ones it left, and loops between maps can correct the drift (synthetic laps hall, 780

@@ -133,6 +133,8 @@ class Mapper:
         self.maps = MapSet(config)
         self.version = 0
         self.timer = _Timer()
+        self.last_iterations = 0
+        """Iterations the last joint optimisation ran (fewer than asked when its deadline passed)."""
         self.active: dict[int, SubMap] = {}
         """agent -> the map it is mapping into."""
         self._rng = random.Random(seed)
@@ -298,23 +300,26 @@ class Mapper:
         fixed = [] if current is None else [current]
         return self._joint_optimisation(submap, window, fixed, iterations, m.num_rays)
 
-    def global_bundle_adjustment(self, submap: SubMap, iterations: int, num_rays: int) -> dict[str, float]:
+    def global_bundle_adjustment(self, submap: SubMap, iterations: int, num_rays: int,
+                                 deadline: float | None = None) -> dict[str, float]:
         """The paper's intra-map optimisation: embeddings, decoder and the poses of *all*
         keyframes of ``submap`` (the first fixed), ``num_rays`` rays per iteration spread evenly
         over the keyframes (at least 4 each). The windowed mapper only ever sees N_kf keyframes
-        at once; this pass makes every keyframe agree with one map. Returns the last
-        iteration's losses."""
+        at once; this pass makes every keyframe agree with one map. Stops early once
+        ``time.perf_counter()`` passes ``deadline``; ``last_iterations`` says how many ran.
+        Returns the last iteration's losses."""
         kfs = submap.keyframes
+        self.last_iterations = 0
         if not kfs or iterations <= 0:
             return {}
         # At least a few rays per keyframe: long sequences cost a little more per iteration
         # rather than leaving keyframes out.
         per_frame = max(num_rays // len(kfs), 4)
-        return self._joint_optimisation(submap, list(kfs), [], iterations, per_frame)
+        return self._joint_optimisation(submap, list(kfs), [], iterations, per_frame, deadline)
 
     def _joint_optimisation(self, submap: SubMap, keyframes: list[Keyframe],
                             fixed: list[tuple[TensorFrame, torch.Tensor]], iterations: int,
-                            rays_per_frame: int) -> dict[str, float]:
+                            rays_per_frame: int, deadline: float | None = None) -> dict[str, float]:
         """Adam on embeddings and decoder (and, with ``optimize_poses``, a twist per keyframe
         but the submap's first) over ``rays_per_frame`` rays of every keyframe and of every
         ``fixed`` (frame, T_map_cam). Keyframe poses take their twists at the end."""
@@ -332,8 +337,12 @@ class Mapper:
         weights = self._loss_weights()
         stack = stack_frames(sources)
         losses: Losses | None = None
+        self.last_iterations = 0
         for _ in range(iterations):
             tq = time.perf_counter()
+            if deadline is not None and tq > deadline:
+                break
+            self.last_iterations += 1
             batch = self._sample(sources, stack, rays_per_frame)
             T = T_start
             if free:

@@ -20,7 +20,7 @@ import queue
 import signal
 import time
 import traceback
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -106,6 +106,29 @@ class MapperStats:
     """Every verified loop candidate with its scores, accepted or not."""
     loop_candidates_rejected: int
     loop_timings_ms: dict[str, float]
+    refinement: "FinalRefinement | None" = None
+    """What the end-of-run global bundle adjustment did (None before it ran)."""
+
+
+@dataclass(frozen=True)
+class FinalBudget:
+    """The end-of-run global bundle adjustment's budget: iterations over all maps, and
+    seconds (None: no time cap)."""
+
+    iterations: int
+    seconds: float | None
+
+
+@dataclass(frozen=True)
+class FinalRefinement:
+    """What the final bundle adjustment did: iterations asked and run, seconds, and whether
+    its time cap stopped it."""
+
+    iterations_budget: int
+    iterations_run: int
+    seconds: float
+    seconds_budget: float | None
+    stopped_by_time: bool
 
 
 @dataclass
@@ -119,6 +142,9 @@ class _MapperSide:
     keyframes_since_mesh: int = 0
     keyframes_since_checkpoint: int = 0
     busy: float = 0.0
+    started: float = field(default_factory=time.perf_counter)
+    """When the mapping side started (the final bundle adjustment's time cap is relative)."""
+    refinement: FinalRefinement | None = None
 
 
 def _make_side(config: SLAMConfig, device: torch.device, out_dir: Path, emit_meshes: bool, seed: int) -> _MapperSide:
@@ -248,7 +274,20 @@ def _stats(side: _MapperSide) -> MapperStats:
         closer.closures_json() if closer is not None else [],  # type: ignore[union-attr]
         list(closer.candidates) if closer is not None else [],  # type: ignore[union-attr]
         closer.rejected if closer is not None else 0,  # type: ignore[union-attr]
-        closer.timings_ms() if closer is not None else {})  # type: ignore[union-attr]
+        closer.timings_ms() if closer is not None else {},  # type: ignore[union-attr]
+        side.refinement)
+
+
+def final_budget(mapping, keyframes: int, elapsed: float) -> FinalBudget:
+    """The final bundle adjustment's budget for a run of ``keyframes`` keyframes that has taken
+    ``elapsed`` seconds so far (``MappingConfig.final_*``)."""
+    iterations = mapping.final_iterations
+    if mapping.final_iterations_per_keyframe > 0:
+        iterations = min(iterations, mapping.final_iterations_per_keyframe * keyframes)
+    seconds = None
+    if mapping.final_time_share > 0:
+        seconds = max(mapping.final_min_seconds, mapping.final_time_share * elapsed)
+    return FinalBudget(max(iterations, 0), seconds)
 
 
 def final_iterations_per_map(keyframes: list[int], total: int) -> list[int]:
@@ -273,12 +312,20 @@ def _finish(side: _MapperSide, refine: bool) -> list[Reply]:
         m = mapper.config.mapping
         t0 = time.perf_counter()
         maps = mapper.maps.maps
-        shares = final_iterations_per_map([len(s.keyframes) for s in maps], m.final_iterations if refine else 0)
+        budget = final_budget(m, mapper.maps.num_keyframes(), t0 - side.started)
+        shares = final_iterations_per_map([len(s.keyframes) for s in maps], budget.iterations if refine else 0)
+        ran = 0
         for submap, iterations in zip(maps, shares):
-            mapper.global_bundle_adjustment(submap, iterations, m.final_rays)
+            # Each map gets the share of the time that it gets of the iterations.
+            deadline = (None if budget.seconds is None or not sum(shares)
+                        else time.perf_counter() + budget.seconds * iterations / sum(shares))
+            mapper.global_bundle_adjustment(submap, iterations, m.final_rays, deadline=deadline)
+            ran += mapper.last_iterations if iterations > 0 and submap.keyframes else 0
         mapper.version += 1
-        side.busy += time.perf_counter() - t0
-        mapper.timer.add("final_bundle_adjustment", time.perf_counter() - t0)
+        seconds = time.perf_counter() - t0
+        side.busy += seconds
+        mapper.timer.add("final_bundle_adjustment", seconds)
+        side.refinement = FinalRefinement(sum(shares), ran, seconds, budget.seconds, ran < sum(shares))
         t0 = time.perf_counter()
         _save_map(side)
         export_mesh(extract_mesh(mapper.maps), side.out_dir / "mesh.ply")

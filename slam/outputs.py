@@ -9,7 +9,7 @@ tracking failed are interpolated between their well-tracked neighbours.
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -201,6 +201,8 @@ def write_outputs(out: Path, config: SLAMConfig, tracks: list["AgentTrack"], sta
             "embeddings": (stats.map_bytes if stats else 0) / 2**20,
             "decoder": (stats.decoder_bytes if stats else 0) / 2**20,
         },
+        "final_bundle_adjustment": (asdict(stats.refinement)
+                                    if stats and stats.refinement else None),
         "tracking_failures": sum(t.tracking_failures for t in tracks),
         "frames_interpolated": sum(t.interpolated for t in trajectories),
         "timings_s": {

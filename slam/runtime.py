@@ -24,6 +24,7 @@ Outputs in ``out_dir`` (``slam.outputs``): ``trajectory.txt`` (agent 0; and
 
 from __future__ import annotations
 
+import sys
 import time
 import traceback
 from dataclasses import dataclass, field, replace
@@ -422,7 +423,12 @@ def run_slam(sources: list[Iterable[Frame]], config: SLAMConfig, out_dir: str | 
             if side is not None and (status != "failed" or side.snapshots):
                 if status == "finished":
                     emit(PhaseEvent("refining"))
+                    if progress:
+                        print("refining: the final bundle adjustment, then the map and the mesh",
+                              file=sys.stderr, flush=True)
                 _handle_replies(channel.finish(refine=status == "finished"), side, emit)
+                if progress and side.mapper_stats is not None and side.mapper_stats.refinement is not None:
+                    print(f"refining: {describe_refinement(side.mapper_stats.refinement)}", file=sys.stderr, flush=True)
         except KeyboardInterrupt:
             status = "cancelled"
         except Exception:  # noqa: BLE001
@@ -439,6 +445,12 @@ def run_slam(sources: list[Iterable[Frame]], config: SLAMConfig, out_dir: str | 
         emit(_stats_event(side, total, result.fps, started, done, ate=result.ate_rmse))
     emit(FinishedEvent(status, error))
     return result
+
+
+def describe_refinement(refinement) -> str:
+    """One line on what the final bundle adjustment did (``mapping_process.FinalRefinement``)."""
+    cap = f", stopped by its {refinement.seconds_budget:.0f} s cap" if refinement.stopped_by_time else ""
+    return f"{refinement.iterations_run} of {refinement.iterations_budget} iterations in {refinement.seconds:.1f} s{cap}"
 
 
 def _progress_fields(side: _TrackingSide, fps: float, done: int) -> dict[str, str]:

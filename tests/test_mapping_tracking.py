@@ -212,6 +212,29 @@ def test_global_bundle_adjustment_moves_every_keyframe_but_the_first():
     assert torch.equal(after[0], before[0])
     assert all(float((a - b).abs().max()) > 1e-4 for a, b in zip(after[1:], before[1:]))
     assert mapper.global_bundle_adjustment(submap, 0, num_rays=256) == {}
+    assert mapper.last_iterations == 0
+    mapper.global_bundle_adjustment(submap, 3, num_rays=64)
+    assert mapper.last_iterations == 3
+    # A deadline already passed stops it before the first iteration; poses stay.
+    import time
+
+    held = [kf.T_map_cam.clone() for kf in submap.keyframes]
+    mapper.global_bundle_adjustment(submap, 50, num_rays=64, deadline=time.perf_counter() - 1)
+    assert mapper.last_iterations == 0
+    assert all(torch.equal(a, kf.T_map_cam) for a, kf in zip(held, submap.keyframes))
+
+
+def test_final_budget_caps_iterations_by_keyframes_and_time_by_the_run():
+    from slam.mapping_process import final_budget
+
+    m = replace(BASE.mapping, final_iterations=500, final_iterations_per_keyframe=50,
+                final_time_share=1.0, final_min_seconds=10.0)
+    assert final_budget(m, 4, 3.0).iterations == 200 and final_budget(m, 40, 3.0).iterations == 500
+    assert final_budget(m, 4, 3.0).seconds == 10.0, "never below the floor"
+    assert final_budget(m, 4, 60.0).seconds == 60.0, "as long as the run before it"
+    plain = replace(m, final_iterations_per_keyframe=0, final_time_share=0.0)
+    assert final_budget(plain, 4, 60.0) == final_budget(plain, 40, 1.0)
+    assert final_budget(plain, 4, 60.0).iterations == 500 and final_budget(plain, 4, 60.0).seconds is None
 
 
 def test_without_pose_optimisation_no_keyframe_moves(frames):

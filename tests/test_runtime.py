@@ -222,6 +222,8 @@ def test_gt_poses_mode_writes_the_gt_trajectory(frames, tmp_path):
     np.testing.assert_allclose(traj.poses, np.stack([f.T_world_cam for f in frames]), atol=1e-6)
     assert done.result.ate_rmse == pytest.approx(0.0, abs=1e-6)
     assert done.info["timings_s"]["mapping_final_bundle_adjustment"] > 0
+    assert done.info["final_bundle_adjustment"] == {**done.info["final_bundle_adjustment"], "iterations_budget": 3,
+                                                    "iterations_run": 3, "stopped_by_time": False}
     assert done.info["config"]["mapping"]["optimize_poses"] is False
     for index, pose in done.info["keyframe_poses"].items():
         np.testing.assert_allclose(np.reshape(pose, (4, 4)), frames[int(index)].T_world_cam, atol=1e-5)
