@@ -2,7 +2,8 @@
 
 A map is built with ground-truth poses from the even frames of a sequence (as
 ``bench_mapping.py`` does, ``cpu`` preset, pipeline width 320), then the odd, held-out frames
-are rendered at their poses with both methods of ``slam.views.render_view``, at 640 and 320
+are rendered at their poses with ``slam.views.render_view``'s defaults (``banded``, decoder
+precision ``auto``) and its plain reference (``full``, ``float32``), at 640 and 320
 pixels wide (the input's aspect: 640x480 and 320x240 for TUM), after one untimed view (warm).
 Colour PSNR and depth L1 are against the held-out input at that size; the banded image is
 also compared with the full one (PSNR between the two renders).
@@ -61,15 +62,17 @@ def psnr(a: np.ndarray, b: np.ndarray) -> float:
     return float(-10 * np.log10(max(float(np.mean((a - b) ** 2)), 1e-12)))
 
 
-def render_stats(maps, frames, method: str) -> tuple[ViewStats, list]:
+def render_stats(maps, frames, method: str, precision: str) -> tuple[ViewStats, list]:
     from slam.views import render_view
 
     seconds, sq, abs_err, covered, observed, views = [], [], [], 0, 0, []
     first = frames[0]
-    render_view(maps, first.T_world_cam, first.K, first.width, first.height, method=method)  # warm
+    render_view(maps, first.T_world_cam, first.K, first.width, first.height, method=method,
+                precision=precision)  # warm
     for frame in frames:
         t0 = time.perf_counter()
-        view = render_view(maps, frame.T_world_cam, frame.K, frame.width, frame.height, method=method)
+        view = render_view(maps, frame.T_world_cam, frame.K, frame.width, frame.height, method=method,
+                           precision=precision)
         seconds.append(time.perf_counter() - t0)
         observed_mask = frame.depth > 0
         both = observed_mask & view.valid
@@ -96,8 +99,8 @@ def scene_figures(name: str, config) -> list[Figure]:
     for width, target in WIDTHS.items():
         frames = [pipeline_frame(sequence[i], width) for i in held_ids]
         size = f"{frames[0].width}x{frames[0].height}"
-        full, full_views = render_stats(mapper.maps, frames, "full")
-        banded, banded_views = render_stats(mapper.maps, frames, "banded")
+        full, full_views = render_stats(mapper.maps, frames, "full", "float32")
+        banded, banded_views = render_stats(mapper.maps, frames, "banded", "auto")
         agreement = statistics.mean(psnr(a.rgb, b.rgb) for a, b in zip(full_views, banded_views))
         print(f"{name} {size}: full {full}\n{name} {size}: banded {banded}", flush=True)
         figures += [

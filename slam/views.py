@@ -30,10 +30,14 @@ held-out views: 0.1 dB of PSNR), for about a third of the time. A pixel none of 
 neighbours (the 4 x 4 coarse cells around it) saw a surface stays empty: only a surface
 narrower than about ``coarse_stride`` pixels, or one hidden behind the first surface at
 every neighbour, can differ more.
+
+Views need no gradients, so on a CPU that multiplies bfloat16 natively the decoder runs in
+bfloat16 (``precision="auto"``, ``Bfloat16Decoder``): 20 % off a banded view, 0.01 dB.
 """
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 
 import numpy as np
@@ -49,6 +53,7 @@ DEFAULT_NEAR = 0.05
 # and a 1200x680 view renders ~40 % faster than with the training default of 1e-5.
 VIEW_COLOR_WEIGHT_EPS = 1e-3
 VIEW_METHODS = ("banded", "full")
+VIEW_PRECISIONS = ("auto", "float32", "bfloat16")
 # Every 4th pixel in each direction: 1/16 of the rays for the coarse pass, fine enough that a
 # 640x480 view's surfaces narrower than 4 pixels are all that can be missed.
 DEFAULT_COARSE_STRIDE = 4
@@ -57,6 +62,43 @@ DEFAULT_COARSE_STRIDE = 4
 # d / tr^2 (1 cm at tr = 0.1 m); beyond 4 widths it is under 7 % of its peak. Replica room0,
 # 5 held-out 640x363 views: PSNR 23.81 dB full, 23.73 banded with 4 widths, 23.71 with 3.
 BAND_WEIGHT_WIDTHS = 4.0
+
+
+def bf16_matmul_is_native() -> bool:
+    """Whether this CPU multiplies bfloat16 natively (oneDNN with AVX512-BF16 or AMX); elsewhere
+    torch emulates it, slower than float32."""
+    try:
+        return bool(torch.backends.mkldnn.is_available() and torch.ops.mkldnn._is_mkldnn_bf16_supported())
+    except (AttributeError, RuntimeError):
+        return False
+
+
+class Bfloat16Decoder:
+    """A view-only copy of a decoder whose matrix products run in bfloat16 (accumulated in
+    float32 by oneDNN), returning float32 SDF and colour: 2.4x faster on this machine's CPU
+    (1M samples: 0.25 against 0.60 s), SDF within 0.5 mm, colour within 1/500. The renderer
+    keeps the weights, depth and sums in float32. For ``torch.no_grad`` views only."""
+
+    def __init__(self, decoder) -> None:
+        self._decoder = copy.deepcopy(decoder).to(torch.bfloat16)
+
+    def sdf_and_hidden(self, emb: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        sdf, hidden = self._decoder.sdf_and_hidden(emb.to(torch.bfloat16))
+        return sdf.float(), hidden
+
+    def feature_from_hidden(self, hidden: torch.Tensor) -> torch.Tensor:
+        return self._decoder.feature_from_hidden(hidden)
+
+    def color(self, feature: torch.Tensor) -> torch.Tensor:
+        return self._decoder.color(feature).float()
+
+
+def view_decoder(decoder, device: torch.device, precision: str):
+    """The decoder views run: ``decoder`` itself for ``float32``; for ``auto``, a bfloat16 copy
+    on a CPU that multiplies bfloat16 natively; ``bfloat16`` forces the copy."""
+    if precision == "float32" or (precision == "auto" and not (device.type == "cpu" and bf16_matmul_is_native())):
+        return decoder
+    return Bfloat16Decoder(decoder)
 
 
 @dataclass(frozen=True)
@@ -111,19 +153,20 @@ def rays_near_surface(sdf: torch.Tensor, ray_index: torch.Tensor, num_rays: int,
 @torch.no_grad()
 def _render_submap_chunk(submap, T_map_cam: torch.Tensor, dirs_cam: torch.Tensor, config,
                          near: torch.Tensor, far: torch.Tensor, *, with_color: bool = True,
-                         traverse: bool = True) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+                         traverse: bool = True, decoder=None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Render (R, 3) camera-frame directions in one submap between ``near`` and ``far`` (R,).
 
     -> colour (R, 3) (zero without ``with_color``: the coarse pass needs depth only), depth
     (R,), surface (R,) bool, all on the submap's device. ``traverse=False`` for short
-    ranges: samples by lookup instead of the voxel traversal (``render_rays``).
+    ranges: samples by lookup instead of the voxel traversal (``render_rays``). ``decoder``
+    defaults to the submap's (``view_decoder`` gives a faster one for views).
     """
     render = config.render
     step = render.step_ratio * submap.voxels.voxel_size
     origins, dirs = rays_in_map(T_map_cam, dirs_cam)
     num_rays = dirs.shape[0]
     # Voxels the mapper never optimised hold random embeddings: they render nothing.
-    out = render_rays(origins, dirs, submap.optimised_view(1), submap.decoder, near=near, far=far,
+    out = render_rays(origins, dirs, submap.optimised_view(1), decoder or submap.decoder, near=near, far=far,
                       step=step, truncation=render.truncation, max_hits=render.max_hits,
                       color_weight_eps=VIEW_COLOR_WEIGHT_EPS if with_color else float("inf"),
                       traverse=traverse)
@@ -133,7 +176,7 @@ def _render_submap_chunk(submap, T_map_cam: torch.Tensor, dirs_cam: torch.Tensor
 
 
 def _render_submap_full(submap, T_map_cam: torch.Tensor, dirs_cam: torch.Tensor, config,
-                        near: float, chunk: int, *, with_color: bool = True
+                        near: float, chunk: int, *, with_color: bool = True, decoder=None
                         ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Every ray of (N, 3) ``dirs_cam`` from ``near`` to D_max, in chunks -> colour, depth, surface."""
     far = config.render.max_distance
@@ -141,7 +184,8 @@ def _render_submap_full(submap, T_map_cam: torch.Tensor, dirs_cam: torch.Tensor,
     for start in range(0, dirs_cam.shape[0], chunk):
         d = dirs_cam[start:start + chunk]
         parts.append(_render_submap_chunk(submap, T_map_cam, d, config, torch.full_like(d[:, 0], near),
-                                          torch.full_like(d[:, 0], far), with_color=with_color))
+                                          torch.full_like(d[:, 0], far), with_color=with_color,
+                                          decoder=decoder))
     if not parts:
         empty = dirs_cam.new_zeros(0)
         return dirs_cam.new_zeros(0, 3), empty, empty.bool()
@@ -195,14 +239,15 @@ def depth_bands(coarse_depth: torch.Tensor, coarse_surface: torch.Tensor, cu: to
 
 
 def _render_submap_banded(submap, T_map_cam: torch.Tensor, dirs_cam: torch.Tensor, config,
-                          near: float, chunk: int, width: int, height: int, stride: int
+                          near: float, chunk: int, width: int, height: int, stride: int, decoder=None
                           ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The ``banded`` method for one submap: (H * W, 3) directions -> colour, depth, surface."""
     device = dirs_cam.device
     cu, cv = coarse_grid(width, stride).to(device), coarse_grid(height, stride).to(device)
     coarse_index = (cv[:, None] * width + cu[None, :]).reshape(-1)
     _, coarse_depth, coarse_surface = _render_submap_full(submap, T_map_cam, dirs_cam[coarse_index],
-                                                          config, near, chunk, with_color=False)
+                                                          config, near, chunk, with_color=False,
+                                                          decoder=decoder)
     lo, hi = depth_bands(coarse_depth.reshape(len(cv), len(cu)), coarse_surface.reshape(len(cv), len(cu)),
                          cu, cv, width, height)
     # At least two steps, so that a coarse preset's band still holds the two samples that
@@ -219,14 +264,15 @@ def _render_submap_banded(submap, T_map_cam: torch.Tensor, dirs_cam: torch.Tenso
         band_near = (lo[idx] - margin).clamp(min=near)
         band_far = (hi[idx] + margin).clamp(max=config.render.max_distance)
         c, d, s = _render_submap_chunk(submap, T_map_cam, dirs_cam[idx], config, band_near, band_far,
-                                       traverse=False)
+                                       traverse=False, decoder=decoder)
         rgb[idx], depth[idx], surface[idx] = c, d, s
     return rgb, depth, surface
 
 
 def render_view(mapset, T_world_cam, K, width: int, height: int, *, chunk_rays: int | None = None,
                 device: str | torch.device | None = None, near: float = DEFAULT_NEAR,
-                method: str = "banded", coarse_stride: int = DEFAULT_COARSE_STRIDE) -> RenderedView:
+                method: str = "banded", coarse_stride: int = DEFAULT_COARSE_STRIDE,
+                precision: str = "auto") -> RenderedView:
     """Render colour and depth of the whole map set seen by one pinhole camera.
 
     T_world_cam (4, 4) camera-to-world, OpenCV axes; K (3, 3) intrinsics of a
@@ -234,12 +280,16 @@ def render_view(mapset, T_world_cam, K, width: int, height: int, *, chunk_rays: 
     ``config.render.chunk_rays``; ``device`` to the first submap's. Rays run from ``near``
     to ``config.render.max_distance`` (D_max) in z-depth. ``method`` is ``banded`` (coarse
     pass, then a depth band per pixel) or ``full`` (the reference); see the module docstring.
+    ``precision`` is the decoder's: ``auto`` (bfloat16 on a CPU that multiplies it natively,
+    ``Bfloat16Decoder``; else float32), ``float32`` or ``bfloat16``.
     """
     width, height = int(width), int(height)
     if width <= 0 or height <= 0:
         raise ValueError(f"image size must be positive, got {width}x{height}")
     if method not in VIEW_METHODS:
         raise ValueError(f"method must be one of {VIEW_METHODS}, got {method!r}")
+    if precision not in VIEW_PRECISIONS:
+        raise ValueError(f"precision must be one of {VIEW_PRECISIONS}, got {precision!r}")
     if int(coarse_stride) < 1:
         raise ValueError(f"coarse_stride must be at least 1, got {coarse_stride}")
     T_world_cam = _as_tensor(T_world_cam, "T_world_cam", (4, 4))
@@ -262,11 +312,13 @@ def render_view(mapset, T_world_cam, K, width: int, height: int, *, chunk_rays: 
             continue
         T_world_map = _as_tensor(submap.T_world_map, "T_world_map", (4, 4))
         T_map_cam = (torch.linalg.inv(T_world_map) @ T_world_cam).to(device, torch.float32)
+        decoder = view_decoder(submap.decoder, device, precision)
         if method == "full" or coarse_stride == 1:
-            color, depth, surface = _render_submap_full(submap, T_map_cam, dirs_cam, config, near, chunk)
+            color, depth, surface = _render_submap_full(submap, T_map_cam, dirs_cam, config, near, chunk,
+                                                        decoder=decoder)
         else:
             color, depth, surface = _render_submap_banded(submap, T_map_cam, dirs_cam, config, near, chunk,
-                                                          width, height, int(coarse_stride))
+                                                          width, height, int(coarse_stride), decoder=decoder)
         nearer = surface & (depth < best_depth)
         best_depth = torch.where(nearer, depth, best_depth)
         rgb = torch.where(nearer[:, None], color.clamp(0.0, 1.0), rgb)
