@@ -17,11 +17,15 @@ $(STAMP): pyproject.toml
 
 setup: $(STAMP)
 
+# The HTTP port: `make demo PORT=8001`, or VOXFUSION_PORT in the environment (default 8000;
+# the demo moves on to the next free port when it is taken).
+PORT_FLAG := $(if $(PORT),--port $(PORT))
+
 demo: $(STAMP)
-	$(BIN)/voxfusion demo
+	$(BIN)/voxfusion demo $(PORT_FLAG)
 
 serve: $(STAMP)
-	$(BIN)/voxfusion serve
+	$(BIN)/voxfusion serve $(PORT_FLAG)
 
 test: $(STAMP)
 	bash scripts/browser-deps.sh

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import ipaddress
+import socket
 import sys
 from pathlib import Path
 
@@ -36,7 +37,7 @@ def add_server_commands(subparsers) -> None:
 def _server_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--host", default="127.0.0.1",
                         help="interface to bind (default 127.0.0.1; use 0.0.0.0 only with VOXFUSION_TOKEN set)")
-    parser.add_argument("--port", type=int, default=8000, help="HTTP port (default 8000)")
+    parser.add_argument("--port", type=int, default=None, help="HTTP port (default VOXFUSION_PORT or 8000)")
     parser.add_argument("--data-dir", type=Path, default=None, help="sessions and assets (default VOXFUSION_DATA_DIR)")
     parser.add_argument("--viewer-port", type=int, default=None,
                         help="viser's own port (default VOXFUSION_VIEWER_PORT or 8080; -1 turns the viewer off)")
@@ -48,7 +49,7 @@ def _server_options(parser: argparse.ArgumentParser) -> None:
 def _settings(args: argparse.Namespace):
     from server.settings import settings_from_env
 
-    return settings_from_env().with_overrides(data_dir=args.data_dir, viewer_port=args.viewer_port,
+    return settings_from_env().with_overrides(data_dir=args.data_dir, port=args.port, viewer_port=args.viewer_port,
                                               viewer_host=args.viewer_host, max_sessions=args.max_sessions)
 
 
@@ -61,18 +62,58 @@ def _is_loopback(host: str) -> bool:
         return False
 
 
-def _serve(args: argparse.Namespace, demo=None) -> int:
+PORT_TRIES = 20
+"""``voxfusion demo`` moves on to the next of this many ports when its port is taken."""
+
+
+def _port_free(host: str, port: int) -> bool:
+    """Whether ``port`` can be bound on ``host`` now (uvicorn binds it a moment later)."""
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    with socket.socket(family, socket.SOCK_STREAM) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            probe.bind((host, port))
+        except OSError:
+            return False
+    return True
+
+
+def _choose_port(host: str, port: int, move_on: bool) -> int | None:
+    """``port``, or with ``move_on`` the next free one after it; None when none is free.
+    A taken port is said in one line instead of uvicorn's traceback."""
+    for candidate in range(port, port + (PORT_TRIES if move_on else 1)):
+        if candidate <= 65535 and _port_free(host, candidate):
+            if candidate != port:
+                print(f"voxfusion: port {port} is in use; using {candidate}", flush=True)
+            return candidate
+    tried = f"ports {port} to {port + PORT_TRIES - 1} are" if move_on else f"port {port} is"
+    print(f"voxfusion: {tried} in use on {host}: stop what uses it, or choose another with --port or "
+          f"VOXFUSION_PORT", file=sys.stderr)
+    return None
+
+
+def _serve(args: argparse.Namespace, demo_spec: tuple[str, str] | None = None) -> int:
+    """Serve the app; ``demo_spec`` (spec, preset) also starts a synthetic session and prints
+    the URL to open (after viser is up, so that it is the last URL a newcomer reads)."""
     import uvicorn
 
-    from server.main import create_app
+    from server.main import DemoSession, create_app
 
     settings = _settings(args)
     if not _is_loopback(args.host) and settings.token is None:
         print(f"voxfusion: WARNING: listening on {args.host} without VOXFUSION_TOKEN: anyone who can reach this "
               f"port can upload data and run sessions", file=sys.stderr)
+    port = _choose_port(args.host, settings.port, move_on=demo_spec is not None)
+    if port is None:
+        return 1
+    demo = None
+    if demo_spec is not None:
+        host = "127.0.0.1" if args.host in ("0.0.0.0", "::") else args.host
+        demo = DemoSession(spec=demo_spec[0], preset=demo_spec[1],
+                           announce=f"voxfusion demo: open http://{host}:{port}/ in a browser")
     print(f"voxfusion: data in {settings.data_dir}", flush=True)
     # One worker: sessions, their worker processes and the viewer live in this process.
-    uvicorn.run(create_app(settings, demo=demo), host=args.host, port=args.port, workers=1, log_level="info")
+    uvicorn.run(create_app(settings, demo=demo), host=args.host, port=port, workers=1, log_level="info")
     return 0
 
 
@@ -81,13 +122,9 @@ def serve_command(args: argparse.Namespace) -> int:
 
 
 def demo_command(args: argparse.Namespace) -> int:
-    from server.main import DemoSession
     from slam.config import default_preset_name
 
-    host = "127.0.0.1" if args.host in ("0.0.0.0", "::") else args.host
-    url = f"http://{host}:{args.port}/"
-    return _serve(args, DemoSession(spec=args.spec, preset=args.preset or default_preset_name(),
-                                    announce=f"voxfusion demo: open {url} in a browser"))
+    return _serve(args, (args.spec, args.preset or default_preset_name()))
 
 
 def _subparsers_action(parser: argparse.ArgumentParser):

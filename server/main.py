@@ -170,6 +170,7 @@ def create_app(settings: Settings | None = None, demo: DemoSession | None = None
         routes_docs,
         routes_pages,
         routes_render,
+        routes_series,
         routes_sessions,
         routes_stream,
     )
@@ -222,7 +223,7 @@ def create_app(settings: Settings | None = None, demo: DemoSession | None = None
     app.state.settings = settings
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_upload_bytes)
     _error_handlers(app)
-    for module in (routes_sessions, routes_stream, routes_render, routes_ar, routes_assets, routes_pages,
+    for module in (routes_sessions, routes_series, routes_stream, routes_render, routes_ar, routes_assets, routes_pages,
                    routes_docs):
         app.include_router(module.router)
     app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")

@@ -101,11 +101,12 @@ class MapCache:
             self._load_locks.pop(session_id, None)
 
 
-def render(mapset, camera: Camera):
-    """Neural render of ``camera``'s view -> ``slam.views.RenderedView`` (rgb, depth)."""
+def render(mapset, camera: Camera, **options):
+    """Neural render of ``camera``'s view -> ``slam.views.RenderedView`` (rgb, depth); ``options``
+    go to ``render_view`` (method, precision)."""
     from slam.views import render_view
 
-    return render_view(mapset, camera.T_world_cam, camera.K, camera.width, camera.height)
+    return render_view(mapset, camera.T_world_cam, camera.K, camera.width, camera.height, **options)
 
 
 def png_from_rgb(rgb: np.ndarray) -> bytes:
@@ -164,7 +165,8 @@ def pick_surface(mapset, camera: Camera, u: float, v: float) -> PickResult | Non
     # Pixel centres are at (i + 0.5): put the patch's centre pixel centre on (u, v).
     K[0, 2] -= u - half - 0.5
     K[1, 2] -= v - half - 0.5
-    view = render(mapset, Camera(camera.T_world_cam, K, PICK_PATCH, PICK_PATCH))
+    # A patch of a few pixels: the plain float32 render costs nothing here and is the reference.
+    view = render(mapset, Camera(camera.T_world_cam, K, PICK_PATCH, PICK_PATCH), method="full", precision="float32")
     depth = np.asarray(view.depth, dtype=np.float64)
     if depth[half, half] <= 0:
         return None

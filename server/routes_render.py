@@ -96,7 +96,7 @@ async def pick(session_id: str, request: PickRequest, manager: SessionManager = 
 def viewer_info(viewer: ViewerAdapter | None = Depends(get_viewer)) -> ViewerInfo:
     if viewer is None or not viewer.running:
         return ViewerInfo(enabled=False, port=None, clients=0)
-    return ViewerInfo(enabled=True, port=viewer.port, clients=viewer.client_count())
+    return ViewerInfo(enabled=True, port=viewer.port, clients=viewer.client_count(), selected=viewer.selected)
 
 
 @router.post("/api/viewer/select/{session_id}", status_code=204, tags=["viewer"],

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from datetime import datetime, timezone
 from pathlib import Path
 from typing import Literal
 
@@ -84,7 +85,19 @@ def session_out(manager: SessionManager, state: SessionStatus) -> SessionOut:
                              mesh=(directory / "mesh.ply").is_file() or bool(manager.live_meshes(state.id))
                              or (directory / "map.pt").is_file(),
                              map=(directory / "map.pt").is_file())
-    return SessionOut(**data, outputs=outputs)
+    files = [spec.name for spec in state.sources if spec.name]
+    return SessionOut(**data, outputs=outputs, files=files, phase_elapsed_s=_phase_elapsed(state))
+
+
+def _phase_elapsed(state: SessionStatus) -> float | None:
+    """Seconds since the current phase began (server clock, so the page needs no clock of its own)."""
+    if state.phase == "done" or not state.phase_started:
+        return None
+    try:
+        started = datetime.fromisoformat(state.phase_started)
+    except ValueError:
+        return None
+    return round(max(0.0, (datetime.now(timezone.utc) - started).total_seconds()), 1)
 
 
 def _default_preset() -> str:
@@ -131,6 +144,13 @@ def _upload_spec(form) -> tuple[SourceSpec, str]:
     return spec, preset
 
 
+def client_file_name(filename: str | None) -> str | None:
+    """The last part of a client's file name, printable and at most 80 characters: a label."""
+    name = (filename or "").replace("\\", "/").rsplit("/", 1)[-1]
+    name = "".join(c for c in name if c.isprintable())[:80].strip()
+    return name or None
+
+
 def _part_label(index: int, count: int, upload: UploadFile) -> str:
     """How an error names a file part: ``file 2 of 3 ('b.zip')`` (the client's name, quoted, never a path)."""
     name = (upload.filename or "").replace("\n", " ")[:80]
@@ -161,7 +181,7 @@ def _unpack_dataset(settings: Settings, session_dir: Path, upload: UploadFile, s
             sequence[0]
         except DataError as error:
             raise UploadError(f"the dataset cannot be read: {error}") from None
-        return replace(spec, path=str(root), format=fmt)
+        return replace(spec, path=str(root), format=fmt, name=client_file_name(upload.filename))
     except UploadError as error:
         # Messages name files: show them as the archive has them, never as server paths
         # (which would also show the id of a session that is not created after all).

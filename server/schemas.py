@@ -7,7 +7,6 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-IDENTITY = [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]]
 EXAMPLE_POSE = [[1.0, 0.0, 0.0, 0.5], [0.0, 0.0, 1.0, -1.5], [0.0, -1.0, 0.0, 1.4], [0.0, 0.0, 0.0, 1.0]]
 MAX_SIDE = 2048
 
@@ -133,7 +132,8 @@ class SessionOut(BaseModel):
     status: Literal["queued", "running", "finished", "failed", "cancelled"]
     frames_done: int = Field(examples=[42])
     frames_total: int | None = Field(examples=[120], description="None for streams")
-    fps: float = Field(examples=[3.5])
+    fps: float = Field(examples=[3.5], description="frames tracked (all agents) per second of the tracking phase; "
+                                                  "fixed once tracking ends (run.json's fps counts the whole run)")
     keyframes: int
     maps: int = Field(examples=[2], description="maps (submaps) of all agents")
     loops: int = Field(examples=[1], description="accepted loop closures")
@@ -144,6 +144,14 @@ class SessionOut(BaseModel):
         description="what a session does now: queued; tracking (frames are read and tracked, maps grow); refining "
                     "(the input ended: final global bundle adjustment and mesh, minutes on a long run); writing "
                     "(trajectories and run.json); done (ended, however: see status)")
+    phase_started: str | None = Field(None, examples=["2025-01-01T12:03:10+00:00"],
+                                      description="when the current phase began (ISO 8601, UTC)")
+    phase_elapsed_s: float | None = Field(None, examples=[42.0],
+                                          description="seconds in the current phase so far (server clock); "
+                                                      "null once done")
+    phase_budget_s: float | None = Field(None, examples=[90.0],
+                                         description="while refining: seconds the preset allows the final bundle "
+                                                     "adjustment (the final mesh follows); null without a time cap")
     ate_rmse_m: float | None = Field(
         examples=[0.012], description="absolute trajectory error (RMSE, metres, after rigid alignment) of the first "
                                       "agent against the input's ground truth: so far while tracking, final once "
@@ -152,8 +160,31 @@ class SessionOut(BaseModel):
                                                            "server stopped or was killed) says 'interrupted: ...'")
     created: str = Field(examples=["2025-01-01T12:00:00+00:00"])
     source: str = Field(examples=["synthetic:orbit?frames=120&width=320&height=240"])
+    files: list[str] = Field([], examples=[["rgbd_dataset_freiburg1_desk.zip"]],
+                             description="an upload's file names as the client gave them, one per agent (labels only)")
     preset: str = Field(examples=["cpu"])
     outputs: SessionOutputs
+
+
+class SeriesOut(BaseModel):
+    """What the page plots: positions in metres, times in seconds."""
+
+    agent: int = Field(examples=[0])
+    timestamps: list[float] = Field(examples=[[0.0, 0.033]], description="the estimated frames' input timestamps")
+    estimated: list[list[float]] = Field(examples=[[[0.0, 0.0, 1.4], [0.01, 0.0, 1.4]]],
+                                         description="camera centres per estimated frame: in the ground truth's "
+                                                     "frame when aligned, else in the session's world frame")
+    aligned: bool = Field(description="the estimate was aligned onto the ground truth (3 or more pairs)")
+    ground_truth: list[list[float]] | None = Field(examples=[[[0.0, 0.0, 1.4]]],
+                                                   description="the input's ground-truth camera centres (all "
+                                                               "frames); null without ground truth")
+    error_m: list[float | None] | None = Field(examples=[[0.002, 0.003]],
+                                               description="per estimated frame, its distance to its ground-truth "
+                                                           "pose after alignment (null: no pair); null when not "
+                                                           "aligned")
+    ate_rmse_m: float | None = Field(examples=[0.0025], description="RMSE of error_m")
+    fps_time_s: list[float] = Field(examples=[[0.5, 1.0]], description="seconds since tracking began")
+    fps_frames: list[int] = Field(examples=[[2, 5]], description="frames tracked by then (all agents)")
 
 
 class FrameAccepted(BaseModel):
@@ -171,11 +202,14 @@ class ARObject(Strict):
 
     shape: Literal["cube", "sphere", "cylinder", "axes"] | None = None
     asset: str | None = Field(None, description="id from POST /api/assets")
-    T_world_obj: Matrix4 = Field(default_factory=lambda: [row[:] for row in IDENTITY])
+    T_world_obj: Matrix4 | None = Field(
+        None, description="object-to-world pose; left out, the object is placed in front of the camera: on its "
+                          "optical axis, before the surface at the image centre (1 m ahead without depth there), "
+                          "its axes the world's")
     scale: float = Field(1.0, gt=0, le=100)
     color: list[float] | None = Field(None, min_length=3, max_length=3, description="[r, g, b] in [0, 1]")
 
-    _matrix = field_validator("T_world_obj")(_check_matrix)
+    _matrix = field_validator("T_world_obj")(lambda v: v if v is None else _check_matrix(v))
 
 
 class ARRequest(Strict):
@@ -233,6 +267,7 @@ class ViewerInfo(BaseModel):
     port: int | None = Field(description="viser's own port (its client files; its WebSocket admits only the "
                                           "token-checked relay at /viewer)")
     clients: int
+    selected: str | None = Field(None, description="the session the viewer shows (the page selects the one it shows)")
 
 
 class ErrorOut(BaseModel):

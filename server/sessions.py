@@ -19,7 +19,14 @@ server (a worker also ends itself when its server is gone: ``server.worker``).
 
 ``phase`` refines ``running``: ``tracking`` (frames are read), ``refining`` (the final bundle
 adjustment and mesh), ``writing`` (trajectories, ``run.json``); ``queued`` before and ``done``
-after, whatever the session's end (``status`` says which).
+after, whatever the session's end (``status`` says which); ``phase_started`` says since when.
+
+``fps`` has one definition, shared by the status, the page and the viewer's panel (the
+viewer gets StatsEvents with this value): frames tracked (all agents) per second of the
+tracking phase, from its PhaseEvent to the latest pose, both as the API process receives them.
+It is fixed once tracking ends, so the final refinement does not drag it down (``run.json``'s
+``fps`` divides by the whole run's wall time instead). Its history, one sample per
+FPS_SAMPLE_S, is kept for the page's plot (``fps_samples``; ``progress.json`` once ended).
 """
 
 from __future__ import annotations
@@ -66,6 +73,13 @@ SESSION_ID = re.compile(r"^[0-9a-f]{12}$")
 EventSink = Callable[[str, object], None]
 """Called with (session id, event) in the supervisor thread for every worker event."""
 
+PROGRESS_FILE = "progress.json"
+"""In a session folder once it ended: ``{"fps_samples": [[seconds, frames], ...]}``."""
+FPS_SAMPLE_S = 0.5
+"""Shortest time between two samples of the frames/s history."""
+MIN_FPS_SPAN_S = 0.25
+"""Shortest tracking time frames/s is computed over."""
+
 _SUPERVISOR_TICK_S = 0.05
 _MAX_EVENTS_PER_TICK = 200
 _PERSIST_EVERY_S = 1.0
@@ -99,6 +113,11 @@ class SessionStatus:
     """Agents (cameras) of the session: the upload's parts, or those a stream has seen so far."""
     phase: str = "queued"
     """One of PHASES (see the module doc)."""
+    phase_started: str | None = None
+    """ISO 8601, UTC: when the current phase began (None for sessions from before it was kept)."""
+    phase_budget_s: float | None = None
+    """While refining: the seconds the preset allows the final bundle adjustment (the mesh
+    follows), None when it has no time cap (``refinement_budget_s``)."""
     ate_rmse_m: float | None = None
     """Agent 0's ATE RMSE in metres (so far while running, final after); None without ground truth."""
     error: str | None = None
@@ -159,6 +178,10 @@ class _Session:
     """Poses from PoseEvents per (agent, frame), following their maps: the trajectory so far."""
     loop_events: int = 0
     keyframe_events: int = 0
+    tracking_started: float | None = None
+    """time.monotonic() when the tracking phase began (see the module doc on fps)."""
+    fps_samples: list[tuple[float, int]] = field(default_factory=list)
+    """(seconds since tracking began, frames tracked) at most every FPS_SAMPLE_S."""
 
 
 def new_session_id() -> str:
@@ -270,8 +293,10 @@ class SessionManager:
         job = WorkerJob(session_id=session_id, sources=specs, preset=preset, out_dir=str(directory))
         spec = specs[0]
         directory.mkdir(parents=True, exist_ok=True)
-        status = SessionStatus(id=session_id, status="queued", created=_now_iso(), source=describe_sources(specs),
-                               preset=preset, spec=spec, specs=specs if len(specs) > 1 else (), agents=len(specs))
+        created = _now_iso()
+        status = SessionStatus(id=session_id, status="queued", created=created, source=describe_sources(specs),
+                               preset=preset, spec=spec, specs=specs if len(specs) > 1 else (), agents=len(specs),
+                               phase_started=created)
         session = _Session(status=status, directory=directory, job=job)
         session.stop_event = self._ctx.Event()
         session.event_queue = self._ctx.Queue()
@@ -331,6 +356,20 @@ class SessionManager:
         session = self._get(session_id)
         with self._lock:
             return session.tracks.agents()
+
+    def fps_samples(self, session_id: str) -> list[tuple[float, int]]:
+        """(seconds since tracking began, frames tracked) over the session's tracking phase:
+        from this run's events, else from ``progress.json`` (empty when neither has any)."""
+        session = self._get(session_id)
+        with self._lock:
+            samples = list(session.fps_samples)
+        if samples:
+            return samples
+        try:
+            data = json.loads((session.directory / PROGRESS_FILE).read_text())
+            return [(float(t), int(n)) for t, n in data.get("fps_samples", [])]
+        except (OSError, ValueError, TypeError, AttributeError):
+            return []
 
     def agent_count(self, session_id: str) -> int:
         """Agents of the session: its sources, or for a stream the agents seen so far."""
@@ -479,14 +518,22 @@ class SessionManager:
             if isinstance(event, StatsEvent):
                 ate = getattr(event, "ate_rmse", None)
                 session.status = replace(
-                    session.status, frames_done=event.frames_done, frames_total=event.frames_total,
-                    fps=round(float(event.fps), 3), keyframes=max(event.keyframes, session.keyframe_events),
+                    session.status, frames_done=max(event.frames_done, session.status.frames_done),
+                    frames_total=event.frames_total, keyframes=max(event.keyframes, session.keyframe_events),
                     maps=max(event.maps, len(session.tracks.maps.poses)),
                     loops=max(event.loops, session.loop_events),
                     ate_rmse_m=session.status.ate_rmse_m if ate is None else round(float(ate), 6))
                 self._mark_dirty(session)
+                # The viewer shows the status's frames/s (see the module doc), not the worker's.
+                event = replace(event, fps=session.status.fps)
             elif isinstance(event, PhaseEvent) and event.phase in PHASES:
-                session.status = replace(session.status, phase=event.phase)
+                if event.phase == "tracking":
+                    session.tracking_started = time.monotonic()
+                budget = None
+                if event.phase == "refining" and session.started_at is not None:
+                    budget = refinement_budget_s(session.status.preset, time.monotonic() - session.started_at)
+                session.status = replace(session.status, phase=event.phase, phase_started=_now_iso(),
+                                         phase_budget_s=budget)
                 self._persist(session)
             elif isinstance(event, KeyframeEvent):
                 # The mapper's statistics come at the end; keyframes as they are taken.
@@ -498,10 +545,9 @@ class SessionManager:
                 # Stats come every few frames; poses give the progress in between.
                 frames = len(session.tracks)
                 agents = max(session.status.agents, int(event.agent) + 1)
-                if frames > session.status.frames_done or agents != session.status.agents:
-                    session.status = replace(session.status, frames_done=max(frames, session.status.frames_done),
-                                             agents=agents)
-                    self._mark_dirty(session)
+                session.status = replace(session.status, frames_done=max(frames, session.status.frames_done),
+                                         agents=agents, fps=self._tracking_fps(session, frames))
+                self._mark_dirty(session)
             elif isinstance(event, SubmapEvent):
                 maps = len(session.tracks.maps.poses)
                 agents = max(session.status.agents, int(event.agent) + 1)
@@ -522,6 +568,22 @@ class SessionManager:
             return
         for sink in self._event_sinks:
             sink(session.status.id, event)
+
+    @staticmethod
+    def _tracking_fps(session: _Session, frames: int) -> float:
+        """Frames per second of tracking so far, now that ``frames`` are tracked (module doc);
+        samples its history."""
+        now = time.monotonic()
+        if session.tracking_started is None:  # no PhaseEvent (an older worker): from the first pose
+            session.tracking_started = now
+        elapsed = now - session.tracking_started
+        samples = session.fps_samples
+        if len(samples) >= 2 and elapsed - samples[-2][0] < FPS_SAMPLE_S:
+            samples[-1] = (round(elapsed, 3), frames)  # the last sample is always the latest pose
+        else:
+            samples.append((round(elapsed, 3), frames))
+        # At least MIN_FPS_SPAN_S: the phase's start and the first poses can arrive in one batch.
+        return round(frames / max(elapsed, MIN_FPS_SPAN_S), 3)
 
     def _check_worker(self, session: _Session) -> None:
         process = session.process
@@ -558,7 +620,7 @@ class SessionManager:
         if done is not None and done.frames:
             ate = getattr(done, "ate_rmse", None)
             session.status = replace(session.status, frames_done=done.frames, keyframes=done.keyframes,
-                                     maps=done.maps, loops=done.loops, fps=round(done.fps, 3),
+                                     maps=done.maps, loops=done.loops, fps=session.status.fps or round(done.fps, 3),
                                      agents=done.agents or session.status.agents,
                                      ate_rmse_m=session.status.ate_rmse_m if ate is None else round(float(ate), 6))
         if error is not None:
@@ -582,6 +644,7 @@ class SessionManager:
         if session.delete_when_stopped:
             self._remove_files(session)
             return
+        self._write_progress(session)
         self._set_status(session, status, error)
         for sink in self._event_sinks:
             sink(session.status.id, FinishedEvent(status=status, error=error))
@@ -626,8 +689,19 @@ class SessionManager:
         phase = "done" if status in ENDED else session.status.phase
         if status == "running" and phase == "queued":
             phase = "tracking"
-        session.status = replace(session.status, status=status, error=error, phase=phase)
+        same = phase == session.status.phase
+        session.status = replace(session.status, status=status, error=error, phase=phase,
+                                 phase_started=session.status.phase_started if same else _now_iso(),
+                                 phase_budget_s=session.status.phase_budget_s if same else None)
         self._persist(session)
+
+    def _write_progress(self, session: _Session) -> None:
+        """Keep the frames/s history of an ended session for the page's plot after a restart."""
+        if session.fps_samples and session.directory.is_dir():
+            try:
+                _write_json_atomic(session.directory / PROGRESS_FILE, {"fps_samples": session.fps_samples})
+            except OSError as error:
+                print(f"voxfusion: cannot write {session.directory / PROGRESS_FILE}: {error}")
 
     def _mark_dirty(self, session: _Session) -> None:
         if session.dirty_since is None:
@@ -641,6 +715,21 @@ class SessionManager:
             _write_json_atomic(session.directory / "session.json", session.status.to_json())
         except OSError as error:
             print(f"voxfusion: cannot write {session.directory / 'session.json'}: {error}")
+
+
+def refinement_budget_s(preset: str, run_seconds: float) -> float | None:
+    """The wall time the preset gives the final bundle adjustment of a run that has taken
+    ``run_seconds`` (as ``slam.mapping_process.final_budget`` computes it from the mapper's
+    start, which is about the worker's), or None without a time cap or refinement."""
+    from slam.config import ConfigError, preset as preset_config
+
+    try:
+        mapping = preset_config(preset).mapping
+    except ConfigError:
+        return None
+    if mapping.final_iterations <= 0 or mapping.final_time_share <= 0:
+        return None
+    return round(max(mapping.final_min_seconds, mapping.final_time_share * run_seconds), 1)
 
 
 WORKER_PID_FILE = "worker.pid"

@@ -2,6 +2,7 @@
 
 | variable | default | meaning |
 | --- | --- | --- |
+| ``VOXFUSION_PORT`` | 8000 | HTTP port of ``voxfusion serve`` / ``demo`` (the page, the API, the viewer relay) |
 | ``VOXFUSION_DATA_DIR`` | ``$XDG_DATA_HOME/voxfusion`` (``~/.local/share/voxfusion``) | sessions, uploads, assets |
 | ``VOXFUSION_TOKEN`` | unset | when set, every API call and the viewer page need it |
 | ``VOXFUSION_MAX_UPLOAD_MB`` | 2048 | largest request body (a dataset zip) |
@@ -45,6 +46,8 @@ def default_max_sessions() -> int:
 class Settings:
     data_dir: Path
     """Root of ``sessions/<id>/``, ``assets/`` and ``uploads/`` (temporary)."""
+    port: int = 8000
+    """HTTP port the CLI serves on (the app itself does not bind: uvicorn does)."""
     token: str | None = None
     """Bearer token every API call and the viewer need; None = open (loopback use)."""
     max_upload_mb: int = 2048
@@ -128,12 +131,20 @@ def _float(env: Mapping[str, str], name: str, default: float, minimum: float) ->
     return value
 
 
+def _port(env: Mapping[str, str], name: str, default: int) -> int:
+    value = _int(env, name, default, 1)
+    if value > 65535:
+        raise SettingsError(f"{name}={value} is not a TCP port (1 to 65535)")
+    return value
+
+
 def settings_from_env(env: Mapping[str, str] | None = None) -> Settings:
     """Settings from ``VOXFUSION_*`` variables (see the module docstring for the table)."""
     env = os.environ if env is None else env
     data_dir = env.get("VOXFUSION_DATA_DIR") or default_data_dir(env)
     return Settings(
         data_dir=Path(data_dir).expanduser(),
+        port=_port(env, "VOXFUSION_PORT", 8000),
         token=env.get("VOXFUSION_TOKEN") or None,
         max_upload_mb=_int(env, "VOXFUSION_MAX_UPLOAD_MB", 2048, 1),
         max_unzipped_mb=_int(env, "VOXFUSION_MAX_UNZIPPED_MB", 8192, 1),

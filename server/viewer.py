@@ -37,12 +37,19 @@ other WebSocket on viser's port (any local user, or anyone when it is bound to a
 interface) is closed before viser sends it a byte of the scene. viser's port still serves
 viser's own client files, which hold no data.
 
+The browsers show the session our page shows (``select``, also for a session that has sent
+no event yet) and are framed on it: the camera looks at the session's bounds from a distance
+at which they fill the view, when it is shown, whenever its extent has grown by half since
+(a live map grows from one camera pose to a room), and once more when it ends.
+
 Conventions as viser's: OpenCV camera axes, quaternions ``wxyz``, metres.
 """
 
 from __future__ import annotations
 
 import colorsys
+import contextlib
+import io
 import secrets
 import threading
 import time
@@ -53,7 +60,17 @@ import numpy as np
 import trimesh
 
 from server.tracks import inverse, rigid, transform_points
-from slam.events import KeyframeEvent, LoopEvent, MapUpdateEvent, PoseEvent, PosesUpdatedEvent, StatsEvent, SubmapEvent
+from slam.events import (
+    FinishedEvent,
+    KeyframeEvent,
+    LoopEvent,
+    MapUpdateEvent,
+    PhaseEvent,
+    PoseEvent,
+    PosesUpdatedEvent,
+    StatsEvent,
+    SubmapEvent,
+)
 from slam.geometry import matrix_to_quat_wxyz, quat_wxyz_to_matrix
 
 UPDATE_HZ = 5.0
@@ -65,6 +82,12 @@ COLOR_TOLERANCE = 8
 TRAJECTORY_BLOCK = 256
 NO_SESSION = "(no session yet)"
 LAYERS = ("meshes", "trajectory", "camera", "keyframes", "loops")
+FRAME_DIRECTION = np.array([0.45, -0.6, 0.55]) / np.linalg.norm([0.45, -0.6, 0.55])
+"""From the centre of a framed session towards the browser's camera: above it, from one side."""
+MIN_FRAME_RADIUS_M = 0.25
+"""Smallest radius framed (a session of one camera pose still shows its surroundings)."""
+REFRAME_GROWTH = 1.5
+"""A session is framed again when its bounds' diagonal has grown by this factor."""
 
 
 RELAY_HEADER = "X-Voxfusion-Relay"
@@ -99,6 +122,18 @@ def box_segments(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
     edges = [(i, j) for i in range(8) for j in range(i + 1, 8) if bin(i ^ j).count("1") == 1]
     return corners[np.array(edges)].astype(np.float32)
+
+
+def framing(lo: np.ndarray, hi: np.ndarray, fov_y: float) -> tuple[np.ndarray, np.ndarray]:
+    """(camera position, look-at point) from which the box [lo, hi] fills a view of vertical
+    field of view ``fov_y`` (radians): its bounding sphere spans the view's height at the
+    centre, so a small mesh is not a speck in the middle (the box itself, smaller than its
+    sphere from any side, is not cut)."""
+    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+    centre = (lo + hi) / 2
+    radius = max(0.5 * float(np.linalg.norm(hi - lo)), MIN_FRAME_RADIUS_M)
+    distance = radius / np.tan(0.5 * float(np.clip(fov_y, np.radians(10.0), np.radians(150.0))))
+    return centre + distance * FRAME_DIRECTION, centre
 
 
 def _wxyz(T: np.ndarray) -> np.ndarray:
@@ -268,6 +303,11 @@ class _SessionState:
     loops_dirty: bool = False
     last_update: float = 0.0
     last_mesh_update: float = 0.0
+    framed_size: float | None = None
+    """Diagonal (metres) of the bounds the browsers were last framed on; None: frame it next."""
+    stats: StatsEvent | None = None
+    phase: str | None = None
+    status_dirty: bool = False
 
     def map(self, map_id: int) -> _MapState:
         return self.maps.setdefault(int(map_id), _MapState())
@@ -344,7 +384,6 @@ class ViewerAdapter:
         self._trajectory_by_map = False
         self._follow = False
         self._sessions_changed = False
-        self._last_stats: tuple[str, StatsEvent] | None = None
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.stats = ViewerStats()
@@ -357,12 +396,17 @@ class ViewerAdapter:
     def start(self) -> None:
         import viser
 
-        self._server = viser.ViserServer(host=self._host, port=self._requested_port, verbose=False)
+        # viser prints a box with its own URL, which a newcomer took for the one to open: the
+        # way in is our page (its /viewer relay), whose URL the CLI prints.
+        with contextlib.redirect_stdout(io.StringIO()):
+            self._server = viser.ViserServer(host=self._host, port=self._requested_port, verbose=False)
         self._admit_relay_only()
         self._server.scene.set_up_direction("+z")
-        self._server.gui.configure_theme(show_share_button=False, brand_color=(40, 110, 200))
+        self._server.gui.configure_theme(show_share_button=False, brand_color=(40, 110, 200), control_width="small")
+        # Docked beside the scene instead of floating over it: the middle of the view, where
+        # a session is framed, is then the middle of what one sees.
+        self._server.gui.main_panel.dock_right()
         self._build_gui()
-        self._server.on_client_connect(self._on_client_connect)
         self._thread = threading.Thread(target=self._flush_loop, name="viewer-flush", daemon=True)
         self._thread.start()
 
@@ -440,12 +484,24 @@ class ViewerAdapter:
         with self._lock:
             return session_id in self._sessions
 
-    def select(self, session_id: str) -> None:
-        """Show ``session_id`` in every browser (from our page); unknown ids are ignored."""
+    @property
+    def selected(self) -> str | None:
+        """The session the browsers show."""
         with self._lock:
-            if session_id in self._sessions and self._server is not None:
-                self._user_selected = True
-                self._select(session_id)
+            return self._selected
+
+    def select(self, session_id: str) -> None:
+        """Show ``session_id`` in every browser (from our page, which names sessions that
+        exist). One that has sent no event yet (queued, starting) gets an empty scene that
+        fills as its events come, so the viewer follows a session the moment it is created."""
+        with self._lock:
+            if self._server is None:
+                return
+            self._user_selected = True
+            if session_id not in self._sessions:
+                self._sessions[session_id] = _SessionState(session_id)
+                self._session_dropdown.options = list(self._sessions)
+            self._select(session_id)
 
     def _select(self, session_id: str) -> None:
         """Show ``session_id`` only; everything it has pending is flushed at the next tick."""
@@ -456,6 +512,8 @@ class ViewerAdapter:
                 handle.visible = sid == session_id
         state = self._sessions[session_id]
         state.last_update = state.last_mesh_update = 0.0
+        state.framed_size = None
+        state.status_dirty = True
         self._ensure_root(session_id).visible = True
         self._refresh_map_boxes()
         if self._session_dropdown.value != session_id:
@@ -553,7 +611,12 @@ class ViewerAdapter:
             elif isinstance(event, LoopEvent):
                 self._on_loop(state, event)
             elif isinstance(event, StatsEvent):
-                self._last_stats = (session_id, event)
+                state.stats, state.status_dirty = event, True
+            elif isinstance(event, PhaseEvent):
+                state.phase, state.status_dirty = event.phase, True
+            elif isinstance(event, FinishedEvent):
+                state.phase, state.status_dirty = event.status, True
+                state.framed_size = None  # framed on what it ended with
 
     def _move_map(self, state: _SessionState, map_id: int, T_world_map) -> bool:
         """Place a map at ``T_world_map``: its nodes move, and the trajectory frames tracked in
@@ -723,19 +786,35 @@ class ViewerAdapter:
 
     # -- the browser camera ------------------------------------------------------------------
 
-    def _on_client_connect(self, client) -> None:
-        """Point a new browser at the selected session's scene (viser's default looks at the origin)."""
-        with self._lock:
-            state = self._sessions.get(self._selected) if self._selected else None
-            bounds = None if state is None else _scene_bounds(state)
+    @staticmethod
+    def _frame_client(client, bounds: tuple[np.ndarray, np.ndarray]) -> None:
+        try:
+            fov = float(client.camera.fov)
+        except AssertionError:  # it has not reported its camera yet: it starts at the initial one
+            return
+        position, look_at = framing(*bounds, fov)
+        with client.atomic():
+            client.camera.position = position
+            client.camera.look_at = look_at
+
+    def _frame_if_grown(self, state: _SessionState) -> None:
+        """Frame the selected session in every browser when it is first shown and whenever
+        its extent has grown by REFRAME_GROWTH since; never while "Follow camera" is on."""
+        if self._follow:
+            return
+        bounds = _scene_bounds(state)
         if bounds is None:
             return
-        lo, hi = bounds
-        centre = (lo + hi) / 2
-        extent = max(float(np.linalg.norm(hi - lo)), 1.0)
-        with client.atomic():
-            client.camera.position = centre + extent * np.array([0.45, -0.6, 0.55])
-            client.camera.look_at = centre
+        size = float(np.linalg.norm(bounds[1] - bounds[0]))
+        if state.framed_size is not None and size <= REFRAME_GROWTH * max(state.framed_size, MIN_FRAME_RADIUS_M):
+            return
+        state.framed_size = size
+        # Browsers that connect later (or have not reported their camera) start there, and
+        # viser's "Reset View" returns there.
+        initial = self._server.initial_camera
+        initial.position, initial.look_at = framing(*bounds, initial.fov)
+        for client in self._server.get_clients().values():
+            self._frame_client(client, bounds)
 
     def current_camera(self) -> ViewerCamera | None:
         """The viewpoint of the browser that moved its camera last, or None without one."""
@@ -786,14 +865,19 @@ class ViewerAdapter:
                 return
             state = self._sessions[self._selected]
             now = time.monotonic()
+            sent = False
             if force or now - state.last_update >= 1.0 / UPDATE_HZ:
                 if self._flush_light(state):
                     state.last_update = now
                     self.stats.updates += 1
+                    sent = True
             if force or now - state.last_mesh_update >= 1.0 / MESH_HZ:
                 if self._flush_meshes(state):
                     state.last_mesh_update = now
                     self.stats.mesh_updates += 1
+                    sent = True
+            if sent or state.framed_size is None:
+                self._frame_if_grown(state)
 
     def _update_session_list(self) -> None:
         options = list(self._sessions) or [NO_SESSION]
@@ -876,7 +960,7 @@ class ViewerAdapter:
                 self._handles[name] = scene.add_line_segments(name, points, colors=LOOP_COLOR, thickness=3.0,
                                                               thickness_units="screen")
             state.loops_dirty, sent = False, True
-        if sent:
+        if sent or state.status_dirty:
             self._update_status_text(state)
         return sent
 
@@ -971,14 +1055,17 @@ class ViewerAdapter:
         return sent_any
 
     def _update_status_text(self, state: _SessionState) -> None:
-        stats = self._last_stats[1] if self._last_stats and self._last_stats[0] == state.session_id else None
+        """The panel's line; its frames/s is the status API's (the session manager forwards
+        StatsEvents with that value), so page and viewer agree."""
+        state.status_dirty = False
         agents = max(1, len(state.agents))
-        text = f"**{state.session_id}**: {state.pose_count} poses, {len(state.maps)} map(s), " \
+        phase = f" ({state.phase})" if state.phase else ""
+        text = f"**{state.session_id}**{phase}: {state.pose_count} poses, {len(state.maps)} map(s), " \
                f"{len(state.loops)} loop(s)"
         if agents > 1:
             text += f", {agents} agents"
-        if stats is not None:
-            text += f", {stats.fps:.1f} frames/s"
+        if state.stats is not None:
+            text += f", {state.stats.fps:.1f} frames/s"
         self._status_md.content = text
 
 
@@ -987,7 +1074,8 @@ def _scene_bounds(state: _SessionState) -> tuple[np.ndarray, np.ndarray] | None:
     points = [np.zeros((0, 3))] + [state.world_positions(agent) for agent in state.agents]
     for map_state in state.maps.values():
         T = map_state.T_world_map
-        for chunk in list(map_state.sent_chunks.values())[:200]:
+        chunks = {**map_state.sent_chunks, **(map_state.pending_chunks or {})}
+        for chunk in list(chunks.values())[:200]:
             points.append(chunk.vertices[:: max(1, len(chunk.vertices) // 50)] @ T[:3, :3].T + T[:3, 3])
     points = np.concatenate(points)
     if len(points) == 0:

@@ -47,6 +47,8 @@ class SourceSpec:
     depth_scale: float | None = None
     stride: int = 1
     max_frames: int | None = None
+    name: str | None = None
+    """An upload's file name as the client gave it (a label for the session list, never a path)."""
 
     def describe(self) -> str:
         """A short human-readable label for the session list."""

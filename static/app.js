@@ -1,4 +1,5 @@
-// voxfusion page: sessions, upload, viewer embed, render and AR panels. Plain JS, no build step.
+// voxfusion page: sessions, upload, viewer embed, render and AR panels, accuracy and speed plots.
+// Plain JS, no build step (plots.js draws the plots).
 "use strict";
 
 const $ = (id) => document.getElementById(id);
@@ -107,19 +108,64 @@ function readMatrix() {
 let sessions = [];
 let selectedId = null;
 
+const ENDED = ["finished", "failed", "cancelled"];
+const PHASES = {
+  queued: "queued",
+  tracking: "tracking",
+  refining: "refining: final bundle adjustment and mesh",
+  writing: "writing outputs",
+  done: "done",
+};
+
 const plural = (n, word) => `${n} ${word}${n === 1 ? "" : "s"}`;
+const clock = (seconds) => `${Math.floor(seconds / 60)}:${String(Math.floor(seconds % 60)).padStart(2, "0")}`;
+const centimetres = (metres) => `${(metres * 100).toFixed(2)} cm`;
+
+function ateText(s) {
+  if (s.ate_rmse_m == null) return "";
+  return ` · ATE ${centimetres(s.ate_rmse_m)}${ENDED.includes(s.status) ? "" : " so far"}`;
+}
 
 function describe(s) {
   const total = s.frames_total == null ? "" : ` / ${s.frames_total}`;
-  return `${s.frames_done}${total} frames · ${s.fps.toFixed(1)} frames/s · ${s.keyframes} keyframes · ` +
-         `${plural(s.maps, "map")} · ${plural(s.loops, "loop")} · ${plural(s.agents || 1, "agent")}`;
+  return `${s.frames_done}${total} frames · ${s.fps.toFixed(1)} frames/s · ${plural(s.keyframes, "keyframe")} · ` +
+         `${plural(s.maps, "map")} · ${plural(s.loops, "loop")} · ${plural(s.agents || 1, "agent")}${ateText(s)}`;
+}
+
+// What the session does now, with how long it has done it (the server's clock) and, while
+// refining, how long the preset lets the bundle adjustment take.
+function phaseText(s) {
+  const elapsed = s.phase_elapsed_s == null ? "" : ` · ${clock(s.phase_elapsed_s)}`;
+  const budget = s.phase === "refining" && s.phase_budget_s != null ? ` of at most ${clock(s.phase_budget_s)}, then the mesh` : "";
+  return `${PHASES[s.phase] || s.phase}${elapsed}${budget}`;
+}
+
+// Each phase has its own progress: tracking counts frames, refining its time against the
+// preset's budget; without either (a stream, an uncapped refinement, writing) the bar runs
+// (indeterminate) next to the time spent so far.
+function showPhaseProgress(bar, s) {
+  const frames = s.phase === "tracking" && s.frames_total;
+  const budget = s.phase === "refining" && s.phase_budget_s && s.phase_elapsed_s != null;
+  bar.hidden = !(frames || s.phase === "refining" || s.phase === "writing");
+  if (frames) {
+    bar.max = s.frames_total;
+    bar.value = s.frames_done;
+  } else if (budget) {
+    bar.max = s.phase_budget_s;
+    bar.value = Math.min(s.phase_elapsed_s, 0.99 * s.phase_budget_s);
+  } else {
+    bar.removeAttribute("value");
+  }
+}
+
+function sourceText(s) {
+  const files = (s.files || []).length ? ` · ${s.files.join(", ")}` : "";
+  return `${s.source}${files} · preset ${s.preset}`;
 }
 
 function showSelectedStatus() {
   const s = sessions.find((x) => x.id === selectedId);
-  $("session-status").textContent = s
-    ? `· ${s.id}: ${s.status}, ${plural(s.agents || 1, "agent")}, ${plural(s.maps, "map")}, ${plural(s.loops, "loop")}`
-    : "";
+  $("session-status").textContent = s ? `· ${s.id}: ${s.status}, ${phaseText(s)}${ateText(s)}` : "";
 }
 
 // Items are created once per session and updated in place, so that polling never swaps an
@@ -130,7 +176,7 @@ function createSessionItem(id) {
   const li = document.createElement("li");
   li.dataset.id = id;
   li.innerHTML = `<div class="top"><span class="id"></span><span class="badge"></span></div>
-    <div class="source"></div><progress hidden></progress><div class="stats"></div>
+    <div class="source"></div><div class="phase"></div><progress hidden></progress><div class="stats"></div>
     <div class="error" hidden></div><div class="actions"></div>`;
   li.querySelector(".id").textContent = id;
   li.addEventListener("click", (event) => {
@@ -145,10 +191,11 @@ function updateSessionItem(li, s) {
   const badge = li.querySelector(".badge");
   badge.className = "badge " + s.status;
   badge.textContent = s.status;
-  li.querySelector(".source").textContent = `${s.source} · preset ${s.preset}`;
-  const bar = li.querySelector("progress");
-  bar.hidden = !s.frames_total;
-  if (s.frames_total) { bar.max = s.frames_total; bar.value = s.frames_done; }
+  li.querySelector(".source").textContent = sourceText(s);
+  const phase = li.querySelector(".phase");
+  phase.dataset.phase = s.phase;
+  phase.textContent = phaseText(s);
+  showPhaseProgress(li.querySelector("progress"), s);
   li.querySelector(".stats").textContent = describe(s);
   const error = li.querySelector(".error");
   error.hidden = !s.error;
@@ -222,21 +269,34 @@ function emptyItem() {
   return li;
 }
 
+let listedIds = new Set();  // the sessions of the previous poll
+
 async function refreshSessions() {
   try {
     sessions = await api("/api/sessions");
-    if (!sessions.some((s) => s.id === selectedId)) selectedId = sessions.length ? sessions[0].id : null;
+    // The newest session on a fresh load, or when the selected one is gone. A session created
+    // a moment ago may be missing from a poll that was already under way: it stays selected.
+    const gone = listedIds.has(selectedId) && !sessions.some((s) => s.id === selectedId);
+    if (!selectedId || gone) setSelected(sessions.length ? sessions[0].id : null);
+    listedIds = new Set(sessions.map((s) => s.id));
     renderSessionList();
     $("server-note").textContent = "";
   } catch (error) {
     $("server-note").textContent = "server unreachable: " + error.message;
   }
+  refreshPlots();
+}
+
+// The page and the 3D viewer show the same session: every change of selection tells the viewer.
+function setSelected(id) {
+  selectedId = id;
+  if (id) api(`/api/viewer/select/${id}`, { method: "POST" }).catch(() => {});
 }
 
 function selectSession(id) {
-  selectedId = id;
+  setSelected(id);
   renderSessionList();
-  api(`/api/viewer/select/${id}`, { method: "POST" }).catch(() => {});
+  refreshPlots();
 }
 
 async function cancelSession(id) {
@@ -291,8 +351,8 @@ function uploadDataset(event) {
     if (xhr.status === 201) {
       const agents = files.length > 1 ? `, ${files.length} agents` : "";
       say("upload-message", `Session ${body.id} created (${body.status}${agents}).`, "ok");
-      selectedId = body.id;
-      refreshSessions().then(() => selectSession(body.id));
+      selectSession(body.id);
+      refreshSessions();
     } else {
       say("upload-message", `Upload refused: ${body.detail || xhr.statusText || "connection failed"}`, "error");
     }
@@ -317,9 +377,8 @@ async function startDemo(event) {
   try {
     const created = await api("/api/sessions", { method: "POST", json });
     say("demo-message", `Session ${created.id} created (${created.status}).`, "ok");
-    selectedId = created.id;
-    await refreshSessions();
     selectSession(created.id);
+    await refreshSessions();
   } catch (error) {
     say("demo-message", error.message, "error");
   }
@@ -348,15 +407,16 @@ function currentCamera() {
   return { T_world_cam: readMatrix(), intrinsics: { fx: f, fy: f, cx: width / 2, cy: height / 2, width, height } };
 }
 
+// The viewer's pose and vertical field of view; the render size stays what the user set (the
+// viewer's window has an aspect of its own, which used to replace it for good).
 async function useViewerCamera() {
   try {
-    const camera = await api(`/api/viewer/camera?width=${Number($("cam-width").value) || 320}`);
+    const width = Number($("cam-width").value) || 320, height = Number($("cam-height").value) || 240;
+    const camera = await api(`/api/viewer/camera?width=${width}`);
     $("cam-matrix").value = formatMatrix(camera.T_world_cam);
     const i = camera.intrinsics;
-    $("cam-width").value = i.width;
-    $("cam-height").value = i.height;
     $("cam-fov").value = ((2 * Math.atan(i.height / 2 / i.fy) * 180) / Math.PI).toFixed(1);
-    say("render-message", "Camera taken from the viewer.", "ok");
+    say("render-message", `Camera taken from the viewer (pose and vertical field of view; size kept at ${width}x${height}).`, "ok");
   } catch (error) {
     say("render-message", error.message, "error");
   }
@@ -438,19 +498,42 @@ async function uploadAsset() {
   $("ar-asset-note").textContent = `Using ${file.name} (${body.faces} faces) instead of the shape.`;
 }
 
+const AR_POSITION = ["ar-x", "ar-y", "ar-z"];
+
+// The object to composite. Without x, y, z the server puts it in front of the camera.
 function arObject() {
   const hex = $("ar-color").value;
   const color = [1, 3, 5].map((i) => parseInt(hex.slice(i, i + 2), 16) / 255);
-  const position = ["ar-x", "ar-y", "ar-z"].map((id) => Number($(id).value));
-  const object = { T_world_obj: yawPose(position, Number($("ar-yaw").value)), scale: Number($("ar-scale").value) };
+  const fields = AR_POSITION.map((id) => $(id).value.trim());
+  const object = { scale: Number($("ar-scale").value) };
+  if (fields.some((v) => v !== "")) {
+    if (fields.some((v) => v === "")) throw new Error("x, y, z: give all three, or none to put the object in front of the camera");
+    object.T_world_obj = yawPose(fields.map(Number), Number($("ar-yaw").value));
+  }
   if (assetId) object.asset = assetId;
   else { object.shape = $("ar-shape").value; object.color = color; }
   return object;
 }
 
+function arObjectName() {
+  return assetId ? $("ar-asset-file").files[0]?.name || "object" : $("ar-shape").value;
+}
+
+// What the server says of the object (the X-AR-Objects header): shown, hidden, or out of view.
+function visibilityMessage(report, name) {
+  const entry = report[0];
+  if (!entry) return ["Done.", "ok"];
+  const at = `at (${entry.position.map((v) => v.toFixed(2)).join(", ")})`;
+  const fix = "Move it, or empty x, y, z to put it in front of the camera.";
+  if (entry.state === "outside") return [`The ${name} ${at} is outside the camera's view: nothing of it shows. ${fix}`, "warn"];
+  if (entry.state === "hidden") return [`The ${name} ${at} is fully hidden behind the scene in this view. ${fix}`, "warn"];
+  return [`Done: the ${name} shows ${at} (${plural(entry.visible_pixels, "pixel")}).`, "ok"];
+}
+
 async function composite() {
   if (!selectedId) return say("ar-message", "Select a session first.", "error");
-  const request = { objects: [arObject()] };
+  let request;
+  try { request = { objects: [arObject()] }; } catch (error) { return say("ar-message", error.message, "error"); }
   if ($("ar-background").value === "frame") {
     request.background = `frame:${Number($("ar-frame").value)}`;
   } else {
@@ -459,9 +542,13 @@ async function composite() {
   }
   say("ar-message", "Compositing…");
   try {
-    const image = await api(`/api/sessions/${selectedId}/ar`, { method: "POST", json: request, expect: "blob" });
-    $("ar-image").src = URL.createObjectURL(image);
-    say("ar-message", "Done.", "ok");
+    const response = await fetch(`/api/sessions/${selectedId}/ar`, {
+      method: "POST", headers: authHeaders({ "Content-Type": "application/json" }), body: JSON.stringify(request),
+    });
+    if (!response.ok) throw new Error(await errorText(response));
+    $("ar-image").src = URL.createObjectURL(await response.blob());
+    const report = JSON.parse(response.headers.get("X-AR-Objects") || "[]");
+    say("ar-message", ...visibilityMessage(report, arObjectName()));
   } catch (error) {
     say("ar-message", error.message, "error");
   }
@@ -479,13 +566,100 @@ async function pickSurface(event) {
     if (!hit.hit) return say("ar-message", "Nothing of the map under that pixel.", "error");
     const half = Number($("ar-scale").value) / 2;
     const centre = hit.point.map((p, i) => p + hit.normal[i] * half);
-    ["ar-x", "ar-y", "ar-z"].forEach((id, i) => { $(id).value = centre[i].toFixed(3); });
+    AR_POSITION.forEach((id, i) => { $(id).value = centre[i].toFixed(3); });
     $("ar-background").value = "render";
     say("ar-message", `Placed on the surface at ${hit.point.map((p) => p.toFixed(2)).join(", ")}.`, "ok");
     composite();
   } catch (error) {
     say("ar-message", error.message, "error");
   }
+}
+
+// ------------------------------------------------------------------ accuracy and speed plots
+const PLOT_EVERY_MS = 3000;
+const MIN_FPS_SPAN_S = 0.25;  // as the server's: the first poses can arrive with the phase's start
+const AXES = ["x", "y", "z"];
+let plotsShown = null;  // {id, at, ended} of the plots drawn last
+let plotsBusy = false;
+
+// Fetch and draw the selected session's series: when the selection changes, every few seconds
+// while it runs, and once more when it has ended.
+async function refreshPlots() {
+  const s = sessions.find((x) => x.id === selectedId);
+  $("plots-session").textContent = s ? `session ${s.id}` : "";
+  if (!s && plotsShown) {  // the session shown was deleted and none is left
+    for (const id of ["plot-trajectory", "plot-error", "plot-fps"]) Plots.message($(id), "no session");
+    $("plots-note").textContent = "";
+    plotsShown = null;
+  }
+  if (!s || plotsBusy) return;
+  const ended = ENDED.includes(s.status);
+  const shown = plotsShown && plotsShown.id === s.id;
+  if (shown && (ended ? plotsShown.ended : Date.now() - plotsShown.at < PLOT_EVERY_MS)) return;
+  plotsBusy = true;
+  try {
+    drawPlots(await api(`/api/sessions/${s.id}/series`), s);
+    plotsShown = { id: s.id, at: Date.now(), ended };
+  } catch (error) {
+    $("plots-note").textContent = "plots: " + error.message;
+  } finally {
+    plotsBusy = false;
+  }
+}
+
+// The two axes along which the path spreads most: the ground plane of a walk (a top view).
+function topAxes(points) {
+  const spread = [0, 1, 2].map((k) => Math.max(...points.map((p) => p[k])) - Math.min(...points.map((p) => p[k])));
+  return [0, 1, 2].sort((a, b) => spread[b] - spread[a]).slice(0, 2).sort();
+}
+
+function drawPlots(series, s) {
+  const truth = series.ground_truth;
+  const reference = truth && truth.length ? truth : series.estimated;
+  const running = ENDED.includes(s.status) ? "" : " so far";
+  const ate = s.ate_rmse_m ?? series.ate_rmse_m;  // the status's, as in the list: one number on the page
+  $("plots-note").textContent = ate != null
+    ? `ATE ${centimetres(ate)} over ${plural(series.estimated.length, "frame")}${running} (RMSE after a rigid alignment onto the ground truth)`
+    : truth ? "Too few frames to align onto the ground truth yet." : "This input has no ground truth: the trajectory is shown in the session's own frame.";
+  drawTrajectory(series, reference);
+  drawError(series);
+  drawFps(series);
+}
+
+function drawTrajectory(series, reference) {
+  if (!reference.length) return Plots.message($("plot-trajectory"), "no poses yet");
+  const [a, b] = topAxes(reference);
+  const project = (points) => points.map((p) => [p[a], p[b]]);
+  const lines = [{ points: project(series.estimated), color: "#2a6fc9", width: 2 }];
+  if (series.ground_truth) lines.unshift({ points: project(series.ground_truth), color: "#9aa5b1", width: 3 });
+  Plots.lines($("plot-trajectory"), lines, { xLabel: `${AXES[a]} (m)`, yLabel: `${AXES[b]} (m)`, equal: true });
+  $("plot-trajectory-caption").textContent = `trajectory, top view (${AXES[a]}, ${AXES[b]}): estimated (blue)` +
+    (series.ground_truth ? (series.aligned ? ", aligned onto the ground truth (grey)" : " and ground truth (grey), not aligned yet") : "");
+}
+
+function drawError(series) {
+  if (!series.error_m) return Plots.message($("plot-error"), series.ground_truth ? "too few frames to align yet" : "no ground truth for this input");
+  const t0 = series.timestamps[0];
+  const points = series.error_m.map((e, i) => (e == null ? null : [series.timestamps[i] - t0, e * 100]));
+  const t1 = series.timestamps[series.timestamps.length - 1] - t0;
+  const rmse = series.ate_rmse_m * 100;
+  Plots.lines($("plot-error"), [
+    { points, color: "#c93c3c" },
+    { points: [[0, rmse], [t1, rmse]], color: "#6b7785", dash: [5, 4], width: 1 },
+  ], { xLabel: "input time (s)", yLabel: "error (cm)", yFromZero: true });
+}
+
+// frames/s between consecutive samples (from the phase's start, 0 frames at 0 s, so the
+// start-up before the first pose shows), and the average (the status's frames/s) dashed.
+function drawFps(series) {
+  if (!series.fps_time_s.length) return Plots.message($("plot-fps"), "tracking has not started yet");
+  const t = [0, ...series.fps_time_s], n = [0, ...series.fps_frames];
+  const rates = t.slice(1).map((ti, i) => [ti, (n[i + 1] - n[i]) / Math.max(ti - t[i], MIN_FPS_SPAN_S)]);
+  const average = n[n.length - 1] / Math.max(t[t.length - 1], MIN_FPS_SPAN_S);
+  Plots.lines($("plot-fps"), [
+    { points: rates, color: "#2e9d5b" },
+    { points: [[t[0], average], [t[t.length - 1], average]], color: "#6b7785", dash: [5, 4], width: 1 },
+  ], { xLabel: "time since tracking began (s)", yLabel: "frames/s", yFromZero: true });
 }
 
 // ------------------------------------------------------------------ start
@@ -503,6 +677,8 @@ function start() {
   $("render-color").addEventListener("click", pickSurface);
   $("ar-asset-file").addEventListener("change", uploadAsset);
   $("ar-button").addEventListener("click", composite);
+  $("ar-auto").addEventListener("click", () => { AR_POSITION.forEach((id) => { $(id).value = ""; }); composite(); });
+  window.addEventListener("resize", () => { plotsShown = null; refreshPlots(); });
   setUpViewer();
   refreshSessions();
   setInterval(refreshSessions, 1000);

@@ -1,6 +1,6 @@
 """The page in a real browser (Debian chromium driven by playwright) against a real uvicorn:
-it loads, an upload works, the embedded viewer connects and shows the mesh, the render panel
-returns an image."""
+it loads, an upload works (listed with its file name, and the viewer follows it), the embedded
+viewer connects and shows the mesh, the render panel returns an image."""
 
 from __future__ import annotations
 
@@ -122,7 +122,13 @@ def test_page_upload_viewer_and_render(server_url, tmp_path):
                                timeout=60_000)
         uploaded = [s for s in api.get("/api/sessions").json() if s["source"].startswith("upload")]
         assert len(uploaded) == 1, uploaded
-        page.wait_for_selector(f"#session-list li[data-id='{uploaded[0]['id']}']", timeout=10_000)
+        item = f"#session-list li[data-id='{uploaded[0]['id']}']"
+        page.wait_for_selector(item, timeout=10_000)
+        assert "room.zip" in page.inner_text(f"{item} .source"), "an upload is listed with its file name"
+        deadline = time.monotonic() + 10
+        while api.get("/api/viewer").json()["selected"] != uploaded[0]["id"]:
+            assert time.monotonic() < deadline, "the viewer did not follow the uploaded session"
+            time.sleep(0.2)
         api.post(f"/api/sessions/{uploaded[0]['id']}/cancel")  # frees the CPU for the browser's software WebGL
 
         # Show the finished synthetic session in the viewer; the viewer connects and draws its mesh.

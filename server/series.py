@@ -1,0 +1,98 @@
+"""The numbers behind the page's plots: a session's estimated trajectory against the input's
+ground truth (aligned as the ATE aligns them), the error of every frame, and frames/s over
+the tracking phase.
+
+The ground truth is read from the session's input (a synthetic scene's generated path, a
+dataset's ``groundtruth.txt`` / pose files) with the options the worker opened it with, so
+its timestamps are the ones the runtime reports; estimate and ground truth are associated by
+timestamp and rigidly aligned (Umeyama, no scale) exactly as ``slam.eval.ate`` does.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+
+from server.worker import SourceSpec
+from slam.data import DataError
+from slam.eval.ate import umeyama_alignment
+from slam.eval.trajectory import Trajectory, associate
+
+MAX_DT_S = 0.02
+"""Largest timestamp difference of an estimate-ground truth pair (as ``voxfusion eval-ate``)."""
+DECIMALS = 4
+"""Rounding of positions and errors in the JSON (0.1 mm)."""
+
+
+@lru_cache(maxsize=16)
+def ground_truth(spec: SourceSpec) -> Trajectory | None:
+    """The ground-truth trajectory of one source, or None (a stream, an input without poses).
+    Cached: a page polls it while the session runs, and inputs do not change."""
+    if spec.kind not in ("synthetic", "dataset") or not spec.path:
+        return None
+    from slam.data import open_sequence
+
+    try:
+        if spec.kind == "synthetic":
+            from slam.data.synthetic import FPS
+
+            sequence = open_sequence(f"synthetic:{spec.path}", "synthetic", stride=spec.stride,
+                                     max_frames=spec.max_frames)
+            return Trajectory(sequence.frame_numbers / FPS, sequence.trajectory)
+        sequence = open_sequence(spec.path, spec.format, stride=spec.stride, max_frames=spec.max_frames,
+                                 intrinsics=spec.intrinsics, depth_scale=spec.depth_scale)
+    except (DataError, OSError):
+        return None
+    pairs = [(t, T) for t, T in zip(sequence.timestamps, sequence.gt_poses) if T is not None]
+    if not pairs:
+        return None
+    return Trajectory(np.array([t for t, _ in pairs]), np.stack([T for _, T in pairs]))
+
+
+@dataclass(frozen=True)
+class TrajectoryComparison:
+    """An estimate placed onto the ground truth.
+
+    Attributes:
+        estimated: (N, 3) camera centres, in the ground truth's frame when ``aligned``.
+        errors: (N,) metres per estimated frame; NaN for a frame without a ground-truth pair.
+        aligned: whether at least 3 non-collinear pairs fixed the alignment.
+    """
+
+    estimated: np.ndarray
+    errors: np.ndarray
+    aligned: bool
+
+    @property
+    def rmse(self) -> float | None:
+        valid = self.errors[np.isfinite(self.errors)]
+        return float(np.sqrt(np.mean(valid ** 2))) if self.aligned and len(valid) else None
+
+
+def compare(estimate: Trajectory, truth: Trajectory | None) -> TrajectoryComparison:
+    """Align ``estimate`` onto ``truth`` by its timestamp pairs; unaligned without enough pairs."""
+    positions = estimate.positions
+    unaligned = TrajectoryComparison(positions, np.full(len(positions), np.nan), False)
+    if truth is None or len(estimate) < 3:
+        return unaligned
+    idx_gt, idx_est = associate(truth.timestamps, estimate.timestamps, MAX_DT_S)
+    if len(idx_est) < 3:
+        return unaligned
+    try:
+        R, t, _ = umeyama_alignment(positions[idx_est], truth.positions[idx_gt])
+    except DataError:  # collinear: the rotation about the line is not determined
+        return unaligned
+    aligned = positions @ R.T + t
+    errors = np.full(len(positions), np.nan)
+    errors[idx_est] = np.linalg.norm(aligned[idx_est] - truth.positions[idx_gt], axis=1)
+    return TrajectoryComparison(aligned, errors, True)
+
+
+def rounded(values: np.ndarray) -> list:
+    """Nested lists of rounded floats, NaN as None (JSON has no NaN)."""
+    array = np.round(np.asarray(values, dtype=np.float64), DECIMALS)
+    if array.ndim > 1:
+        return [rounded(row) for row in array]
+    return [float(v) if np.isfinite(v) else None for v in array]
