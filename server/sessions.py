@@ -516,7 +516,7 @@ class SessionManager:
                 return
             session.tracks.apply(event)
             if isinstance(event, StatsEvent):
-                ate = getattr(event, "ate_rmse", None)
+                ate = event.ate_rmse
                 session.status = replace(
                     session.status, frames_done=max(event.frames_done, session.status.frames_done),
                     frames_total=event.frames_total, keyframes=max(event.keyframes, session.keyframe_events),
@@ -618,7 +618,7 @@ class SessionManager:
         else:
             status, error = "failed", _describe_exit(exitcode)
         if done is not None and done.frames:
-            ate = getattr(done, "ate_rmse", None)
+            ate = done.ate_rmse
             session.status = replace(session.status, frames_done=done.frames, keyframes=done.keyframes,
                                      maps=done.maps, loops=done.loops, fps=session.status.fps or round(done.fps, 3),
                                      agents=done.agents or session.status.agents,

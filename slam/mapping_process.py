@@ -320,7 +320,7 @@ def _finish(side: _MapperSide, refine: bool) -> list[Reply]:
             deadline = (None if budget.seconds is None or not sum(shares)
                         else time.perf_counter() + budget.seconds * iterations / sum(shares))
             mapper.global_bundle_adjustment(submap, iterations, m.final_rays, deadline=deadline)
-            ran += mapper.last_iterations if iterations > 0 and submap.keyframes else 0
+            ran += mapper.last_iterations  # 0 when it had nothing to do
         mapper.version += 1
         seconds = time.perf_counter() - t0
         side.busy += seconds
