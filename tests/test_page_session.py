@@ -125,7 +125,13 @@ def watched(server, page) -> Watched:
         time.sleep(0.2)
 
 
-READ_ITEM = """(id) => {
+# The page polls the API once a second on a timer; under load (CI: the SLAM worker, the
+# embedded viewer's software WebGL and this process share 2 cores) that timer fell behind for a
+# whole 24-frame session, and the page went from "tracking, 1 keyframe" straight to "done".
+# Each read therefore asks the page to poll first: what is checked is what the page shows for
+# the status the API gives while the session runs, not how often its timer fires.
+READ_ITEM = """async (id) => {
+    await refreshSessions();
     const li = document.querySelector(`#session-list li[data-id='${id}']`);
     return {phase: li.querySelector('.phase').dataset.phase, stats: li.querySelector('.stats').textContent,
             bar: !li.querySelector('progress').hidden, finished: !!li.querySelector('.badge.finished')};
