@@ -275,6 +275,9 @@ class LoopConfig:
     90 verified loops rejected at 5 cm / 0.02 rad)."""
     loop_sigma_m: float = 0.02
     loop_sigma_rad: float = 0.01
+    keyframe_graph: bool = True
+    """At the end of the run, a pose graph over every keyframe with odometry and every
+    verified loop corrects the drift inside maps (``slam.loop.keyframe_graph``)."""
 
     def __post_init__(self) -> None:
         if self.top_k < 1 or self.min_inliers < 6 or self.geometry_rays < 1:

@@ -108,6 +108,9 @@ class MapperStats:
     loop_timings_ms: dict[str, float]
     refinement: "FinalRefinement | None" = None
     """What the end-of-run global bundle adjustment did (None before it ran)."""
+    keyframe_graph: dict | None = None
+    """What the end-of-run keyframe pose graph did (``KeyframeGraphResult.summary``; None
+    when it did not run: no verified loop, loops off, or a stopped run)."""
 
 
 @dataclass(frozen=True)
@@ -145,6 +148,7 @@ class _MapperSide:
     started: float = field(default_factory=time.perf_counter)
     """When the mapping side started (the final bundle adjustment's time cap is relative)."""
     refinement: FinalRefinement | None = None
+    keyframe_graph: dict | None = None
 
 
 def _make_side(config: SLAMConfig, device: torch.device, out_dir: Path, emit_meshes: bool, seed: int) -> _MapperSide:
@@ -275,7 +279,7 @@ def _stats(side: _MapperSide) -> MapperStats:
         list(closer.candidates) if closer is not None else [],  # type: ignore[union-attr]
         closer.rejected if closer is not None else 0,  # type: ignore[union-attr]
         closer.timings_ms() if closer is not None else {},  # type: ignore[union-attr]
-        side.refinement)
+        side.refinement, side.keyframe_graph)
 
 
 def final_budget(mapping, keyframes: int, elapsed: float) -> FinalBudget:
@@ -326,6 +330,12 @@ def _finish(side: _MapperSide, refine: bool) -> list[Reply]:
         side.busy += seconds
         mapper.timer.add("final_bundle_adjustment", seconds)
         side.refinement = FinalRefinement(sum(shares), ran, seconds, budget.seconds, ran < sum(shares))
+        if refine and side.closer is not None:
+            # After the bundle adjustment: its keyframe poses are the odometry the graph keeps.
+            solved = side.closer.optimise_keyframes(mapper)  # type: ignore[union-attr]
+            if solved is not None:
+                side.keyframe_graph = solved.summary()
+                mapper.version += 1
         t0 = time.perf_counter()
         _save_map(side)
         export_mesh(extract_mesh(mapper.maps), side.out_dir / "mesh.ply")

@@ -203,6 +203,7 @@ def write_outputs(out: Path, config: SLAMConfig, tracks: list["AgentTrack"], sta
         },
         "final_bundle_adjustment": (asdict(stats.refinement)
                                     if stats and stats.refinement else None),
+        "keyframe_graph": stats.keyframe_graph if stats else None,
         "tracking_failures": sum(t.tracking_failures for t in tracks),
         "frames_interpolated": sum(t.interpolated for t in trajectories),
         "timings_s": {

@@ -16,6 +16,12 @@ Paper: Loop Closure based Multi-maps. For each keyframe added by the mapper:
    spreads the correction over the maps between.
 4. **Intra-map optimisation**: global bundle adjustment of the two joined maps' keyframes
    (``Mapper.refine_map``).
+5. **Keyframe pose graph** (``keyframe_graph``, at the end of the run after the global
+   bundle adjustment): every keyframe a node, odometry between consecutive keyframes and
+   every verified loop (also those the map-level kernel refused: maps bent by their own
+   drift disagree with a loop that keyframes agree with) as edges; the drift inside maps,
+   which moving maps rigidly leaves, is corrected on the trajectory and each map takes the
+   rigid pose that best fits its keyframes.
 
 Within one group the frame-gap rule keeps near-in-time keyframes (the previous map's last
 views of a region border) from counting as loops. Every candidate's scores are kept.
@@ -36,6 +42,7 @@ from ..features import detect_features
 from ..geometry import se3_inverse
 from ..maps import Keyframe, SubMap
 from .database import KeyframeDatabase, KeyframeEntry, make_descriptor
+from .keyframe_graph import KeyframeGraphResult, KeyframeLoop, KeyframeNode, MapNode, optimise_keyframe_graph
 from .pose_graph import PoseNode, RelativePoseEdge, optimise_pose_graph
 from .verification import LoopVerification, frozen_in_map_frame, refinement_tracker, verify_candidate
 
@@ -51,7 +58,7 @@ def loop_json(loop: LoopEvent) -> dict:
 @dataclass
 class _Timings:
     ms: dict[str, list[float]] = field(default_factory=lambda: {
-        "descriptor": [], "query": [], "verification": [], "optimisation": []})
+        "descriptor": [], "query": [], "verification": [], "optimisation": [], "keyframe_graph": []})
 
     def add(self, name: str, seconds: float) -> None:
         self.ms[name].append(seconds * 1e3)
@@ -105,6 +112,8 @@ class LoopCloser:
         """Every verified candidate's record (accepted or not), for the user to inspect."""
         self.rejected = 0
         self.loop_edges: list[RelativePoseEdge] = []
+        self.keyframe_loops: list[KeyframeLoop] = []
+        """Every verified loop as a keyframe-to-keyframe measurement (the keyframe graph's)."""
         self.timings = _Timings()
         self._frozen_cache: dict[int, tuple[int, object]] = {}
         self._map_revision: dict[int, int] = {}
@@ -146,8 +155,12 @@ class LoopCloser:
                       "timestamp": keyframe.timestamp, "match_agent": target.agent, "match_map": target.map_id,
                       "match_frame_index": match_kf.frame_index, "match_timestamp": match_kf.timestamp,
                       "similarity": round(float(cand.similarity), 4), "threshold": round(float(cand.threshold), 4),
-                      **result.scores(), "accepted": result.accepted}
+                      **result.scores(), "verified": result.accepted, "accepted": result.accepted}
             if result.accepted:
+                assert result.T_map_query is not None
+                self.keyframe_loops.append(KeyframeLoop(
+                    submap.agent, keyframe.frame_index, target.agent, match_kf.frame_index,
+                    np.linalg.solve(_np(match_kf.T_map_cam), np.asarray(result.T_map_query, np.float64))))
                 t0 = time.perf_counter()
                 closure = self._close(mapper, submap, keyframe, target, match_kf, result, record)
                 self.timings.add("optimisation", time.perf_counter() - t0)
@@ -159,6 +172,30 @@ class LoopCloser:
             record["accepted"] = False
             self.candidates.append(record)
         return out
+
+    def optimise_keyframes(self, mapper) -> KeyframeGraphResult | None:
+        """The keyframe pose graph over every map (module doc, step 5); writes the new map
+        poses and keyframe poses into ``mapper``'s maps. None (nothing changed) without
+        verified loops."""
+        if not self.keyframe_loops or not self.config.loop.keyframe_graph:
+            return None
+        t0 = time.perf_counter()
+        maps = mapper.maps.maps
+        nodes = [MapNode(m.map_id, _np(m.T_world_map), m.parent,
+                         None if m.T_parent_map is None else _np(m.T_parent_map)) for m in maps]
+        keyframes = [KeyframeNode(m.agent, m.map_id, kf.frame_index, _np(kf.T_map_cam))
+                     for m in maps for kf in m.keyframes]
+        c = self.config.loop
+        solved = optimise_keyframe_graph(nodes, keyframes, self.keyframe_loops,
+                                         loop_sigma_m=c.loop_sigma_m, loop_sigma_rad=c.loop_sigma_rad)
+        in_maps = solved.keyframes_in_maps(keyframes)
+        for m in maps:
+            m.T_world_map = torch.tensor(solved.map_poses[m.map_id], dtype=torch.float32, device=self.device)
+            for kf in m.keyframes:
+                kf.T_map_cam = torch.tensor(in_maps[(m.agent, kf.frame_index)], dtype=kf.T_map_cam.dtype,
+                                            device=kf.T_map_cam.device)
+        self.timings.add("keyframe_graph", time.perf_counter() - t0)
+        return solved
 
     def closures_json(self) -> list[dict]:
         return [loop_json(c) for c in self.closures]
@@ -219,7 +256,7 @@ class LoopCloser:
             match_kf.frame_index, match_kf.timestamp, _np(source.T_world_map @ keyframe.T_map_cam),
             _np(target.T_world_map @ match_kf.T_map_cam), {k: v for k, v in record.items() if k not in (
                 "agent", "map", "frame_index", "timestamp", "match_agent", "match_map", "match_frame_index",
-                "match_timestamp", "accepted")})
+                "match_timestamp", "verified", "accepted")})
         self.closures.append(closure)
         for pair in ((source.map_id, target.map_id), (target.map_id, source.map_id)):
             self._last_closed[pair] = len(mapper.maps.by_id(pair[0]).keyframes)
