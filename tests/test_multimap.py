@@ -213,6 +213,11 @@ def test_two_agents_are_joined_by_a_verified_loop(tmp_path):
     assert joint < 3 * max(a["ate_rmse_m"] for a in info["agents"])
     loop_events = [e for e in events if type(e).__name__ == "LoopEvent"]
     assert len(loop_events) == result.loops
+    # The end-of-run keyframe graph used every verified loop (the accepted ones among them).
+    verified = [c for c in info["loop_candidates"] if c["verified"]]
+    assert len(verified) >= result.loops
+    graph = info["keyframe_graph"]
+    assert graph["loops_used"] + graph["loops_rejected"] == len(verified) and graph["loops_used"] >= 1
 
 
 @pytest.mark.shared_data

@@ -247,8 +247,9 @@ class LoopCloser:
             if not self._inter_map(mapper, source, target, edge):
                 record["reason"] = "the pose graph rejected the loop as an outlier"
                 return None
-        # Intra-map: every keyframe of the joined maps against its map.
-        for submap in {id(source): source, id(target): target}.values():
+        # Intra-map: every keyframe of the joined maps against its map (0 iterations: left to
+        # the end-of-run keyframe graph and global bundle adjustment; see the cpu preset).
+        for submap in {id(source): source, id(target): target}.values() if c.intra_map_iterations > 0 else ():
             mapper.refine_map(submap, c.intra_map_iterations, self.config.mapping.final_rays)
             self._map_revision[submap.map_id] = self._map_revision.get(submap.map_id, 0) + 1
         closure = LoopEvent(
