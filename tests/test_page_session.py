@@ -271,6 +271,28 @@ def test_ar_places_the_default_object_in_view_and_says_when_it_is_not(server, pa
     assert not page.errors, page.errors
 
 
+@pytest.mark.parametrize("size", [(1280, 720), (1400, 900)])
+def test_render_and_ar_results_are_in_view_without_scrolling(server, page, watched, size):
+    """Issue 20: at 1280x720 and 1400x900 the rendered views, the AR composite and both
+    messages sit inside the window as the page loads, so a result is never below the fold."""
+    page.click(f"#session-list li[data-id='{watched.session_id}'] .source")
+    page.click("#render-button")
+    page.wait_for_function("document.getElementById('render-message').textContent.startsWith('Rendered')",
+                           timeout=60_000)
+    if not page.evaluate("document.getElementById('ar-image').naturalWidth"):
+        ar_message(page)
+    page.set_viewport_size({"width": size[0], "height": size[1]})
+    try:
+        page.evaluate("window.scrollTo(0, 0)")
+        for element in ("#render-color", "#render-depth", "#render-message", "#ar-image", "#ar-message"):
+            box = page.locator(element).bounding_box()
+            assert box is not None and box["height"] > 0, f"{element} is not shown"
+            assert box["y"] >= 0 and box["y"] + box["height"] <= size[1], f"{element} ends at {box['y'] + box['height']:.0f} px"
+            assert box["x"] >= 0 and box["x"] + box["width"] <= size[0], f"{element} is cut off at the side"
+    finally:
+        page.set_viewport_size({"width": 1280, "height": 720})
+
+
 def test_ar_response_names_each_objects_visibility(server, watched):
     import json
 
