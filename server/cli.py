@@ -16,7 +16,7 @@ DEFAULT_DEMO_SPEC = "orbit?frames=150&width=320&height=240"
 
 
 def add_server_commands(subparsers) -> None:
-    """Add ``serve`` and ``demo`` to an argparse subparsers action."""
+    """Add ``serve``, ``demo`` and ``stream`` to an argparse subparsers action."""
     serve = subparsers.add_parser("serve", help="run the web application (API, page, live viewer)",
                                   description="Run the web application. Settings not given here come from "
                                               "VOXFUSION_* environment variables (see server/README.md).")
@@ -32,6 +32,16 @@ def add_server_commands(subparsers) -> None:
     demo.add_argument("--spec", default=DEFAULT_DEMO_SPEC,
                       help=f"synthetic scene spec (default {DEFAULT_DEMO_SPEC!r})")
     demo.set_defaults(handler=demo_command)
+
+    from server.stream_client import add_stream_arguments
+
+    stream = subparsers.add_parser("stream", help="send a camera or a replayed dataset folder to a running server",
+                                   description="Create a stream session on a running server and send it frames "
+                                               "over its WebSocket: a dataset folder replayed in time, 'realsense' "
+                                               "or a RealSense .bag. Exit codes: 0 ok, 1 the stream failed, "
+                                               "2 bad source, 3 server unreachable or refused.")
+    add_stream_arguments(stream)
+    stream.set_defaults(handler=stream_command)
 
 
 def _server_options(parser: argparse.ArgumentParser) -> None:
@@ -125,6 +135,12 @@ def demo_command(args: argparse.Namespace) -> int:
     from slam.config import default_preset_name
 
     return _serve(args, (args.spec, args.preset or default_preset_name()))
+
+
+def stream_command(args: argparse.Namespace) -> int:
+    from server.stream_client import stream_command as run_stream
+
+    return run_stream(args)
 
 
 def _subparsers_action(parser: argparse.ArgumentParser):
