@@ -53,11 +53,16 @@ class Background:
     camera: Camera
 
 
-def input_frame(spec: SourceSpec, session_dir, index: int):
-    """(rgb, depth, K, timestamp) of the session's ``index``-th input frame. KeyError if absent."""
-    if spec.kind == "stream":
-        frame = read_recorded_frame(session_dir / "input", index)
+def input_frame(sources: tuple[SourceSpec, ...], session_dir, index: int, agent: int = 0):
+    """(rgb, depth, K, timestamp) of ``agent``'s ``index``-th input frame (the agent's source,
+    or its frames in a stream). KeyError if absent."""
+    if sources[0].kind == "stream":
+        frame = read_recorded_frame(session_dir / "input", index, agent)
         return frame.rgb, frame.depth, frame.K, frame.timestamp
+    if agent >= len(sources):
+        raise KeyError(f"agent {agent} does not exist (the session has {len(sources)} source"
+                       f"{'s' if len(sources) > 1 else ''})")
+    spec = sources[agent]
     from slam.data import open_sequence
 
     if spec.kind == "synthetic":
@@ -71,13 +76,19 @@ def input_frame(spec: SourceSpec, session_dir, index: int):
     return frame.rgb, frame.depth, frame.K, frame.timestamp
 
 
-def estimated_pose(manager: SessionManager, session_id: str, index: int, timestamp: float) -> np.ndarray | None:
-    """The session's estimate of frame ``index``: from this run's pose events, else trajectory.txt."""
-    indices, _, poses = manager.tracked_poses(session_id)
+def estimated_pose(manager: SessionManager, session_id: str, index: int, timestamp: float,
+                   agent: int = 0) -> np.ndarray | None:
+    """The session's estimate of ``agent``'s frame ``index``: from this run's pose events,
+    else the agent's trajectory file (``trajectory.txt``, or ``trajectory_<agent>.txt`` when
+    the run wrote one per agent)."""
+    indices, _, poses = manager.tracked_poses(session_id, agent)
     hit = np.flatnonzero(indices == index)
     if len(hit):
         return poses[hit[0]]
-    path = manager.session_dir(session_id) / "trajectory.txt"
+    directory = manager.session_dir(session_id)
+    path = directory / f"trajectory_{agent}.txt"
+    if not path.is_file() and agent == 0:
+        path = directory / "trajectory.txt"
     if not path.is_file():
         return None
     from slam.eval.trajectory import read_tum
@@ -115,22 +126,24 @@ async def background_for(request: ARRequest, session_id: str, manager: SessionMa
         mapset = await load_map(manager, maps, session_id)
         view = await run_in_threadpool(render, mapset, camera)
         return Background(np.asarray(view.rgb), np.asarray(view.depth), camera)
-    index = int(request.background.split(":", 1)[1])
+    index, agent = int(request.background.split(":", 1)[1]), request.agent
     state = manager.get(session_id)
+    whose = "" if agent == 0 else f" of agent {agent}"
     try:
-        rgb, depth, frame_K, stamp = await run_in_threadpool(input_frame, state.spec, manager.session_dir(session_id),
-                                                             index)
+        rgb, depth, frame_K, stamp = await run_in_threadpool(input_frame, state.sources, manager.session_dir(session_id),
+                                                             index, agent)
     except (KeyError, DataError) as error:
         message = strip_paths(error_text(error), manager.session_dir(session_id) / "input", "the input")
-        raise HTTPException(status.HTTP_404_NOT_FOUND, f"background frame:{index}: {message}") from None
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"background frame:{index}{whose}: {message}") from None
     height, width = depth.shape
     if size is not None and size != (width, height):
         raise HTTPException(422,
                             f"intrinsics are for {size[0]}x{size[1]} but frame {index} is {width}x{height}")
     if T is None:
-        T = estimated_pose(manager, session_id, index, stamp)
+        T = estimated_pose(manager, session_id, index, stamp, agent)
         if T is None:
-            raise HTTPException(status.HTTP_409_CONFLICT, f"frame {index} has no estimated pose yet; give T_world_cam")
+            raise HTTPException(status.HTTP_409_CONFLICT,
+                                f"frame {index}{whose} has no estimated pose yet; give T_world_cam")
     return Background(rgb, depth, Camera(T, frame_K if K is None else K, width, height))
 
 

@@ -217,6 +217,8 @@ class ARRequest(Strict):
 
     background: str = Field("render", pattern=r"^(render|frame:\d{1,7})$",
                             description="'render' (neural render of the map) or 'frame:N' (the N-th input frame)")
+    agent: int = Field(0, ge=0, le=63, description="whose input frame 'frame:N' is in a collaborative session "
+                                                   "(the k-th source, or a stream's agent k); 0 by default")
     T_world_cam: Matrix4 | None = Field(None, description="required for 'render'; default for 'frame:N': its estimated pose")
     intrinsics: Intrinsics | None = Field(None, description="required for 'render'; default for 'frame:N': the frame's")
     objects: list[ARObject] = Field(max_length=64)
