@@ -75,6 +75,8 @@ class FrameMessage:
     tracking_ok: bool
     new_map: tuple[str, int, np.ndarray] | None = None
     """(reason, map id, T_world_map) of a map this frame starts."""
+    covariance: np.ndarray | None = None
+    """(6, 6) the tracker's uncertainty of this frame's pose (``keyframe_graph.frame_covariance``)."""
 
 
 @dataclass(frozen=True)
@@ -149,6 +151,8 @@ class _MapperSide:
     """When the mapping side started (the final bundle adjustment's time cap is relative)."""
     refinement: FinalRefinement | None = None
     keyframe_graph: dict | None = None
+    odometry_covariance: dict[int, np.ndarray] = field(default_factory=dict)
+    """agent -> covariances of its frames tracked since its last keyframe, summed."""
 
 
 def _make_side(config: SLAMConfig, device: torch.device, out_dir: Path, emit_meshes: bool, seed: int) -> _MapperSide:
@@ -219,7 +223,12 @@ def _integrate(side: _MapperSide, msg: FrameMessage, optimize: bool) -> list[Rep
     out: list[Reply] = []
     submap = mapper.active[msg.agent]
     cfg = mapper.config
+    if msg.covariance is not None:
+        side.odometry_covariance[msg.agent] = side.odometry_covariance.get(msg.agent, 0.0) + msg.covariance
     if step.is_keyframe:
+        # The frames since the camera's previous keyframe: this keyframe's odometry uncertainty.
+        summed = side.odometry_covariance.pop(msg.agent, None)
+        submap.keyframes[-1].odometry_covariance = None if summed is None else np.asarray(summed, np.float64)
         kf_pose = (submap.T_world_map @ submap.keyframes[-1].T_map_cam).detach().cpu().numpy()
         out.append(("event", KeyframeEvent(msg.agent, step.frame_index, submap.map_id, kf_pose.astype(np.float64))))
         side.keyframes_since_mesh += 1

@@ -40,6 +40,10 @@ class Keyframe:
     K: torch.Tensor
     T_map_cam: torch.Tensor
     descriptor: np.ndarray | None = None
+    odometry_covariance: np.ndarray | None = None
+    """(6, 6) twist order (rho, omega): how uncertain tracking left this keyframe's pose
+    relative to the same camera's previous keyframe (summed per-frame covariances; the
+    keyframe pose graph's odometry edge). None: unknown."""
 
 
 def optimised_voxel_mask(corner_updates: torch.Tensor, voxel_corners: torch.Tensor,

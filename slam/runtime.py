@@ -44,6 +44,7 @@ from .mapping import MapSnapshot
 from .mapping_process import FrameMessage, InlineMapper, MapperFailed, MapperStats, ProcessMapper
 from .mapping_process import set_threads as _set_threads
 from .outputs import FrameRecord, refine_with_keyframes, running_ate, write_outputs
+from .loop.keyframe_graph import frame_covariance
 from .tracking import FrozenMap, Tracker, constant_velocity_guess
 
 __all__ = ["AgentStream", "MapperFailed", "RunResult", "refine_with_keyframes", "resolve_device", "run_slam",
@@ -320,7 +321,8 @@ def _estimate_pose(side: _TrackingSide, track: AgentTrack, frame: Frame, raw: Fr
     else:
         _count_failure(track, config)
     rec = FrameRecord(frame.index, float(frame.timestamp), map_id, T_mc, result.ok, gt)
-    return FrameMessage(track.agent, frame, map_id, T_mc.astype(np.float32), result.ok, new_map), rec
+    covariance = frame_covariance(result.information) if result.ok and result.information is not None else None
+    return FrameMessage(track.agent, frame, map_id, T_mc.astype(np.float32), result.ok, new_map, covariance), rec
 
 
 def _interleave(sources: list[Iterable[Frame]]) -> Iterator[tuple[int, Frame]]:

@@ -51,6 +51,10 @@ class TrackingResult:
     hit_ratio: float
     depth_residual: float
     reason: str = ""
+    information: np.ndarray | None = None
+    """(6, 6) float64 curvature of the data terms (dense, and the features when used; not the
+    motion prior) at the estimate, twist order (rho, omega): which directions the view fixed.
+    None for the Adam tracker."""
 
 
 class FrozenMap:
@@ -155,11 +159,13 @@ class Tracker:
         if self.config.tracking.optimizer == "gauss_newton":
             # The start may fall back from the PnP pose to the guess (feature_dense_check):
             # the jump test and a diverged estimate's fallback use the start it took.
-            it, loss, T_best_map, hit_ratio, residual_med, T0_map = self._levenberg_marquardt(
+            it, loss, T_best_map, hit_ratio, residual_med, T0_map, information = self._levenberg_marquardt(
                 frame, fmap, T0_map, sparse, T_guess_map if sparse is not None else None)
         else:
             it, loss, T_best_map, hit_ratio, residual_med = self._adam(frame, fmap, T0_map, sparse)
-        return self._result(fmap, T0_map, T_best_map, it, loss, hit_ratio, residual_med)
+            information = None
+        result = self._result(fmap, T0_map, T_best_map, it, loss, hit_ratio, residual_med)
+        return replace(result, information=information)
 
     def _plausible(self, matches: Correspondences, T_init: torch.Tensor) -> bool:
         """Whether the matches' PnP pose lies within the tracker's jump limits of the guess:
@@ -174,7 +180,8 @@ class Tracker:
                              sparse: _SparseTerm | None, T_guess_map: torch.Tensor | None = None):
         """Damped Gauss-Newton on the paper's loss (``slam.gauss_newton``): one set of rays,
         outliers fixed at the initial pose, a step accepted only if it lowers the loss. Returns
-        (iterations, loss, pose, hit ratio, median depth residual, the pose it started from).
+        (iterations, loss, pose, hit ratio, median depth residual, the pose it started from,
+        the data terms' (6, 6) curvature at the pose or None)).
 
         ``T_guess_map``: the motion model's guess when ``T0_map`` is the features' PnP pose.
         With ``tracking.feature_dense_check`` the features are dropped for this frame when
@@ -207,7 +214,7 @@ class Tracker:
             if at_guess.cost < first.cost:
                 sparse, T0_map, first = None, T_guess_map, at_guess
         if not bool(first.hit.any()):
-            return 0, float("inf"), T0_map, 0.0, float("inf"), T0_map
+            return 0, float("inf"), T0_map, 0.0, float("inf"), T0_map, None
         med = first.residual[first.hit].median()
         inlier = (first.hit & (first.residual <= c.outlier_factor * med + 1e-6)).float()
         start = linearise_at(T0_map, inlier)
@@ -234,7 +241,8 @@ class Tracker:
                     break
         hit_ratio = float(best.hit.float().mean())
         residual_med = float(best.residual[best.hit].median()) if bool(best.hit.any()) else float("inf")
-        return it, best.cost, T, hit_ratio, residual_med, T0_map
+        H = best.H if prior is None else best.H - torch.diag(2 * prior.w).to(best.H.dtype)
+        return it, best.cost, T, hit_ratio, residual_med, T0_map, H.detach().cpu().numpy().astype(np.float64)
 
     def _adam(self, frame: TensorFrame, fmap: FrozenMap, T0_map: torch.Tensor, sparse: _SparseTerm | None):
         """The paper's optimiser: Adam on the twist, new rays every iteration if configured."""

@@ -123,3 +123,49 @@ def test_a_second_camera_no_loop_joined_keeps_its_own_anchor():
     keyframes += [KeyframeNode(1, 7, i, pose(0.0, 0.1 * i, 0.0)) for i in range(5)]
     solved = optimise_keyframe_graph(maps + [other], keyframes, loops_from_gt(gt, [(19, 1)]))
     assert np.allclose(solved.map_poses[7], other.T_world_map, atol=1e-6)
+
+
+def test_frame_covariance_is_wide_where_the_view_fixes_nothing():
+    """A plain wall ahead (normal along z): translation along z is stiff, x and y are not;
+    rotation about z is free, about x and y stiff."""
+    from slam.loop.keyframe_graph import FRAME_SIGMA_M, FRAME_SIGMA_RAD, MAX_CURVATURE_RATIO, frame_covariance
+
+    H = np.diag([0.05, 0.05, 50.0, 30.0, 30.0, 1e-9])
+    C = frame_covariance(H)
+    assert C[2, 2] == pytest.approx(FRAME_SIGMA_M ** 2)
+    assert C[0, 0] == pytest.approx(FRAME_SIGMA_M ** 2 * 50.0 / 0.05)
+    assert C[3, 3] == pytest.approx(FRAME_SIGMA_RAD ** 2)
+    assert C[5, 5] == pytest.approx(FRAME_SIGMA_RAD ** 2 * MAX_CURVATURE_RATIO), "capped"
+    assert np.allclose(C[:3, 3:], 0) and np.allclose(C, C.T)
+    R = pose(0.7, 0, 0)[:3, :3]  # the same wall seen turned: the wide directions turn with it
+    H_turned = np.zeros((6, 6))
+    H_turned[:3, :3], H_turned[3:, 3:] = R @ H[:3, :3] @ R.T, R @ H[3:, 3:] @ R.T
+    assert np.allclose(frame_covariance(H_turned)[:3, :3], R @ C[:3, :3] @ R.T)
+
+
+def test_the_correction_goes_where_tracking_was_unsure():
+    """Drift injected along x in a stretch of keyframes whose covariance says x was not
+    observed there: with those covariances the loop puts its correction in that stretch, and
+    the trajectory ends closer to the truth than with the distance rule alone."""
+    from slam.loop.keyframe_graph import FRAME_SIGMA_M, FRAME_SIGMA_RAD
+
+    gt = circle(60)
+    est, sliding = [gt[0]], range(20, 30)
+    for i in range(1, 60):
+        step = np.linalg.solve(gt[i - 1], gt[i])
+        if i in sliding:
+            step = step @ pose(0.0, -0.01, 0.0)  # the camera under-tracks along its own x
+        est.append(est[-1] @ step)
+    maps, keyframes = split_into_maps(est, 60)
+    sure = np.diag([FRAME_SIGMA_M ** 2] * 3 + [FRAME_SIGMA_RAD ** 2] * 3)
+    unsure = sure.copy()
+    unsure[0, 0] *= 1e4
+    with_cov = [KeyframeNode(k.agent, k.map_id, k.frame_index, k.T_map_cam,
+                             unsure if k.frame_index in sliding else sure) for k in keyframes]
+    loops = loops_from_gt(gt, [(q, q - 54) for q in range(54, 60)])
+    plain = optimise_keyframe_graph(maps, keyframes, loops)
+    informed = optimise_keyframe_graph(maps, with_cov, loops)
+    err = {name: rmse([r.keyframe_poses[(0, i)] for i in range(60)], gt) for name, r in
+           (("plain", plain), ("informed", informed))}
+    assert err["informed"] < 0.5 * err["plain"], err
+    assert err["informed"] < 0.01, err

@@ -224,3 +224,21 @@ def test_sigma_order_rotation_then_translation():
     T = res.poses[1]
     assert np.abs(T[:3, :3] - T_rot[:3, :3]).max() < 1e-3
     assert np.abs(T[:3, 3] - T_trans[:3, 3]).max() < 1e-3
+
+
+def test_a_full_covariance_edge_matches_the_same_sigmas():
+    """An edge given as a diagonal covariance (translation first) solves like the same sigmas."""
+    import numpy as np
+
+    from slam.loop.pose_graph import PoseNode, RelativePoseEdge, optimise_pose_graph
+
+    T = np.eye(4)
+    T[:3, 3] = (1.0, 0.2, 0.0)
+    nodes = [PoseNode(0, np.eye(4)), PoseNode(1, np.eye(4))]
+    by_sigmas = [RelativePoseEdge(0, 1, T, 0.05, 0.02, kind="sequential")]
+    cov = np.diag([0.05 ** 2] * 3 + [0.02 ** 2] * 3)
+    by_cov = [RelativePoseEdge(0, 1, T, kind="sequential", covariance=cov)]
+    a = optimise_pose_graph(nodes, by_sigmas, [0])
+    b = optimise_pose_graph(nodes, by_cov, [0])
+    assert np.allclose(a.poses[1], b.poses[1], atol=1e-9)
+    assert a.final_error == __import__("pytest").approx(b.final_error, abs=1e-12)

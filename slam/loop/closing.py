@@ -183,7 +183,7 @@ class LoopCloser:
         maps = mapper.maps.maps
         nodes = [MapNode(m.map_id, _np(m.T_world_map), m.parent,
                          None if m.T_parent_map is None else _np(m.T_parent_map)) for m in maps]
-        keyframes = [KeyframeNode(m.agent, m.map_id, kf.frame_index, _np(kf.T_map_cam))
+        keyframes = [KeyframeNode(m.agent, m.map_id, kf.frame_index, _np(kf.T_map_cam), kf.odometry_covariance)
                      for m in maps for kf in m.keyframes]
         c = self.config.loop
         solved = optimise_keyframe_graph(nodes, keyframes, self.keyframe_loops,

@@ -20,9 +20,15 @@ What follows from the solution:
   it. The neural map itself stays rigid: what is left inside a map is the part of the drift
   that its geometry holds (fixing that needs re-fitting the map to the new poses).
 
-Odometry edges get an uncertainty that grows with the motion between the two keyframes
-(drift is per metre and per radian travelled), loop edges the verification's, under the
-robust kernel (a loop that disagrees with the rest is switched off and reported).
+Odometry edges get the uncertainty the tracker reported: each tracked frame's curvature
+(``TrackingResult.information``) becomes a covariance (``frame_covariance``) that is large
+in the directions the view did not fix, and the frames between two keyframes add up. A
+stretch where a plain wall fills the view, which drifts along the wall, can then take the
+correction a loop brings, instead of the correction being spread evenly over the lap.
+Without the tracker's curvature (the Adam tracker) the uncertainty grows with the motion
+between the two keyframes (drift per metre and per radian travelled). Loop edges get the
+verification's uncertainty, under the robust kernel (a loop that disagrees with the rest is
+switched off and reported).
 
 Pure functions: numpy in, numpy out.
 """
@@ -33,17 +39,22 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .pose_graph import PoseNode, RelativePoseEdge, optimise_pose_graph
+# pose_graph (gtsam) is imported where the graph is solved: the tracker imports
+# frame_covariance and has no use for gtsam.
 
 
 @dataclass(frozen=True, eq=False)
 class KeyframeNode:
-    """A keyframe as its map holds it: ``T_map_cam`` (4, 4) float64 in map ``map_id``."""
+    """A keyframe as its map holds it: ``T_map_cam`` (4, 4) float64 in map ``map_id``;
+    ``covariance`` (6, 6), twist order (rho, omega), m and rad: of its pose relative to the
+    same camera's previous keyframe, summed over the frames tracked in between (None:
+    unknown, the distance rule applies)."""
 
     agent: int
     map_id: int
     frame_index: int
     T_map_cam: np.ndarray
+    covariance: np.ndarray | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -114,6 +125,38 @@ class KeyframeGraphResult:
                 "odometry_edges": self.odometry_edges, "max_correction_m": round(self.max_correction_m, 4)}
 
 
+FRAME_SIGMA_M = 0.002
+FRAME_SIGMA_RAD = 0.001
+"""1-sigma of one tracked frame's pose in its best-observed translation and rotation
+direction (``frame_covariance``)."""
+MAX_CURVATURE_RATIO = 1e4
+"""A direction with less than 1/this of the best direction's curvature counts as unobserved:
+its sigma is capped at 100x the best one's."""
+
+
+def frame_covariance(information: np.ndarray, sigma_m: float = FRAME_SIGMA_M, sigma_rad: float = FRAME_SIGMA_RAD,
+                     max_ratio: float = MAX_CURVATURE_RATIO) -> np.ndarray:
+    """(6, 6) covariance, twist order (rho, omega), of one tracked frame from the tracker's
+    (6, 6) curvature ``information``.
+
+    The curvature's scale depends on the loss's weights and ray count, not on metres, so
+    each block (translation, rotation) is taken relative to its own stiffest direction:
+    that direction gets ``sigma`` and a direction with k times less curvature sqrt(k) times
+    more (k at most ``max_ratio``). Cross terms between the blocks are left out.
+    """
+    H = 0.5 * (np.asarray(information, np.float64) + np.asarray(information, np.float64).T)
+    C = np.zeros((6, 6))
+    for block, sigma in ((slice(0, 3), sigma_m), (slice(3, 6), sigma_rad)):
+        w, V = np.linalg.eigh(H[block, block])
+        top = float(w.max())
+        if not np.isfinite(top) or top <= 0:
+            C[block, block] = np.eye(3) * (sigma ** 2 * max_ratio)
+            continue
+        w = np.clip(w, top / max_ratio, None)
+        C[block, block] = sigma ** 2 * (V * (top / w)) @ V.T
+    return C
+
+
 def _angle(R: np.ndarray) -> float:
     return float(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0)))
 
@@ -163,6 +206,8 @@ def optimise_keyframe_graph(maps: list[MapNode], keyframes: list[KeyframeNode], 
     keyframe of every map. loops: verified loops between keyframes in ``keyframes`` (others
     are skipped). Returns the new map and keyframe poses.
     """
+    from .pose_graph import PoseNode, RelativePoseEdge, optimise_pose_graph
+
     by_map = {m.map_id: m for m in maps}
     nodes = sorted(keyframes, key=lambda k: (k.agent, k.frame_index))
     key = {(k.agent, k.frame_index): i for i, k in enumerate(nodes)}
@@ -177,7 +222,7 @@ def optimise_keyframe_graph(maps: list[MapNode], keyframes: list[KeyframeNode], 
             continue
         T_a_b = _orthonormal(T_a_b)
         st, sr = sigmas.of(T_a_b)
-        edges.append(RelativePoseEdge(i - 1, i, T_a_b, st, sr, kind="sequential"))
+        edges.append(RelativePoseEdge(i - 1, i, T_a_b, st, sr, kind="sequential", covariance=b.covariance))
     odometry = len(edges)
     for loop in loops:
         a, b = key.get((loop.match_agent, loop.match_frame_index)), key.get((loop.agent, loop.frame_index))

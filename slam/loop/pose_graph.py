@@ -97,6 +97,9 @@ class RelativePoseEdge:
     sigma_rotation_rad: float = 0.02
     kind: str = "loop"
     robust: bool | None = None
+    covariance: np.ndarray | None = None
+    """(6, 6) full covariance, twist order (rho, omega) as slam.geometry (translation first),
+    used instead of the sigmas when given."""
 
     def __post_init__(self):
         a, b = _as_key(self.a, "RelativePoseEdge.a"), _as_key(self.b, "RelativePoseEdge.b")
@@ -114,6 +117,26 @@ class RelativePoseEdge:
             object.__setattr__(self, "robust", self.kind != "sequential")
         else:
             object.__setattr__(self, "robust", bool(self.robust))
+        if self.covariance is not None:
+            C = np.array(self.covariance, dtype=np.float64)
+            if C.shape != (6, 6) or not np.all(np.isfinite(C)) or np.linalg.eigvalsh(0.5 * (C + C.T)).min() <= 0:
+                raise ValueError(f"RelativePoseEdge {a}->{b}: covariance must be a finite positive-definite (6, 6)")
+            object.__setattr__(self, "covariance", 0.5 * (C + C.T))
+
+    def noise_model(self):
+        """gtsam's Gaussian noise model of the edge, in Pose3's tangent order (omega, rho)."""
+        if self.covariance is None:
+            return gtsam.noiseModel.Diagonal.Sigmas(self.sigmas)
+        order = [3, 4, 5, 0, 1, 2]
+        return gtsam.noiseModel.Gaussian.Covariance(self.covariance[np.ix_(order, order)])
+
+    def whitened(self, error: np.ndarray) -> float:
+        """Mahalanobis norm of gtsam's 6-vector error (omega, rho) under this edge's noise."""
+        if self.covariance is None:
+            return float(np.linalg.norm(error / self.sigmas))
+        order = [3, 4, 5, 0, 1, 2]
+        C = self.covariance[np.ix_(order, order)]
+        return float(np.sqrt(error @ np.linalg.solve(C, error)))
 
     @property
     def sigmas(self) -> np.ndarray:
@@ -318,7 +341,7 @@ def optimise_pose_graph(
         graph.add(gtsam.PriorFactorPose3(k, _to_gtsam(initial[k]), noise))
     factors, kernels = [], []
     for e in edges:
-        base = gtsam.noiseModel.Diagonal.Sigmas(e.sigmas)
+        base = e.noise_model()
         kernel = _kernel(robust_kernel, width) if (robust_kernel is not None and e.robust) else None
         noise = base if kernel is None else gtsam.noiseModel.Robust.Create(kernel, base)
         f = gtsam.BetweenFactorPose3(e.a, e.b, _to_gtsam(e.T_a_b), noise)
@@ -347,7 +370,7 @@ def optimise_pose_graph(
         E_R = Rm.T @ T_ab[:3, :3]
         E_t = Rm.T @ (T_ab[:3, 3] - tm)
         err = np.asarray(f.unwhitenedError(solution), dtype=np.float64)
-        wn = float(np.linalg.norm(err / e.sigmas))
+        wn = e.whitened(err)
         weight = 1.0 if kernel is None else float(kernel.weight(wn))
         residuals.append(EdgeResidual(
             index=i, a=e.a, b=e.b, kind=e.kind,
