@@ -39,7 +39,7 @@ def add_server_commands(subparsers) -> None:
                                    description="Create a stream session on a running server and send it frames "
                                                "over its WebSocket: a dataset folder replayed in time, 'realsense' "
                                                "or a RealSense .bag. Exit codes: 0 ok, 1 the stream failed, "
-                                               "2 bad source, 3 server unreachable or refused.")
+                                               "2 bad source, 3 server unreachable or refused, 130 Ctrl-C (the session is still finished).")
     add_stream_arguments(stream)
     stream.set_defaults(handler=stream_command)
 

@@ -1,0 +1,622 @@
+"""``voxfusion stream SOURCE --url URL``: send a camera (or a replayed folder) to a running server.
+
+Flow: open the source (its camera is known before anything is sent), create a stream session
+over HTTP (``POST /api/sessions``, intrinsics and depth scale given there), open the session's
+WebSocket (``/api/sessions/ID/stream``, protocol in ``server/routes_stream.py``), wait until
+the session's worker tracks (its start takes seconds; a replay's clock starts then), send binary
+frames waiting for each ack (the server's flow control), then ``{"type": "finish"}``.
+
+Back-pressure: a reader thread takes frames from the source as they arrive and puts them in a
+``FrameSlot`` of one frame. By default a new frame replaces the one not yet sent (counted as
+dropped), so the camera never stalls and nothing queues; with ``all_frames`` the reader waits
+for the slot instead (a replay then runs at the server's pace and every frame is processed).
+
+Faults end with one line on stderr and a non-zero exit code: 1 the stream failed (server
+gone, source failed mid-stream), 2 bad source or arguments, 3 the server could not be reached
+or refused the session (401: token), 130 Ctrl-C. The session is finished with the frames it
+has whenever the server is still there.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import struct
+import sys
+import threading
+import time
+import urllib.error
+import urllib.parse
+import urllib.request
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Callable, TextIO
+
+from server.camera_sources import CameraInfo, EncodedFrame, FrameSource, PendingFrame, SourceError
+
+BINARY_PREFIX = struct.Struct("<dI")
+
+HTTP_TIMEOUT_S = 10.0
+ACK_TIMEOUT_S = 90.0
+"""Longest wait for one ack: the server holds a frame up to 30 s before answering 503."""
+BUSY_RETRIES = 5
+"""Resends of a frame the server answered 503 (behind) before it is counted as dropped."""
+START_TIMEOUT_S = 600.0
+"""Longest wait for a new session to start tracking (it may be queued behind others)."""
+STATUS_EVERY_S = 0.25
+MAX_AHEAD = 2
+"""Keep-the-newest mode: frames acknowledged but not yet tracked by the server, at most. The
+server itself buffers up to 16 frames (``stream_queue_frames``) before it holds an ack back, so
+without this a slow session would track frames many seconds old."""
+PROGRESS_EVERY_S = 0.5
+LATENCY_SAMPLES = 10000
+"""Latencies kept for the summary (the newest ones)."""
+
+EXIT_OK, EXIT_FAILED, EXIT_SOURCE, EXIT_SERVER = 0, 1, 2, 3
+EXIT_INTERRUPTED = 130
+"""Ctrl-C (as shells report SIGINT); the session was still finished with the frames sent."""
+
+
+class StreamError(RuntimeError):
+    """A fault that ends the stream; ``code`` is the exit code, the message one line."""
+
+    def __init__(self, message: str, code: int = EXIT_FAILED) -> None:
+        super().__init__(message)
+        self.code = code
+
+
+# --------------------------------------------------------------------------------------------
+# The newest-frame buffer
+
+
+class FrameSlot:
+    """A buffer of one frame between the source's thread and the sender.
+
+    ``put`` with ``replace=True`` overwrites a frame that has not been taken (``dropped`` + 1);
+    with ``replace=False`` it waits until the slot is free. ``close`` marks the end of the
+    source (``error``: why it ended early); ``get`` then returns None once the slot is empty.
+    """
+
+    def __init__(self, replace: bool = True) -> None:
+        self.replace = replace
+        self.dropped = 0
+        self.error: str | None = None
+        self._item: PendingFrame | None = None
+        self._closed = False
+        self._cond = threading.Condition()
+
+    def put(self, item: PendingFrame, stop: Callable[[], bool] = lambda: False) -> None:
+        """Offer a frame; without ``replace``, wait for the slot (giving up when ``stop()``)."""
+        with self._cond:
+            if self.replace:
+                self.dropped += self._item is not None
+            else:
+                while self._item is not None:
+                    if stop():
+                        return
+                    self._cond.wait(0.1)
+            self._item = item
+            self._cond.notify_all()
+
+    def get(self, timeout: float | None = None) -> PendingFrame | None:
+        """The newest frame (waits for one); None when the source has ended and nothing is left."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        with self._cond:
+            while self._item is None and not self._closed:
+                left = None if deadline is None else deadline - time.monotonic()
+                if left is not None and left <= 0:
+                    raise TimeoutError("no frame from the source")
+                self._cond.wait(left if left is not None else 0.5)
+            item, self._item = self._item, None
+            self._cond.notify_all()
+            return item
+
+    def close(self, error: str | None = None) -> None:
+        with self._cond:
+            self._closed = True
+            self.error = self.error or error
+            self._cond.notify_all()
+
+
+def read_source(source: FrameSource, slot: FrameSlot, stop: threading.Event) -> None:
+    """Thread body: move frames from the source into the slot until it ends (or ``stop``)."""
+    error = None
+    try:
+        for item in source.frames(stop.is_set):
+            slot.put(item, stop.is_set)
+    except SourceError as exc:
+        error = str(exc)
+    except Exception as exc:  # a device library's own error types
+        error = f"the source failed: {type(exc).__name__}: {exc}"
+    finally:
+        slot.close(error)
+
+
+# --------------------------------------------------------------------------------------------
+# HTTP
+
+
+@dataclass(frozen=True)
+class Server:
+    """Where the server is: ``url`` like ``http://127.0.0.1:8000`` and an optional token."""
+
+    url: str
+    token: str | None = None
+
+    def api(self, method: str, path: str, body: dict | None = None, timeout: float = HTTP_TIMEOUT_S) -> dict:
+        """One JSON request; StreamError (code 3) with the server's ``detail`` on failure."""
+        data = None if body is None else json.dumps(body).encode()
+        request = urllib.request.Request(self.url.rstrip("/") + path, data=data, method=method)
+        request.add_header("accept", "application/json")
+        if data is not None:
+            request.add_header("content-type", "application/json")
+        if self.token:
+            request.add_header("authorization", f"Bearer {self.token}")
+        try:
+            with urllib.request.urlopen(request, timeout=timeout) as response:
+                return json.loads(response.read() or b"null")
+        except urllib.error.HTTPError as error:
+            raise StreamError(self._http_message(error), EXIT_SERVER) from None
+        except (urllib.error.URLError, OSError) as error:
+            reason = getattr(error, "reason", error)
+            raise StreamError(f"cannot reach the server at {self.url}: {reason}", EXIT_SERVER) from None
+
+    def _http_message(self, error: urllib.error.HTTPError) -> str:
+        try:
+            detail = json.loads(error.read()).get("detail")
+        except (ValueError, AttributeError, OSError):
+            detail = None
+        if error.code == 401:
+            given = "the token given was refused" if self.token else "the server needs a token"
+            return f"{given} (401): pass --token or set VOXFUSION_TOKEN to the server's token"
+        return f"the server answered {error.code}: {detail or error.reason}"
+
+    def websocket_url(self, session_id: str) -> str:
+        parts = urllib.parse.urlsplit(self.url)
+        scheme = "wss" if parts.scheme == "https" else "ws"
+        query = urllib.parse.urlencode({"token": self.token}) if self.token else ""
+        return urllib.parse.urlunsplit((scheme, parts.netloc, f"{parts.path.rstrip('/')}/api/sessions/"
+                                        f"{session_id}/stream", query, ""))
+
+    def page_url(self) -> str:
+        query = "?" + urllib.parse.urlencode({"token": self.token}) if self.token else ""
+        return self.url.rstrip("/") + "/" + query
+
+
+def create_session(server: Server, info: CameraInfo, preset: str | None) -> str:
+    """POST a stream session with the source's camera; its id."""
+    body: dict = {"source": "stream", "intrinsics": info.intrinsics_text(), "depth_scale": info.depth_scale}
+    if preset:
+        body["preset"] = preset
+    return str(server.api("POST", "/api/sessions", body)["id"])
+
+
+# --------------------------------------------------------------------------------------------
+# Progress
+
+
+@dataclass
+class Progress:
+    """What the stream did so far (counts of frames; seconds)."""
+
+    arrived: int = 0
+    sent: int = 0
+    acked: int = 0
+    rejected: int = 0
+    dropped: int = 0
+    """Frames replaced in the slot by newer ones before they could be sent."""
+    gave_up: int = 0
+    """Frames the server answered 503 (behind) to every resend."""
+    server_fps: float | None = None
+    server_frames_done: int | None = None
+    ack_latency_s: deque = field(default_factory=lambda: deque(maxlen=LATENCY_SAMPLES))
+    """Seconds from a frame's arrival from the source to its ack."""
+    track_latency_s: deque = field(default_factory=lambda: deque(maxlen=LATENCY_SAMPLES))
+    """Seconds from a frame leaving the client to the server counting it tracked (to within a
+    status poll, ``STATUS_EVERY_S``)."""
+    sent_at: dict = field(default_factory=dict)
+    """Ack index -> ``time.monotonic()`` when it was sent, until the server has tracked it."""
+
+    def note_tracked(self, frames_done: int, now: float) -> None:
+        """The server has tracked ``frames_done`` frames: time the ones that were waiting."""
+        for index in [i for i in self.sent_at if i < frames_done]:
+            self.track_latency_s.append(now - self.sent_at.pop(index))
+
+    def line(self) -> str:
+        fps = "-" if self.server_fps is None else f"{self.server_fps:.1f}"
+        done = "-" if self.server_frames_done is None else str(self.server_frames_done)
+        return (f"sent {self.sent}  acked {self.acked}  dropped {self.dropped + self.gave_up}  "
+                f"rejected {self.rejected}  "
+                f"server: {done} tracked, {fps} frames/s")
+
+    def latency_summary(self) -> str:
+        parts = []
+        for what, samples in (("arrival to ack", self.ack_latency_s), ("sent to tracked", self.track_latency_s)):
+            if samples:
+                values = sorted(samples)
+                parts.append(f"{what}: median {values[len(values) // 2] * 1000:.0f} ms, "
+                             f"max {values[-1] * 1000:.0f} ms")
+        return "; ".join(parts) or "no acks"
+
+
+class StatusPoller:
+    """Reads the session's status now and then in a thread (frames/s, frames tracked)."""
+
+    def __init__(self, server: Server, session_id: str, progress: Progress) -> None:
+        self.server, self.session_id, self.progress = server, session_id, progress
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True, name="stream-status")
+
+    def __enter__(self) -> "StatusPoller":
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        self._thread.join(timeout=HTTP_TIMEOUT_S)
+
+    def _run(self) -> None:
+        while True:
+            try:
+                state = self.server.api("GET", f"/api/sessions/{self.session_id}", timeout=5)
+            except StreamError:
+                self.progress.server_frames_done = None  # unknown: the sender stops waiting on it
+                if self._stop.wait(STATUS_EVERY_S):
+                    return
+                continue
+            self.progress.server_fps = state.get("fps")
+            self.progress.server_frames_done = state.get("frames_done")
+            if state.get("frames_done") is not None:
+                self.progress.note_tracked(int(state["frames_done"]), time.monotonic())
+            if self._stop.wait(STATUS_EVERY_S):
+                return
+
+
+# --------------------------------------------------------------------------------------------
+# The WebSocket loop
+
+
+def binary_message(frame: EncodedFrame) -> bytes:
+    """The protocol's binary frame: <float64 timestamp><uint32 colour length><colour><depth>."""
+    return BINARY_PREFIX.pack(frame.timestamp, len(frame.color)) + frame.color + frame.depth
+
+
+def _receive(socket, timeout: float) -> dict:
+    from websockets.exceptions import ConnectionClosed
+
+    try:
+        message = json.loads(socket.recv(timeout=timeout))
+    except TimeoutError:
+        raise StreamError(f"the server sent no answer within {timeout:g} s") from None
+    except ConnectionClosed as error:
+        raise StreamError(f"the server closed the stream ({_close_reason(error)})") from None
+    except OSError as error:
+        raise StreamError(f"the connection to the server broke: {error}") from None
+    return message if isinstance(message, dict) else {}
+
+
+def _close_reason(error) -> str:
+    frame = getattr(error, "rcvd", None)
+    if frame is None:
+        return "connection lost"
+    if frame.code in (1001, 1012):
+        return f"code {frame.code}: the server is shutting down"
+    return f"code {frame.code}: {frame.reason}" if frame.reason else f"code {frame.code}"
+
+
+def send_frame(socket, item: PendingFrame, progress: Progress) -> None:
+    """Send one frame, wait for its ack (resending on 503); counts go to ``progress``."""
+    from websockets.exceptions import ConnectionClosed
+
+    frame = item.encode()
+    message = binary_message(frame)
+    for _ in range(1 + BUSY_RETRIES):
+        sent_at = time.monotonic()
+        try:
+            socket.send(message)
+        except (ConnectionClosed, OSError) as error:
+            raise StreamError(f"the server went away while sending ({error})") from None
+        progress.sent += 1
+        answer = _receive(socket, ACK_TIMEOUT_S)
+        if answer.get("type") == "ack":
+            progress.acked += 1
+            progress.ack_latency_s.append(time.monotonic() - item.arrived)
+            if isinstance(answer.get("index"), int) and len(progress.sent_at) < LATENCY_SAMPLES:
+                progress.sent_at[answer["index"]] = sent_at
+            return
+        if answer.get("type") == "error" and answer.get("status") == 503:
+            time.sleep(0.5)
+            continue
+        if answer.get("type") == "error" and answer.get("status") == 409:
+            raise StreamError(f"the session does not take frames any more: {answer.get('detail')}")
+        progress.rejected += 1
+        print(f"voxfusion stream: frame {item.index} rejected: {answer.get('detail', answer)}", file=sys.stderr)
+        return
+    progress.gave_up += 1
+
+
+def open_socket(server: Server, session_id: str):
+    """Connect the session's WebSocket and exchange the header (the session has the camera)."""
+    from websockets.exceptions import InvalidStatus, WebSocketException
+    from websockets.sync.client import connect
+
+    try:
+        socket = connect(server.websocket_url(session_id), open_timeout=HTTP_TIMEOUT_S, max_size=None,
+                         close_timeout=5)
+    except InvalidStatus as error:
+        raise StreamError(f"the server refused the stream socket ({error.response.status_code})", EXIT_SERVER) from None
+    except (WebSocketException, OSError, TimeoutError) as error:
+        raise StreamError(f"cannot open the stream socket: {error}", EXIT_SERVER) from None
+    socket.send(json.dumps({}))
+    answer = _receive(socket, HTTP_TIMEOUT_S)
+    if answer.get("type") != "ready":
+        socket.close()
+        raise StreamError(f"the server did not accept the stream: {answer.get('detail', answer)}", EXIT_SERVER)
+    return socket
+
+
+def finish(server: Server, session_id: str, socket) -> int | None:
+    """End the input: over the socket when it is open, else ``POST .../finish``; frames the
+    server has, or None when it cannot be told (server gone)."""
+    if socket is not None:
+        try:
+            socket.send(json.dumps({"type": "finish"}))
+            for _ in range(3):  # an ack still under way (Ctrl-C while waiting for it) comes first
+                answer = _receive(socket, ACK_TIMEOUT_S)
+                if answer.get("type") == "finished":
+                    return int(answer["frames"])
+                if answer.get("type") != "ack":
+                    break
+        except Exception:
+            pass
+    try:
+        return int(server.api("POST", f"/api/sessions/{session_id}/finish", timeout=HTTP_TIMEOUT_S)["frames"])
+    except StreamError:
+        return None
+
+
+def wait_until_tracking(server: Server, session_id: str, out: TextIO, timeout_s: float = START_TIMEOUT_S) -> None:
+    """Wait (bounded) until the session's worker tracks: frames sent before would only wait in
+    the server's queue, and a replay's clock would run while the worker starts (seconds)."""
+    deadline, said = time.monotonic() + timeout_s, False
+    while True:
+        state = server.api("GET", f"/api/sessions/{session_id}")
+        if state.get("status") == "running" and state.get("phase") == "tracking":
+            return
+        if state.get("status") in ("finished", "failed", "cancelled"):
+            raise StreamError(f"the session ended before it started: {state.get('error') or state.get('status')}")
+        if state.get("status") == "queued" and not said and time.monotonic() > deadline - timeout_s + 3:
+            print("voxfusion stream: the session is queued behind others; waiting for it to start", file=out,
+                  flush=True)
+            said = True
+        if time.monotonic() > deadline:
+            raise StreamError(f"the session did not start within {timeout_s:g} s ({state.get('status')})")
+        time.sleep(0.25)
+
+
+def wait_until_done(server: Server, session_id: str, timeout_s: float) -> dict:
+    """Poll the status until the session ended (``timeout_s`` bounds it)."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        state = server.api("GET", f"/api/sessions/{session_id}")
+        if state.get("status") in ("finished", "failed", "cancelled"):
+            return state
+        if time.monotonic() > deadline:
+            raise StreamError(f"the session was still {state.get('status')} after {timeout_s:g} s")
+        time.sleep(0.5)
+
+
+# --------------------------------------------------------------------------------------------
+# The whole run
+
+
+@dataclass(frozen=True)
+class StreamOptions:
+    """What ``voxfusion stream`` was asked (see ``add_stream_arguments``)."""
+
+    preset: str | None = None
+    all_frames: bool = False
+    wait_s: float | None = None
+    """After finishing, wait up to this long for the session's result (None: do not wait)."""
+    quiet: bool = False
+
+
+@dataclass(frozen=True)
+class StreamResult:
+    """How it ended: exit code, session id (None if none was made), counts, final status."""
+
+    code: int
+    session_id: str | None
+    progress: Progress
+    frames_on_server: int | None = None
+    state: dict | None = None
+
+
+class _Printer:
+    """The progress line, redrawn in place on a terminal, every few seconds otherwise."""
+
+    def __init__(self, out: TextIO | None, quiet: bool) -> None:
+        self.out, self.quiet = out or sys.stdout, quiet
+        self.tty = self.out.isatty()
+        self.last = 0.0
+
+    def update(self, progress: Progress, force: bool = False) -> None:
+        now = time.monotonic()
+        every = PROGRESS_EVERY_S if self.tty else 5.0
+        if self.quiet or (not force and now - self.last < every):
+            return
+        self.last = now
+        print(("\r" + progress.line() + "   ") if self.tty else progress.line(), end="" if self.tty else "\n",
+              file=self.out, flush=True)
+
+    def done(self) -> None:
+        if self.tty and not self.quiet:
+            print(file=self.out)
+
+
+def stream(source: FrameSource, server: Server, options: StreamOptions, out: TextIO | None = None) -> StreamResult:
+    """Create the session, send the source's frames, finish; never raises StreamError."""
+    out = out or sys.stdout
+    progress = Progress()
+    try:
+        session_id = create_session(server, source.info, options.preset)
+    except StreamError as error:
+        print(f"voxfusion stream: {error}", file=sys.stderr)
+        return StreamResult(error.code, None, progress)
+    print(f"voxfusion stream: session {session_id} from {source.info.name}", file=out)
+    print(f"voxfusion stream: open {server.page_url()} to watch it", file=out, flush=True)
+    printer = _Printer(out, options.quiet)
+    socket, code, message = _send_source(source, server, session_id, options, progress, printer)
+    printer.update(progress, force=True)
+    printer.done()
+    frames = finish(server, session_id, socket)
+    if socket is not None:
+        socket.close()
+    if message:
+        print(f"voxfusion stream: {message}", file=sys.stderr)
+    if frames is None:
+        print(f"voxfusion stream: could not finish session {session_id} (the server is gone); "
+              f"{progress.acked} frames were acknowledged", file=sys.stderr)
+        return StreamResult(code or EXIT_FAILED, session_id, progress)
+    print(f"voxfusion stream: finished session {session_id}: {frames} frames on the server, "
+          f"{progress.dropped + progress.gave_up} dropped; {progress.latency_summary()}", file=out, flush=True)
+    if options.wait_s is None or code not in (EXIT_OK, EXIT_INTERRUPTED):
+        return StreamResult(code, session_id, progress, frames)
+    return _wait_for_result(server, session_id, options.wait_s, code, progress, frames, out)
+
+
+def _send_source(source: FrameSource, server: Server, session_id: str, options: StreamOptions,
+                 progress: Progress, printer: _Printer) -> tuple[object, int, str | None]:
+    """Open the socket, run the source's reader and send; (socket or None, exit code, message)."""
+    slot = FrameSlot(replace=not options.all_frames)
+    stop = threading.Event()
+    reader = threading.Thread(target=read_source, args=(source, slot, stop), daemon=True, name="stream-source")
+    socket, code, message = None, EXIT_OK, None
+    try:
+        socket = open_socket(server, session_id)
+        wait_until_tracking(server, session_id, printer.out)
+        reader.start()
+        with StatusPoller(server, session_id, progress):
+            code, message = _send_all(socket, slot, progress, printer, None if options.all_frames else MAX_AHEAD)
+    except StreamError as error:
+        code, message = error.code, str(error)
+    except KeyboardInterrupt:
+        code = EXIT_INTERRUPTED
+        print("\nvoxfusion stream: interrupted: finishing the session with the frames sent", file=sys.stderr)
+    finally:
+        stop.set()
+        progress.dropped = slot.dropped
+        source.close()
+    return socket, code, message
+
+
+def _wait_for_result(server: Server, session_id: str, wait_s: float, code: int, progress: Progress,
+                     frames: int, out: TextIO) -> StreamResult:
+    """``--wait``: poll until the session ended and say how; exit 1 unless it finished."""
+    try:
+        state = wait_until_done(server, session_id, wait_s)
+    except StreamError as error:
+        print(f"voxfusion stream: {error}", file=sys.stderr)
+        return StreamResult(EXIT_FAILED, session_id, progress, frames)
+    error = f"; error: {state['error']}" if state.get("error") else ""
+    print(f"voxfusion stream: session {state['status']}: {state.get('frames_done')} frames tracked, "
+          f"{state.get('fps') or 0:.2f} frames/s{error}", file=out, flush=True)
+    if state["status"] != "finished" and code == EXIT_OK:
+        code = EXIT_FAILED
+    return StreamResult(code, session_id, progress, frames, state)
+
+
+def wait_for_server(progress: Progress, max_ahead: int, timeout_s: float = ACK_TIMEOUT_S,
+                    tick: Callable[[], None] = lambda: None) -> None:
+    """Wait (bounded) until the server has tracked all but ``max_ahead`` of the acknowledged
+    frames (``progress.server_frames_done`` comes from the ``StatusPoller``); ``tick`` runs
+    while waiting (the progress line)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        tick()
+        done = progress.server_frames_done
+        if done is None or progress.acked - done <= max_ahead:
+            return  # caught up, or the server's status cannot be read (the send will tell)
+        time.sleep(0.02)
+
+
+def _show(printer: _Printer, progress: Progress, slot: FrameSlot) -> None:
+    progress.dropped = slot.dropped
+    printer.update(progress)
+
+
+def _send_all(socket, slot: FrameSlot, progress: Progress, printer: _Printer,
+              max_ahead: int | None = None) -> tuple[int, str | None]:
+    """Send until the source ends; (exit code, message) where the source failed. With
+    ``max_ahead``, a frame is taken from the slot only once the server has caught up (the
+    newest one then)."""
+    while True:
+        if max_ahead is not None and progress.acked > max_ahead:
+            wait_for_server(progress, max_ahead, tick=lambda: _show(printer, progress, slot))
+        item = slot.get()
+        if item is None:
+            break
+        send_frame(socket, item, progress)
+        progress.arrived = item.index + 1
+        _show(printer, progress, slot)
+    if slot.error:
+        return EXIT_FAILED, f"the source stopped: {slot.error}"
+    if progress.acked == 0:
+        return EXIT_FAILED, "no frame was accepted by the server"
+    return EXIT_OK, None
+
+
+# --------------------------------------------------------------------------------------------
+# Command line
+
+
+def add_stream_arguments(parser) -> None:
+    """The options of ``voxfusion stream`` on an argparse parser."""
+    parser.add_argument("source", metavar="SOURCE",
+                        help="a dataset folder (TUM, Replica, ScanNet, 7-Scenes) or synthetic:SPEC, replayed in "
+                             "time; 'realsense' (a live camera); a RealSense .bag recording")
+    parser.add_argument("--url", default="http://127.0.0.1:8000", help="the server (default http://127.0.0.1:8000)")
+    parser.add_argument("--token", default=None, help="the server's token (default VOXFUSION_TOKEN)")
+    parser.add_argument("--preset", choices=("test", "cpu", "paper"), default=None,
+                        help="the session's config preset (default: the server's)")
+    parser.add_argument("--max-frames", type=int, default=None, help="stop after this many frames of the source")
+    parser.add_argument("--fps", type=float, default=None,
+                        help="folder replay rate (default: recorded timestamps for TUM, else 30)")
+    parser.add_argument("--all-frames", action="store_true",
+                        help="send every frame, waiting for the server (replays); default: keep the newest, "
+                             "drop older unsent frames when the server is slower than the source")
+    parser.add_argument("--width", type=int, default=None, help="folder: resize frames to this width first")
+    parser.add_argument("--serial", default=None, help="realsense: the serial number of the camera to use")
+    parser.add_argument("--wait", type=float, default=None, metavar="SECONDS",
+                        help="after finishing, wait up to this long for the session's result")
+    parser.add_argument("--quiet", action="store_true", help="no progress line")
+
+
+def stream_command(args) -> int:
+    """``voxfusion stream``: the exit code (0 ok, 1 stream failed, 2 bad source, 3 server, 130 Ctrl-C)."""
+    if args.fps is not None and args.fps <= 0:
+        print("voxfusion stream: --fps must be positive", file=sys.stderr)
+        return EXIT_SOURCE
+    if args.max_frames is not None and args.max_frames < 1:
+        print("voxfusion stream: --max-frames must be at least 1", file=sys.stderr)
+        return EXIT_SOURCE
+    from server.camera_sources import open_source
+
+    try:
+        source = open_source(args.source, fps=args.fps, max_frames=args.max_frames, width=args.width,
+                             serial=args.serial, all_frames=args.all_frames)
+    except SourceError as error:
+        print(f"voxfusion stream: {error}", file=sys.stderr)
+        return EXIT_SOURCE
+    if args.all_frames and source.info.live:
+        print("voxfusion stream: --all-frames with a live camera: frames the server cannot take in time are "
+              "lost in the camera's own queue instead of being counted here", file=sys.stderr)
+    server = Server(args.url, args.token if args.token is not None else os.environ.get("VOXFUSION_TOKEN"))
+    options = StreamOptions(preset=args.preset, all_frames=args.all_frames, wait_s=args.wait, quiet=args.quiet)
+    try:
+        return stream(source, server, options).code
+    except KeyboardInterrupt:  # during --wait, or a second Ctrl-C while finishing
+        print("\nvoxfusion stream: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    finally:
+        source.close()
