@@ -27,7 +27,10 @@ pytestmark = [
     needs_runtime,
 ]
 
-FRAMES = 24
+FRAMES = 60
+"""Long enough that the page is read several times while tracking: under CI's load one read
+of the page took seconds (the embedded viewer's software WebGL shares the renderer), and a
+24-frame session went by with the page seen only before its first statistics."""
 PHASE_ORDER = ["queued", "tracking", "refining", "writing", "done"]
 
 
