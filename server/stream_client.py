@@ -178,8 +178,10 @@ class Server:
         return urllib.parse.urlunsplit((scheme, parts.netloc, f"{parts.path.rstrip('/')}/api/sessions/"
                                         f"{session_id}/stream", query, ""))
 
-    def page_url(self) -> str:
-        query = "?" + urllib.parse.urlencode({"token": self.token}) if self.token else ""
+    def page_url(self, session_id: str | None = None) -> str:
+        """The page, opened on ``session_id`` when given (``/?session=ID``)."""
+        fields = {**({"session": session_id} if session_id else {}), **({"token": self.token} if self.token else {})}
+        query = "?" + urllib.parse.urlencode(fields) if fields else ""
         return self.url.rstrip("/") + "/" + query
 
 
@@ -464,7 +466,7 @@ def stream(source: FrameSource, server: Server, options: StreamOptions, out: Tex
         print(f"voxfusion stream: {error}", file=sys.stderr)
         return StreamResult(error.code, None, progress)
     print(f"voxfusion stream: session {session_id} from {source.info.name}", file=out)
-    print(f"voxfusion stream: open {server.page_url()} to watch it", file=out, flush=True)
+    print(f"voxfusion stream: open {server.page_url(session_id)} to watch it", file=out, flush=True)
     printer = _Printer(out, options.quiet)
     socket, code, message = _send_source(source, server, session_id, options, progress, printer)
     printer.update(progress, force=True)

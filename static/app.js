@@ -270,10 +270,17 @@ function emptyItem() {
 }
 
 let listedIds = new Set();  // the sessions of the previous poll
+// A link to one session (`/?session=ID`, as `voxfusion stream` prints) opens that session
+// instead of the newest, if the server has it.
+let linkedId = new URLSearchParams(location.search).get("session");
 
 async function refreshSessions() {
   try {
     sessions = await api("/api/sessions");
+    if (linkedId) {
+      if (sessions.some((s) => s.id === linkedId)) setSelected(linkedId);
+      linkedId = null;
+    }
     // The newest session on a fresh load, or when the selected one is gone. A session created
     // a moment ago may be missing from a poll that was already under way: it stays selected.
     const gone = listedIds.has(selectedId) && !sessions.some((s) => s.id === selectedId);

@@ -160,6 +160,27 @@ def test_the_viewer_follows_the_session_the_page_starts_and_loads(server, page, 
     server.api.delete(f"/api/sessions/{other}")
 
 
+def test_a_link_to_a_session_opens_it_rather_than_the_newest(server, page, watched):
+    """``/?session=ID`` (what ``voxfusion stream`` prints) shows that session, and the viewer
+    follows; an unknown id falls back to the newest."""
+    newest = server.api.post("/api/sessions", json={"source": "synthetic", "preset": "test",
+                                                    "spec": "orbit?frames=3&width=80&height=60"}).json()["id"]
+    try:
+        page.goto(f"{server.url}/?session={watched.session_id}")
+        page.wait_for_function(f"document.getElementById('render-session').textContent.includes('{watched.session_id}')",
+                               timeout=10_000)
+        deadline = time.monotonic() + 10
+        while server.api.get("/api/viewer").json()["selected"] != watched.session_id:
+            assert time.monotonic() < deadline, "the viewer did not follow the linked session"
+            time.sleep(0.2)
+        page.goto(f"{server.url}/?session=000000000000")
+        page.wait_for_function(f"document.getElementById('render-session').textContent.includes('{newest}')",
+                               timeout=10_000)
+    finally:
+        server.api.delete(f"/api/sessions/{newest}")
+        page.goto(server.url + "/")
+
+
 def wait_for_viewer_client(server) -> None:
     deadline = time.monotonic() + 60
     while server.api.get("/api/viewer/camera").status_code != 200:

@@ -101,10 +101,10 @@ def test_folder_streams_end_to_end(server_url, tum_folder, capsys):
                  "--all-frames", "--wait", "120", "--quiet"])
     out, err = capsys.readouterr()
     assert code == 0, err
-    assert f"{server_url}/?token={TOKEN}" in out
     assert f"{FRAMES} frames on the server, 0 dropped" in out
     assert "session finished" in out
     session_id = out.split("session ", 1)[1].split()[0]
+    assert f"{server_url}/?session={session_id}&token={TOKEN}" in out, "the page link opens this session"
     headers = {"authorization": f"Bearer {TOKEN}"}
     state = httpx.get(f"{server_url}/api/sessions/{session_id}", headers=headers).json()
     assert state["status"] == "finished" and state["frames_done"] == FRAMES
