@@ -5,8 +5,6 @@ viewer connects and shows the mesh, the render panel returns an image."""
 from __future__ import annotations
 
 import io
-import socket
-import threading
 import time
 import zipfile
 from pathlib import Path
@@ -16,6 +14,8 @@ import cv2
 import httpx
 import numpy as np
 import pytest
+
+from tests.live_server import start_uvicorn
 
 from tests.test_server_api import needs_runtime
 
@@ -30,32 +30,16 @@ pytestmark = [
 ]
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 @pytest.fixture(scope="module")
 def server_url(tmp_path_factory) -> Iterator[str]:
     """The app under a real uvicorn (the viewer's WebSocket needs a real server) in a thread."""
-    import uvicorn
-
     from server.main import create_app
     from server.settings import Settings
 
-    port = free_port()
     settings = Settings(data_dir=tmp_path_factory.mktemp("browser-data"), viewer_port=0, max_sessions=2)
-    server = uvicorn.Server(uvicorn.Config(create_app(settings), host="127.0.0.1", port=port, log_level="warning"))
-    thread = threading.Thread(target=server.run, daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 60
-    while not server.started:
-        assert time.monotonic() < deadline and thread.is_alive(), "uvicorn did not start"
-        time.sleep(0.1)
-    yield f"http://127.0.0.1:{port}"
-    server.should_exit = True
-    thread.join(timeout=30)
+    live = start_uvicorn(create_app(settings))
+    yield live.url
+    live.stop()
 
 
 def tum_zip_of_synthetic_frames(frames: int = 8) -> bytes:

@@ -9,7 +9,6 @@ One synthetic session is started through the page's demo form and watched while 
 
 from __future__ import annotations
 
-import threading
 import time
 from dataclasses import dataclass, field
 from typing import Iterator
@@ -18,7 +17,8 @@ import httpx
 import numpy as np
 import pytest
 
-from tests.test_browser import CHROMIUM, CHROMIUM_ARGS, free_port
+from tests.live_server import start_uvicorn
+from tests.test_browser import CHROMIUM, CHROMIUM_ARGS
 from tests.test_server_api import needs_runtime
 
 pytestmark = [
@@ -44,25 +44,15 @@ class Server:
 @pytest.fixture(scope="module")
 def server(tmp_path_factory) -> Iterator[Server]:
     """The app under a real uvicorn in a thread (the test reads the viewer adapter in-process)."""
-    import uvicorn
-
     from server.main import create_app
     from server.settings import Settings
 
-    port = free_port()
     app = create_app(Settings(data_dir=tmp_path_factory.mktemp("page-data"), viewer_port=0, max_sessions=1))
-    uv = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
-    thread = threading.Thread(target=uv.run, daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 60
-    while not uv.started:
-        assert time.monotonic() < deadline and thread.is_alive(), "uvicorn did not start"
-        time.sleep(0.1)
-    url = f"http://127.0.0.1:{port}"
+    live = start_uvicorn(app)
+    url = live.url
     with httpx.Client(base_url=url, timeout=60) as api:
         yield Server(url, app, api)
-    uv.should_exit = True
-    thread.join(timeout=30)
+    live.stop()
 
 
 @pytest.fixture(scope="module")

@@ -10,12 +10,11 @@ no shrinking, one seed (the same requests every run).
 
 from __future__ import annotations
 
-import socket
-import threading
-import time
 from typing import Iterator
 
 import pytest
+
+from tests.live_server import start_uvicorn
 
 schemathesis = pytest.importorskip("schemathesis")
 from hypothesis import HealthCheck, Phase, settings  # noqa: E402
@@ -31,17 +30,9 @@ CHECKS = [not_a_server_error, status_code_conformance, content_type_conformance,
 pytestmark = pytest.mark.timeout(120)
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 @pytest.fixture(scope="module")
 def fuzz_server(tmp_path_factory) -> Iterator[str]:
     """The app (no viewer, no workers) served by uvicorn on 127.0.0.1; yields its base URL."""
-    import uvicorn
-
     from server.main import create_app
     from server.sessions import SessionManager
     from server.settings import Settings
@@ -49,18 +40,9 @@ def fuzz_server(tmp_path_factory) -> Iterator[str]:
     patch = pytest.MonkeyPatch()
     patch.setattr(SessionManager, "_start_queued", lambda self: None)
     settings = Settings(data_dir=tmp_path_factory.mktemp("fuzz-data"), viewer_port=-1, max_upload_mb=4)
-    port = _free_port()
-    server = uvicorn.Server(uvicorn.Config(create_app(settings), host="127.0.0.1", port=port, log_level="warning",
-                                           lifespan="on"))
-    thread = threading.Thread(target=server.run, name="fuzz-uvicorn", daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 30
-    while not server.started:
-        assert thread.is_alive() and time.monotonic() < deadline, "uvicorn did not start"
-        time.sleep(0.05)
-    yield f"http://127.0.0.1:{port}"
-    server.should_exit = True
-    thread.join(timeout=30)
+    live = start_uvicorn(create_app(settings), startup_timeout_s=30, lifespan="on")
+    yield live.url
+    live.stop()
     patch.undo()
 
 

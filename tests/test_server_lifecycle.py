@@ -6,7 +6,6 @@ from __future__ import annotations
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -16,6 +15,7 @@ import httpx
 import pytest
 
 from server.sessions import INTERRUPTED_QUEUED, INTERRUPTED_RUNNING, SessionStatus
+from tests.live_server import free_port
 from tests.test_server_api import needs_runtime, running_app, wait_for
 from tests.test_server_stream import DEPTH_SCALE, encoded_frames, k_text, post_frame
 
@@ -164,12 +164,6 @@ def test_an_idle_stream_finishes_with_its_frames_or_fails_without_any(tmp_path):
         assert done["status"] == "finished" and done["frames_done"] == 2 and done["phase"] == "done", done
         late = post_frame(client, fed, 9.0, frames[0][1], frames[0][2])
         assert late.status_code == 409 and "no frame for 3 s" in late.json()["detail"]
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def serve(data_dir: Path, port: int, log: Path) -> subprocess.Popen:

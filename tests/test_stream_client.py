@@ -3,7 +3,6 @@ newest-frame buffer, faults (token refused, server unreachable, bad source), Rea
 
 from __future__ import annotations
 
-import socket
 import threading
 import time
 from pathlib import Path
@@ -16,17 +15,12 @@ import pytest
 from server.camera_sources import FolderSource, PendingFrame, SourceError, open_source
 from server.cli import main
 from server.stream_client import FrameSlot, Progress, _send_all, read_source
+from tests.live_server import LiveServer, free_port, start_uvicorn
 from tests.test_server_api import needs_runtime
 
 TOKEN = "s3cret-token"
 FRAMES = 8
 T0 = 1000.0
-
-
-def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
 
 
 def write_tum_folder(root: Path, frames: int = FRAMES, width: int = 80, height: int = 60) -> list[float]:
@@ -52,31 +46,19 @@ def write_tum_folder(root: Path, frames: int = FRAMES, width: int = 80, height: 
     return stamps
 
 
-def start_server(data_dir: Path, token: str | None = None):
-    """The app under a real uvicorn in a thread on 127.0.0.1: (url, uvicorn server, thread)."""
-    import uvicorn
-
+def start_server(data_dir: Path, token: str | None = None) -> LiveServer:
+    """The app (no viewer) under a real uvicorn in a thread on 127.0.0.1."""
     from server.main import create_app
     from server.settings import Settings
 
-    port = free_port()
-    app = create_app(Settings(data_dir=data_dir, viewer_port=-1, max_sessions=1, token=token))
-    uv = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
-    thread = threading.Thread(target=uv.run, daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 60
-    while not uv.started:
-        assert time.monotonic() < deadline and thread.is_alive(), "uvicorn did not start"
-        time.sleep(0.05)
-    return f"http://127.0.0.1:{port}", uv, thread
+    return start_uvicorn(create_app(Settings(data_dir=data_dir, viewer_port=-1, max_sessions=1, token=token)))
 
 
 @pytest.fixture(scope="module")
 def server_url(tmp_path_factory) -> Iterator[str]:
-    url, uv, thread = start_server(tmp_path_factory.mktemp("stream-client"), token=TOKEN)
-    yield url
-    uv.should_exit = True
-    thread.join(timeout=30)
+    live = start_server(tmp_path_factory.mktemp("stream-client"), token=TOKEN)
+    yield live.url
+    live.stop()
 
 
 @pytest.fixture(scope="module")
@@ -139,8 +121,9 @@ def test_unreachable_server_and_bad_source(tum_folder, tmp_path, capsys):
 @needs_runtime
 def test_server_going_away_mid_stream_exits_non_zero(tmp_path, capsys):
     """The server stops while a slow replay streams: one clear line, exit 1, within seconds."""
-    url, uv, thread = start_server(tmp_path / "data")
-    stopper = threading.Timer(2.0, lambda: setattr(uv, "should_exit", True))
+    live = start_server(tmp_path / "data")
+    url = live.url
+    stopper = threading.Timer(2.0, lambda: setattr(live.server, "should_exit", True))
     stopper.start()
     started = time.monotonic()
     try:
@@ -148,8 +131,7 @@ def test_server_going_away_mid_stream_exits_non_zero(tmp_path, capsys):
                      "--fps", "10", "--quiet"])
     finally:
         stopper.cancel()
-        uv.should_exit = True
-        thread.join(timeout=30)
+        live.stop()
     err = capsys.readouterr().err
     assert code == 1, err
     assert time.monotonic() - started < 30
