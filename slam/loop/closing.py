@@ -42,7 +42,8 @@ from ..features import detect_features
 from ..geometry import se3_inverse
 from ..maps import Keyframe, SubMap
 from .database import KeyframeDatabase, KeyframeEntry, make_descriptor
-from .keyframe_graph import KeyframeGraphResult, KeyframeLoop, KeyframeNode, MapNode, optimise_keyframe_graph
+from .keyframe_graph import (KeyframeGraphResult, KeyframeLoop, KeyframeNode, MapNode, optimise_keyframe_graph,
+                             orthonormal)
 from .pose_graph import PoseNode, RelativePoseEdge, optimise_pose_graph
 from .verification import LoopVerification, frozen_in_map_frame, refinement_tracker, verify_candidate
 
@@ -76,15 +77,7 @@ class _Timings:
 def _np(T: torch.Tensor) -> np.ndarray:
     """(4, 4) float64 copy with its rotation re-orthonormalised: poses composed in float32
     drift off SO(3) by ~1e-6 per product, more than the pose graph accepts."""
-    out = T.detach().cpu().numpy().astype(np.float64)
-    U, _, Vt = np.linalg.svd(out[:3, :3])
-    R = U @ Vt
-    if np.linalg.det(R) < 0:
-        U[:, -1] *= -1
-        R = U @ Vt
-    out[:3, :3] = R
-    out[3] = (0.0, 0.0, 0.0, 1.0)
-    return out
+    return orthonormal(T.detach().cpu().numpy())
 
 
 class LoopCloser:

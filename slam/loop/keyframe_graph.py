@@ -161,7 +161,7 @@ def _angle(R: np.ndarray) -> float:
     return float(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0)))
 
 
-def _orthonormal(T: np.ndarray) -> np.ndarray:
+def orthonormal(T: np.ndarray) -> np.ndarray:
     """(4, 4) float64 with its rotation projected onto SO(3) (float32 products drift off it)."""
     out = np.array(T, np.float64, copy=True)
     U, _, Vt = np.linalg.svd(out[:3, :3])
@@ -193,7 +193,7 @@ def rigid_motion(before: list[np.ndarray], after: list[np.ndarray], arm_m: float
     R, t, _ = umeyama_alignment(src, dst, with_scale=False)
     M = np.eye(4)
     M[:3, :3], M[:3, 3] = R, t
-    return _orthonormal(M)
+    return orthonormal(M)
 
 
 def optimise_keyframe_graph(maps: list[MapNode], keyframes: list[KeyframeNode], loops: list[KeyframeLoop],
@@ -211,7 +211,7 @@ def optimise_keyframe_graph(maps: list[MapNode], keyframes: list[KeyframeNode], 
     by_map = {m.map_id: m for m in maps}
     nodes = sorted(keyframes, key=lambda k: (k.agent, k.frame_index))
     key = {(k.agent, k.frame_index): i for i, k in enumerate(nodes)}
-    before = {i: _orthonormal(by_map[k.map_id].T_world_map @ k.T_map_cam) for i, k in enumerate(nodes)}
+    before = {i: orthonormal(by_map[k.map_id].T_world_map @ k.T_map_cam) for i, k in enumerate(nodes)}
     edges: list[RelativePoseEdge] = []
     for i in range(1, len(nodes)):
         a, b = nodes[i - 1], nodes[i]
@@ -220,7 +220,7 @@ def optimise_keyframe_graph(maps: list[MapNode], keyframes: list[KeyframeNode], 
         T_a_b = odometry_measurement(a, b, by_map)
         if T_a_b is None:
             continue
-        T_a_b = _orthonormal(T_a_b)
+        T_a_b = orthonormal(T_a_b)
         st, sr = sigmas.of(T_a_b)
         edges.append(RelativePoseEdge(i - 1, i, T_a_b, st, sr, kind="sequential", covariance=b.covariance))
     odometry = len(edges)
@@ -228,7 +228,7 @@ def optimise_keyframe_graph(maps: list[MapNode], keyframes: list[KeyframeNode], 
         a, b = key.get((loop.match_agent, loop.match_frame_index)), key.get((loop.agent, loop.frame_index))
         if a is None or b is None or a == b:
             continue
-        edges.append(RelativePoseEdge(a, b, _orthonormal(loop.T_match_query), loop_sigma_m, loop_sigma_rad,
+        edges.append(RelativePoseEdge(a, b, orthonormal(loop.T_match_query), loop_sigma_m, loop_sigma_rad,
                                       kind="loop"))
     if not nodes:
         return KeyframeGraphResult({m.map_id: m.T_world_map for m in maps}, {}, 0, 0, 0, 0.0)
@@ -244,7 +244,7 @@ def optimise_keyframe_graph(maps: list[MapNode], keyframes: list[KeyframeNode], 
             map_poses[m.map_id] = np.asarray(m.T_world_map, np.float64)
             continue
         motion = rigid_motion([before[i] for i in members], [after[i] for i in members])
-        map_poses[m.map_id] = _orthonormal(motion @ m.T_world_map)
+        map_poses[m.map_id] = orthonormal(motion @ m.T_world_map)
     loop_residuals = [r for r in solved.residuals if r.kind == "loop"]
     rejected = sum(r.rejected for r in loop_residuals)
     moved = max((float(np.linalg.norm(after[i][:3, 3] - before[i][:3, 3])) for i in before), default=0.0)

@@ -35,6 +35,8 @@ DEFAULT_OUTLIER_THRESHOLD = 4.74
 DEFAULT_ANCHOR_SIGMAS = (1e-6, 1e-6)
 
 _ROT_TOL = 1e-5
+_OMEGA_RHO = [3, 4, 5, 0, 1, 2]
+"""slam.geometry's twist (rho, omega) reordered into gtsam's Pose3 tangent (omega, rho)."""
 
 
 def _as_pose(T, what: str) -> np.ndarray:
@@ -123,20 +125,19 @@ class RelativePoseEdge:
                 raise ValueError(f"RelativePoseEdge {a}->{b}: covariance must be a finite positive-definite (6, 6)")
             object.__setattr__(self, "covariance", 0.5 * (C + C.T))
 
+            object.__setattr__(self, "_gtsam_covariance", self.covariance[np.ix_(_OMEGA_RHO, _OMEGA_RHO)])
+
     def noise_model(self):
         """gtsam's Gaussian noise model of the edge, in Pose3's tangent order (omega, rho)."""
         if self.covariance is None:
             return gtsam.noiseModel.Diagonal.Sigmas(self.sigmas)
-        order = [3, 4, 5, 0, 1, 2]
-        return gtsam.noiseModel.Gaussian.Covariance(self.covariance[np.ix_(order, order)])
+        return gtsam.noiseModel.Gaussian.Covariance(self._gtsam_covariance)
 
     def whitened(self, error: np.ndarray) -> float:
         """Mahalanobis norm of gtsam's 6-vector error (omega, rho) under this edge's noise."""
         if self.covariance is None:
             return float(np.linalg.norm(error / self.sigmas))
-        order = [3, 4, 5, 0, 1, 2]
-        C = self.covariance[np.ix_(order, order)]
-        return float(np.sqrt(error @ np.linalg.solve(C, error)))
+        return float(np.sqrt(error @ np.linalg.solve(self._gtsam_covariance, error)))
 
     @property
     def sigmas(self) -> np.ndarray:
