@@ -1,4 +1,5 @@
-"""Frame sources for ``voxfusion stream``: a dataset folder replayed like a camera, a RealSense.
+"""Frame sources for ``voxfusion stream``: a dataset folder replayed like a camera, a RealSense
+(Record3D: ``server/record3d.py``).
 
 A source says what its camera is (``CameraInfo``) before the first frame, then yields
 ``PendingFrame`` items at the pace frames arrive: a live camera as the device delivers them, a
@@ -106,6 +107,21 @@ def metric_depth_to_raw(depth_m: np.ndarray, depth_scale: float) -> np.ndarray:
     return np.clip(raw, 0, 65535).astype(np.uint16)
 
 
+def paced(offsets: np.ndarray, stop: Callable[[], bool]) -> Iterator[tuple[int, float]]:
+    """(index, ``time.monotonic()``) as each offset (s after the start) comes due: a recording
+    released at its recorded rate, like a camera; ends early when ``stop()``."""
+    start = time.monotonic()
+    for i, offset in enumerate(offsets):
+        while not stop():
+            wait = start + float(offset) - time.monotonic()
+            if wait <= 0:
+                break
+            time.sleep(min(wait, 0.05))
+        if stop():
+            return
+        yield i, time.monotonic()
+
+
 # --------------------------------------------------------------------------------------------
 # A dataset folder (or a synthetic spec), replayed like a camera
 
@@ -155,16 +171,8 @@ class FolderSource:
         return encode
 
     def frames(self, stop: Callable[[], bool]) -> Iterator[PendingFrame]:
-        start = time.monotonic()
-        for i, offset in enumerate(self.offsets):
-            while not stop():
-                wait = start + offset - time.monotonic()
-                if wait <= 0:
-                    break
-                time.sleep(min(wait, 0.05))
-            if stop():
-                return
-            yield PendingFrame(index=i, arrived=time.monotonic(), encode=self._encoder(i))
+        for i, arrived in paced(self.offsets, stop):
+            yield PendingFrame(index=i, arrived=arrived, encode=self._encoder(i))
 
     def close(self) -> None:
         pass
@@ -176,13 +184,20 @@ class FolderSource:
 REALSENSE_EXTRA = "pip install 'voxfusion[realsense]' (or: pip install pyrealsense2)"
 
 
+def import_device_library(module: str, needed_for: str, extra: str):
+    """A device library imported on first use (they are optional extras), or SourceError
+    naming the extra to install: ``needed_for`` says what wanted it."""
+    import importlib
+
+    try:
+        return importlib.import_module(module)
+    except ImportError:
+        raise SourceError(f"{needed_for} needs {module}: {extra}") from None
+
+
 def import_realsense():
     """The ``pyrealsense2`` module, or SourceError naming the extra to install."""
-    try:
-        import pyrealsense2 as rs
-    except ImportError:
-        raise SourceError(f"the RealSense source needs pyrealsense2: {REALSENSE_EXTRA}") from None
-    return rs
+    return import_device_library("pyrealsense2", "the RealSense source", REALSENSE_EXTRA)
 
 
 @dataclass(frozen=True)
@@ -288,7 +303,6 @@ class RealSenseSource:
 
 
 NOT_YET = {
-    "record3d": "iPhone/iPad LiDAR (record3d)",
     "oak": "Luxonis OAK-D (depthai)",
     "k4a": "Azure Kinect (pyk4a)",
     "orbbec": "Orbbec (pyorbbecsdk)",
@@ -296,14 +310,22 @@ NOT_YET = {
 
 
 def open_source(spec: str, *, fps: float | None = None, max_frames: int | None = None, width: int | None = None,
-                serial: str | None = None, all_frames: bool = False) -> FrameSource:
-    """``realsense``, a ``.bag`` file, or a dataset folder / ``synthetic:SPEC`` -> a source.
+                serial: str | None = None, all_frames: bool = False, min_confidence: int = 1) -> FrameSource:
+    """``realsense``, a ``.bag`` file, ``record3d``, a ``.r3d`` file, or a dataset folder /
+    ``synthetic:SPEC`` -> a source.
 
     Raises SourceError with one line for the user (missing library, bad folder, no camera).
     """
     if spec in NOT_YET:
         raise SourceError(f"{NOT_YET[spec]} is not supported yet; record to a dataset folder "
-                          f"(TUM layout) and stream that, or use a RealSense")
+                          f"(TUM layout) and stream that, or use a RealSense or Record3D")
+    if spec == "record3d" or spec.endswith(".r3d"):
+        from server.record3d import R3DSource, Record3DLiveSource, Record3DOptions
+
+        options = Record3DOptions(width=width, min_confidence=min_confidence)
+        if spec == "record3d":
+            return Record3DLiveSource(udid=serial, max_frames=max_frames, options=options)
+        return R3DSource(Path(spec), fps=fps, max_frames=max_frames, options=options)
     if spec == "realsense":
         return RealSenseSource(options=RealSenseOptions(serial=serial), max_frames=max_frames)
     if spec.endswith((".bag", ".db3")):

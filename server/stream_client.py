@@ -576,7 +576,8 @@ def add_stream_arguments(parser) -> None:
     """The options of ``voxfusion stream`` on an argparse parser."""
     parser.add_argument("source", metavar="SOURCE",
                         help="a dataset folder (TUM, Replica, ScanNet, 7-Scenes) or synthetic:SPEC, replayed in "
-                             "time; 'realsense' (a live camera); a RealSense .bag recording")
+                             "time; 'realsense' (a live camera); a RealSense .bag recording; 'record3d' (an "
+                             "iPhone/iPad streaming from the Record3D app over USB); a Record3D .r3d export")
     parser.add_argument("--url", default="http://127.0.0.1:8000", help="the server (default http://127.0.0.1:8000)")
     parser.add_argument("--token", default=None, help="the server's token (default VOXFUSION_TOKEN)")
     parser.add_argument("--preset", choices=("test", "cpu", "paper"), default=None,
@@ -587,8 +588,13 @@ def add_stream_arguments(parser) -> None:
     parser.add_argument("--all-frames", action="store_true",
                         help="send every frame, waiting for the server (replays); default: keep the newest, "
                              "drop older unsent frames when the server is slower than the source")
-    parser.add_argument("--width", type=int, default=None, help="folder: resize frames to this width first")
-    parser.add_argument("--serial", default=None, help="realsense: the serial number of the camera to use")
+    parser.add_argument("--width", type=int, default=None,
+                        help="folder, record3d, .r3d: resize frames to this width first")
+    parser.add_argument("--serial", default=None,
+                        help="realsense: the serial number of the camera to use; record3d: the device's UDID")
+    parser.add_argument("--min-confidence", type=int, choices=(0, 1, 2), default=1,
+                        help="record3d, .r3d: the lowest ARKit depth confidence kept (0 low, 1 medium, 2 high; "
+                             "default 1)")
     parser.add_argument("--wait", type=float, default=None, metavar="SECONDS",
                         help="after finishing, wait up to this long for the session's result")
     parser.add_argument("--quiet", action="store_true", help="no progress line")
@@ -606,7 +612,8 @@ def stream_command(args) -> int:
 
     try:
         source = open_source(args.source, fps=args.fps, max_frames=args.max_frames, width=args.width,
-                             serial=args.serial, all_frames=args.all_frames)
+                             serial=args.serial, all_frames=args.all_frames,
+                             min_confidence=args.min_confidence)
     except SourceError as error:
         print(f"voxfusion stream: {error}", file=sys.stderr)
         return EXIT_SOURCE

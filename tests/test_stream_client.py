@@ -147,8 +147,6 @@ def test_ctrl_c_finishes_the_session_with_the_frames_sent(server_url, tum_folder
     import subprocess
     import sys
 
-    import httpx
-
     root, _ = tum_folder
     process = subprocess.Popen([sys.executable, "-m", "server.cli", "stream", str(root), "--url", server_url,
                                 "--token", TOKEN, "--preset", "test", "--fps", "2"],
@@ -166,14 +164,26 @@ def test_ctrl_c_finishes_the_session_with_the_frames_sent(server_url, tum_folder
             process.kill()
     assert process.returncode == 130, err
     assert "interrupted" in err
-    sent = int(out.split("frames on the server")[0].split()[-1])
+    sent = frames_on_server(out)
     assert 1 <= sent < FRAMES
-    headers = {"authorization": f"Bearer {TOKEN}"}
-    deadline = time.monotonic() + 60
+    state = wait_until_ended(server_url, session_id, 60)
+    assert state["status"] == "finished" and state["frames_done"] == sent
+
+
+def frames_on_server(out: str) -> int:
+    """N of the client's "finished session ID: N frames on the server" line."""
+    return int(out.split("frames on the server")[0].split()[-1])
+
+
+def wait_until_ended(server_url: str, session_id: str, timeout_s: float) -> dict:
+    """The session's status once it no longer runs (fails the test after ``timeout_s``)."""
+    import httpx
+
+    headers, deadline = {"authorization": f"Bearer {TOKEN}"}, time.monotonic() + timeout_s
     while (state := httpx.get(f"{server_url}/api/sessions/{session_id}", headers=headers).json())["status"] == "running":
         assert time.monotonic() < deadline, state
         time.sleep(0.3)
-    assert state["status"] == "finished" and state["frames_done"] == sent
+    return state
 
 
 # ---------------------------------------------------------------------------------------------
@@ -415,3 +425,201 @@ def test_source_failing_mid_stream_is_reported_after_the_frames_it_gave():
     reader.start()
     code, message = _send_all(fake, slot, progress, _Printer(None, quiet=True))
     assert code == 1 and "unplugged" in message and progress.acked == 3
+
+
+# ---------------------------------------------------------------------------------------------
+# Record3D: the real record3d package against a stand-in usbmuxd and phone; .r3d exports
+
+R3D_RGB_W, R3D_RGB_H, R3D_DEPTH_W, R3D_DEPTH_H = 96, 128, 24, 32  # portrait, depth 4x coarser
+R3D_K = (100.0, 101.0, 47.5, 63.5)
+
+
+def phone_frame(i: int) -> "PhoneFrame":
+    """Colour: red = 20 i + 10. Depth: 1 m left of depth column 10, 2 m right of it, a NaN at
+    (5, 5). Confidence: row 0 low, row 1 medium, the rest high. On the colour grid (4x), depth
+    column 10 starts at colour column 40 (pixel centres lined up)."""
+    from tests.fake_record3d import PhoneFrame
+
+    rgb = np.zeros((R3D_RGB_H, R3D_RGB_W, 3), np.uint8)
+    rgb[..., 0] = 20 * i + 10
+    depth = np.full((R3D_DEPTH_H, R3D_DEPTH_W), 1.0, np.float32)
+    depth[:, 10:] = 2.0
+    depth[5, 5] = np.nan
+    confidence = np.full(depth.shape, 2, np.uint8)
+    confidence[0], confidence[1] = 0, 1
+    return PhoneFrame(rgb, depth, confidence, R3D_K)
+
+
+def decode(frame) -> tuple[np.ndarray, np.ndarray]:
+    """(BGR colour, uint16 depth) of an EncodedFrame."""
+    color = cv2.imdecode(np.frombuffer(frame.color, np.uint8), cv2.IMREAD_COLOR)
+    return color, cv2.imdecode(np.frombuffer(frame.depth, np.uint8), cv2.IMREAD_UNCHANGED)
+
+
+def check_record3d_frame(frame, i: int, scale: int = 4, min_confidence: int = 1) -> None:
+    """Colour and depth of ``phone_frame(i)`` as sent (colour grid ``scale`` x the depth's)."""
+    color, depth = decode(frame)
+    assert depth.dtype == np.uint16 and depth.shape == (R3D_DEPTH_H * scale, R3D_DEPTH_W * scale)
+    assert abs(int(color[7, 7, 2]) - (20 * i + 10)) <= 3  # red, in OpenCV's BGR order (JPEG)
+    row = depth[2 * scale]  # a high-confidence depth row
+    assert set(np.unique(row)) == {5000, 10000}
+    assert int(np.argmax(row == 10000)) == 10 * scale, "depth column 10 lands on colour column 10 * scale"
+    assert not depth[:scale].any(), "low-confidence depth is dropped"
+    assert depth[scale:2 * scale].any() == (min_confidence <= 1)
+    assert not depth[5 * scale:6 * scale, 5 * scale:6 * scale].any(), "NaN depth is no depth"
+
+
+@pytest.fixture
+def phone(tmp_path, monkeypatch):
+    """A phone streaming six frames at 10 Hz behind a stand-in usbmuxd (then it is unplugged)."""
+    pytest.importorskip("record3d")
+    pytest.importorskip("lzfse")
+    from tests.fake_record3d import FakeUsbmuxd
+
+    fake = FakeUsbmuxd(tmp_path / "usbmuxd", [phone_frame(i) for i in range(6)], interval_s=0.1)
+    monkeypatch.setenv("USBMUXD_SOCKET_ADDRESS", fake.address)
+    yield fake
+    fake.close()
+
+
+def test_record3d_live_through_the_package(phone):
+    """The record3d package's own USB client, JPEG and LZFSE decoding deliver the frames: the
+    source sends the colour intrinsics, depth resampled onto the colour grid without a shift,
+    low confidence and NaN dropped; a phone that goes away ends it with a clear error."""
+    source = open_source("record3d", serial=phone.udid)
+    got = []
+    try:
+        assert source.info.intrinsics == pytest.approx(R3D_K)
+        assert (source.info.width, source.info.height, source.info.live) == (R3D_RGB_W, R3D_RGB_H, True)
+        assert source.info.depth_scale == 5000.0 and "LiDAR" in source.info.name
+        with pytest.raises(SourceError, match="stream stopped"):
+            for item in source.frames(lambda: False):
+                got.append(item.encode())
+    finally:
+        source.close()
+    assert 3 <= len(got) <= 6
+    reds = []
+    for frame in got:
+        color = decode(frame)[0]
+        reds.append(round((int(color[7, 7, 2]) - 10) / 20))
+        check_record3d_frame(frame, reds[-1])
+    assert reds == sorted(set(reds)) and reds[0] == 0, "newest frames, in order, the first one included"
+
+
+def test_record3d_device_choice_and_absence(phone, tmp_path, monkeypatch):
+    with pytest.raises(SourceError, match="no device nope; connected: " + phone.udid):
+        open_source("record3d", serial="nope")
+    monkeypatch.setenv("USBMUXD_SOCKET_ADDRESS", f"UNIX:{tmp_path / 'no-usbmuxd'}")
+    with pytest.raises(SourceError, match="no iPhone/iPad found"):
+        open_source("record3d")
+
+
+def test_record3d_without_the_libraries_names_the_extra(monkeypatch, tmp_path):
+    import sys
+
+    monkeypatch.setitem(sys.modules, "record3d", None)
+    monkeypatch.setitem(sys.modules, "lzfse", None)
+    with pytest.raises(SourceError, match=r"voxfusion\[record3d\]"):
+        open_source("record3d")
+    with pytest.raises(SourceError, match=r"voxfusion\[record3d\]"):
+        open_source(str(tmp_path / "scan.r3d"))
+
+
+def test_r3d_export_is_replayed_with_its_camera(tmp_path):
+    """A .r3d (metadata's K column-major, LZFSE depth and confidence) replays at its recorded
+    timestamps with the same alignment as the live stream; --width scales the intrinsics."""
+    pytest.importorskip("lzfse")
+    from tests.fake_record3d import write_r3d
+
+    path, stamps = tmp_path / "scan.r3d", [5000.0 + i / 60 for i in range(5)]
+    write_r3d(path, [phone_frame(i) for i in range(5)], stamps)
+    source = open_source(str(path), all_frames=True)
+    try:
+        assert source.info.intrinsics == pytest.approx(R3D_K)
+        assert (source.info.width, source.info.height, source.info.live) == (R3D_RGB_W, R3D_RGB_H, False)
+        frames = [item.encode() for item in source.frames(lambda: False)]
+    finally:
+        source.close()
+    assert [f.timestamp for f in frames] == pytest.approx(stamps)
+    for i, frame in enumerate(frames):
+        check_record3d_frame(frame, i)
+    source = open_source(str(path), width=48, min_confidence=2, max_frames=2)
+    try:
+        # half the size: f / 2, and c' = (c + 0.5) / 2 - 0.5 keeps pixel centres on their rays
+        assert source.info.intrinsics == pytest.approx((50.0, 50.5, 23.5, 31.5))
+        assert (source.info.width, source.info.height) == (48, 64)
+        frames = [item.encode() for item in source.frames(lambda: False)]
+    finally:
+        source.close()
+    assert len(frames) == 2
+    check_record3d_frame(frames[1], 1, scale=2, min_confidence=2)
+
+
+def test_r3d_export_without_depth_size_or_timestamps(tmp_path):
+    """Older exports: no dw/dh (the depth size follows from the colour aspect) and no
+    frameTimestamps (frames at the metadata's fps)."""
+    pytest.importorskip("lzfse")
+    from tests.fake_record3d import write_r3d
+
+    path = tmp_path / "old.r3d"
+    write_r3d(path, [phone_frame(i) for i in range(3)], [], fps=60, with_depth_size=False)
+    source = open_source(str(path))
+    try:
+        frames = [item.encode() for item in source.frames(lambda: False)]
+    finally:
+        source.close()
+    assert [f.timestamp for f in frames] == pytest.approx([0, 1 / 60, 2 / 60])
+    check_record3d_frame(frames[2], 2)
+    (tmp_path / "bad.r3d").write_bytes(b"not a zip")
+    with pytest.raises(SourceError, match="cannot open the Record3D file"):
+        open_source(str(tmp_path / "bad.r3d"))
+
+
+def unplug_when_tracking(server_url: str, fake, frames: int = 3, timeout_s: float = 300.0) -> threading.Thread:
+    """A thread that pulls the phone out once the server's running session has tracked ``frames``."""
+    import httpx
+
+    def watch() -> None:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            sessions = httpx.get(f"{server_url}/api/sessions", headers={"authorization": f"Bearer {TOKEN}"}).json()
+            if any(s["status"] == "running" and (s.get("frames_done") or 0) >= frames for s in sessions):
+                break
+            time.sleep(0.2)
+        fake.close()
+
+    watcher = threading.Thread(target=watch, daemon=True)
+    watcher.start()
+    return watcher
+
+
+@needs_runtime
+def test_record3d_phone_unplugged_mid_stream_end_to_end(server_url, tmp_path, monkeypatch, capsys):
+    """A phone streams a synthetic orbit (back and forth) into the live server and is pulled out
+    while it tracks: one clear line, exit 1, the session finished with the frames it got."""
+    pytest.importorskip("record3d")
+    pytest.importorskip("lzfse")
+    from slam.data import open_sequence
+    from tests.fake_record3d import FakeUsbmuxd, PhoneFrame
+
+    sequence = open_sequence("synthetic:orbit?frames=12&width=80&height=60")
+    K = sequence[0].K
+    orbit = [PhoneFrame(np.round(f.rgb * 255).astype(np.uint8),
+                        cv2.resize(f.depth.astype(np.float32), (40, 30), interpolation=cv2.INTER_AREA),
+                        np.full((30, 40), 2, np.uint8), (K[0, 0], K[1, 1], K[0, 2], K[1, 2])) for f in sequence]
+    fake = FakeUsbmuxd(tmp_path / "usbmuxd", (orbit + orbit[::-1]) * 40, interval_s=0.1)
+    monkeypatch.setenv("USBMUXD_SOCKET_ADDRESS", fake.address)
+    watcher = unplug_when_tracking(server_url, fake)
+    try:
+        code = main(["stream", "record3d", "--url", server_url, "--token", TOKEN, "--preset", "test", "--quiet"])
+    finally:
+        fake.close()
+        watcher.join(timeout=10)
+    out, err = capsys.readouterr()
+    assert code == 1, err
+    assert "the source stopped: Record3D: the stream stopped" in err
+    session_id = out.split("session ", 1)[1].split()[0]
+    on_server = frames_on_server(out)
+    assert on_server >= 3
+    state = wait_until_ended(server_url, session_id, 120)
+    assert state["status"] == "finished" and state["frames_done"] == on_server
