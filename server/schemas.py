@@ -127,6 +127,15 @@ class SessionOutputs(BaseModel):
     map: bool
 
 
+class WorkerOut(BaseModel):
+    """Where a session runs or ran."""
+
+    executor: Literal["local", "ray"] = Field(examples=["ray"], description="VOXFUSION_EXECUTOR when it started")
+    node: str | None = Field(examples=["9dc585f1d37e0c6a9312d164050fb426513c65e6f2f52c30da2c29f5"],
+                             description="local: this server's host name; ray: the id of the cluster node")
+    address: str | None = Field(None, examples=["10.0.0.12"], description="ray: the node's IP address")
+
+
 class SessionOut(BaseModel):
     id: str = Field(examples=["3f2a9c0d1b7e"])
     status: Literal["queued", "running", "finished", "failed", "cancelled"]
@@ -163,6 +172,8 @@ class SessionOut(BaseModel):
     files: list[str] = Field([], examples=[["rgbd_dataset_freiburg1_desk.zip"]],
                              description="an upload's file names as the client gave them, one per agent (labels only)")
     preset: str = Field(examples=["cpu"])
+    worker: WorkerOut | None = Field(None, description="where the session runs or ran; null while queued (and for "
+                                                       "sessions from before this was recorded)")
     outputs: SessionOutputs
 
 

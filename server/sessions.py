@@ -1,7 +1,9 @@
 """The session manager: SLAM sessions as worker processes, a FIFO queue, status on disk.
 
 Each session runs ``server.worker.run_worker`` in its own spawn-context process (not daemonic:
-the runtime starts a mapping process of its own). One supervisor thread in the API process
+the runtime starts a mapping process of its own), on this machine or on a Ray cluster node: the
+manager drives it through an executor (``server.executors``, ``VOXFUSION_EXECUTOR``) and does
+not care which. One supervisor thread in the API process
 
 * drains every worker's event queue and applies the events to the session's status and to the
   event sinks (the live viewer),
@@ -32,9 +34,7 @@ FPS_SAMPLE_S, is kept for the page's plot (``fps_samples``; ``progress.json`` on
 from __future__ import annotations
 
 import json
-import multiprocessing as mp
 import os
-import queue
 import re
 import secrets
 import signal
@@ -49,10 +49,11 @@ from typing import Callable, Sequence
 import numpy as np
 
 from server.errors import strip_paths
+from server.executors import Execution, Executor, ExecutorError, WorkerInfo, WorkerPlaced, make_executor
 from server.settings import Settings
 from server.stream import StreamInput
 from server.tracks import Tracks, transform_points
-from server.worker import SourceSpec, WorkerDone, WorkerJob, WorkerStarted, describe_sources, run_worker
+from server.worker import SourceSpec, WorkerDone, WorkerJob, WorkerStarted, describe_sources
 from slam.events import (
     FinishedEvent,
     KeyframeEvent,
@@ -125,6 +126,8 @@ class SessionStatus:
     """The (first agent's) source."""
     specs: tuple[SourceSpec, ...] = ()
     """Every agent's source, in agent order, for a collaborative session; () for one source."""
+    worker: WorkerInfo | None = None
+    """Where the session runs or ran (None while queued, and for sessions from before it was kept)."""
 
     @property
     def sources(self) -> tuple[SourceSpec, ...]:
@@ -139,7 +142,9 @@ class SessionStatus:
         data.setdefault("phase", "done" if data.get("status") in ENDED else "queued")
         spec = _spec_from_json(data.pop("spec"))
         specs = tuple(_spec_from_json(s) for s in data.pop("specs", None) or ())
-        return SessionStatus(spec=spec, specs=specs, **data)
+        worker = data.pop("worker", None)
+        worker = WorkerInfo(**worker) if isinstance(worker, dict) else None
+        return SessionStatus(spec=spec, specs=specs, worker=worker, **data)
 
 
 def _spec_from_json(spec: dict) -> SourceSpec:
@@ -156,11 +161,11 @@ class _Session:
     status: SessionStatus
     directory: Path
     job: WorkerJob
-    stop_event: object = None
-    event_queue: object = None
-    frame_queue: object = None
+    execution: Execution | None = None
+    """Made when the session is queued, dropped once it ended (``_release_ipc``)."""
+    active: bool = False
+    """Its execution was started and has not been reaped yet."""
     stream: StreamInput | None = None
-    process: mp.process.BaseProcess | None = None
     worker_pid: int | None = None
     done: WorkerDone | None = None
     cancel_requested_at: float | None = None
@@ -182,6 +187,15 @@ class _Session:
     """time.monotonic() when the tracking phase began (see the module doc on fps)."""
     fps_samples: list[tuple[float, int]] = field(default_factory=list)
     """(seconds since tracking began, frames tracked) at most every FPS_SAMPLE_S."""
+
+    @property
+    def process(self):
+        """The local worker process while it runs (None with another executor)."""
+        return getattr(self.execution, "process", None) if self.active else None
+
+    @property
+    def frame_queue(self):
+        return None if self.execution is None else self.execution.frame_queue
 
 
 def new_session_id() -> str:
@@ -213,7 +227,7 @@ class SessionManager:
         self.settings = settings
         self._event_sinks = list(event_sinks or [])
         self._removal_hooks = list(removal_hooks or [])
-        self._ctx = mp.get_context("spawn")
+        self._executor: Executor = make_executor(settings)
         self._lock = threading.RLock()
         self._sessions: dict[str, _Session] = {}
         self._queue: deque[str] = deque()
@@ -236,7 +250,7 @@ class SessionManager:
         wrote so far: not ``cancelled``, which is a user's doing), wait up to ``grace_s``,
         kill the rest; queued ones are failed the same way."""
         with self._lock:
-            running = [s for s in self._sessions.values() if s.process is not None] + self._stopping_sessions
+            running = [s for s in self._sessions.values() if s.active] + self._stopping_sessions
             for session in running:
                 # A worker that already reported its end keeps it; a user's cancel stays one.
                 if session.end_reason is None and session.cancel_requested_at is None and session.done is None:
@@ -247,18 +261,19 @@ class SessionManager:
                 self._release_ipc(self._sessions[session_id])
             self._queue.clear()
         deadline = time.monotonic() + grace_s
-        while time.monotonic() < deadline and any(s.process is not None for s in running):
+        while time.monotonic() < deadline and any(s.active for s in running):
             time.sleep(_SUPERVISOR_TICK_S)
         self._stopping.set()
         if self._thread is not None:
             self._thread.join(timeout=5.0)
         with self._lock:
             for session in running:
-                if session.process is not None:
-                    self._kill(session)
+                if session.active:
+                    session.execution.kill()
                     self._reap(session, forced_reason="the server stopped while it was running")
             for session in self._sessions.values():
                 self._persist(session)
+        self._executor.close()
 
     def _recover(self) -> None:
         """List the sessions already on disk; those that were queued or running are marked
@@ -298,10 +313,8 @@ class SessionManager:
                                preset=preset, spec=spec, specs=specs if len(specs) > 1 else (), agents=len(specs),
                                phase_started=created)
         session = _Session(status=status, directory=directory, job=job)
-        session.stop_event = self._ctx.Event()
-        session.event_queue = self._ctx.Queue()
+        session.execution = self._executor.prepare(job, directory, stream=spec.kind == "stream")
         if spec.kind == "stream":
-            session.frame_queue = self._ctx.Queue(maxsize=self.settings.stream_queue_frames)
             session.stream = StreamInput(session.frame_queue, directory / "input", intrinsics=spec.intrinsics,
                                          depth_scale=spec.depth_scale,
                                          put_timeout_s=self.settings.stream_put_timeout_s)
@@ -382,7 +395,7 @@ class SessionManager:
 
     def running_count(self) -> int:
         with self._lock:
-            return sum(1 for s in self._sessions.values() if s.process is not None)
+            return sum(1 for s in self._sessions.values() if s.active)
 
     # -- cancelling and deleting -------------------------------------------------------------
 
@@ -390,12 +403,12 @@ class SessionManager:
         """Stop a queued or running session; its outputs so far are kept."""
         session = self._get(session_id)
         with self._lock:
-            if session.status.status == "queued":
+            if session.status.status == "queued" and not session.active:
                 self._queue.remove(session_id)
                 self._set_status(session, "cancelled", None)
                 self._close_inputs(session, "the session was cancelled")
                 self._release_ipc(session)
-            elif session.status.status == "running":
+            elif session.active:  # running, or handed to an executor that has not placed it yet
                 self._request_stop(session)
             return session.status
 
@@ -407,7 +420,7 @@ class SessionManager:
             if session_id in self._queue:
                 self._queue.remove(session_id)
             self._close_inputs(session, "the session was deleted")
-            if session.process is not None:
+            if session.active:
                 session.delete_when_stopped = True
                 self._request_stop(session)
                 self._stopping_sessions.append(session)
@@ -420,7 +433,8 @@ class SessionManager:
     def _request_stop(self, session: _Session) -> None:
         if session.cancel_requested_at is None:
             session.cancel_requested_at = time.monotonic()
-            session.stop_event.set()
+            if session.execution is not None:
+                session.execution.request_stop()
             self._close_inputs(session, "the session was cancelled")
 
     def _close_inputs(self, session: _Session, reason: str) -> None:
@@ -428,14 +442,12 @@ class SessionManager:
             session.stream.close(reason)
 
     def _release_ipc(self, session: _Session) -> None:
-        """Close and drop the queues and the stop event, so their semaphores and pipes are freed."""
-        for q in (session.event_queue, session.frame_queue):
-            if q is not None:
-                q.cancel_join_thread()
-                q.close()
+        """Free the execution's queues and events (pipes, semaphores, Ray handles)."""
+        if session.execution is not None:
+            session.execution.release()
         if session.stream is not None:
             session.stream.release("the session ended")
-        session.event_queue = session.frame_queue = session.stop_event = None
+        session.execution = None
 
     def _remove_files(self, session: _Session) -> None:
         import shutil
@@ -457,14 +469,14 @@ class SessionManager:
 
     def _tick(self) -> None:
         with self._lock:
-            active = [s for s in self._sessions.values() if s.process is not None]
+            active = [s for s in self._sessions.values() if s.active]
             active += self._stopping_sessions
         for session in active:
             self._drain(session)
         with self._lock:
             for session in active:
                 self._check_worker(session)
-            self._stopping_sessions = [s for s in self._stopping_sessions if s.process is not None]
+            self._stopping_sessions = [s for s in self._stopping_sessions if s.active]
             self._start_queued()
             now = time.monotonic()
             for session in active:
@@ -478,7 +490,7 @@ class SessionManager:
         forever: finish it with what it has, or fail it when it has nothing."""
         timeout = self.settings.stream_idle_timeout_s
         stream = session.stream
-        if (not timeout or stream is None or session.process is None or session.started_at is None
+        if (not timeout or stream is None or not session.active or session.started_at is None
                 or stream.finished or session.cancel_requested_at is not None or session.done is not None):
             return
         last = max(session.started_at, stream.last_frame_at or 0.0)
@@ -493,23 +505,21 @@ class SessionManager:
                   f"{stream.frames_received} frames", flush=True)
 
     def _drain(self, session: _Session) -> None:
-        for _ in range(_MAX_EVENTS_PER_TICK):
-            try:
-                event = session.event_queue.get_nowait()
-            except queue.Empty:
-                return
-            except (EOFError, OSError, ValueError):
-                # The worker is gone and the pipe is closed: nothing more will come.
-                return
-            except Exception as error:  # noqa: BLE001 - half a message from a killed worker
-                print(f"voxfusion: dropping an unreadable event of session {session.status.id}: {error}")
-                return
+        if session.execution is None:
+            return
+        for event in session.execution.poll(_MAX_EVENTS_PER_TICK):
             self._apply(session, event)
 
     def _apply(self, session: _Session, event: object) -> None:
         with self._lock:
             if isinstance(event, WorkerStarted):
-                session.worker_pid = event.pid
+                if session.status.worker is None or session.status.worker.executor == "local":
+                    session.worker_pid = event.pid  # a process group on this machine
+                return
+            if isinstance(event, WorkerPlaced):
+                session.status = replace(session.status, worker=event.worker)
+                if session.status.status == "queued" and session.cancel_requested_at is None:
+                    self._set_status(session, "running", None)
                 return
             if isinstance(event, WorkerDone):
                 session.done = event
@@ -586,22 +596,19 @@ class SessionManager:
         return round(frames / max(elapsed, MIN_FPS_SPAN_S), 3)
 
     def _check_worker(self, session: _Session) -> None:
-        process = session.process
-        if process is None:
+        if not session.active:
             return
-        if process.is_alive():
+        if session.execution.is_alive():
             grace = self.settings.cancel_grace_s
             if session.cancel_requested_at is not None and time.monotonic() - session.cancel_requested_at > grace:
-                self._kill(session)
+                session.execution.kill()
             return
         self._drain(session)
         self._reap(session)
 
     def _reap(self, session: _Session, forced_reason: str | None = None) -> None:
         """The worker has exited (or was killed): settle the final status and free resources."""
-        process = session.process
-        process.join(timeout=1.0)
-        exitcode = process.exitcode
+        execution = session.execution
         done = session.done
         if session.end_reason is not None and not (done is not None and done.status == "failed"):
             # Set only while the worker had not reported its end (see stop, _check_idle_stream):
@@ -616,7 +623,7 @@ class SessionManager:
         elif forced_reason is not None:
             status, error = "cancelled", forced_reason
         else:
-            status, error = "failed", _describe_exit(exitcode)
+            status, error = "failed", execution.exit_error()
         if done is not None and done.frames:
             ate = done.ate_rmse
             session.status = replace(session.status, frames_done=done.frames, keyframes=done.keyframes,
@@ -627,16 +634,8 @@ class SessionManager:
             error = strip_paths(error, session.directory / "input", "the input")
         if session.stream is not None and session.stream.agent_count > session.status.agents:
             session.status = replace(session.status, agents=session.stream.agent_count)
-        if process.is_alive():
-            self._kill(session)
-        elif session.worker_pid is not None:
-            # A worker that crashed leaves its mapping process behind: end the whole group.
-            _kill_group(session.worker_pid)
-        try:
-            process.close()
-        except ValueError:
-            pass
-        session.process = None
+        execution.finish(session.worker_pid)
+        session.active = False
         (session.directory / WORKER_PID_FILE).unlink(missing_ok=True)
         self._close_inputs(session, f"the session {status}")
         self._release_ipc(session)
@@ -649,38 +648,25 @@ class SessionManager:
         for sink in self._event_sinks:
             sink(session.status.id, FinishedEvent(status=status, error=error))
 
-    def _kill(self, session: _Session) -> None:
-        """SIGKILL the worker's process group (the worker and the mapping process it started)."""
-        process = session.process
-        if process is None or process.pid is None:
-            return
-        try:
-            os.killpg(process.pid, signal.SIGKILL)
-        except (ProcessLookupError, PermissionError):
-            # Not yet in its own group (killed before it called setpgrp): kill just the worker.
-            process.kill()
-        process.join(timeout=5.0)
-
     def _start_queued(self) -> None:
-        running = sum(1 for s in self._sessions.values() if s.process is not None)
+        running = sum(1 for s in self._sessions.values() if s.active)
         while self._queue and running < self.settings.max_sessions and not self._stopping.is_set():
             session = self._sessions[self._queue.popleft()]
-            process = self._ctx.Process(
-                target=run_worker, name=f"voxfusion-session-{session.status.id}",
-                args=(session.job, session.stop_event, session.event_queue, session.frame_queue),
-                daemon=False)
             try:
-                process.start()
-            except (OSError, RuntimeError) as error:
-                self._set_status(session, "failed", f"could not start the worker process: {error}")
+                worker = session.execution.start()
+            except ExecutorError as error:
+                self._close_inputs(session, "the session failed")
+                self._release_ipc(session)
+                self._set_status(session, "failed", str(error))
                 continue
-            # The API process only reads events. Closing its copy of the pipe's write end means
-            # a worker that dies mid-message gives EOF instead of a read that waits forever.
-            session.event_queue._writer.close()
-            session.process = process
+            session.active = True
             session.started_at = time.monotonic()
-            _write_pid(session.directory / WORKER_PID_FILE, process.pid)
-            self._set_status(session, "running", None)
+            pid = getattr(session.execution, "pid", None)
+            if pid is not None:
+                _write_pid(session.directory / WORKER_PID_FILE, pid)
+            if worker is not None:  # else it stays queued until the executor says where it runs
+                session.status = replace(session.status, worker=worker)
+                self._set_status(session, "running", None)
             running += 1
 
     # -- status on disk ----------------------------------------------------------------------
@@ -780,23 +766,3 @@ def end_orphaned_worker(directory: Path) -> bool:
     if ours:
         print(f"voxfusion: ended {len(ours)} leftover process(es) of session {directory.name}", flush=True)
     return bool(ours)
-
-
-def _kill_group(group: int) -> None:
-    try:
-        os.killpg(group, signal.SIGKILL)
-    except (ProcessLookupError, PermissionError):
-        pass
-
-
-def _describe_exit(exitcode: int | None) -> str:
-    if exitcode is None:
-        return "the worker process vanished"
-    if exitcode < 0:
-        try:
-            name = signal.Signals(-exitcode).name
-        except ValueError:
-            name = f"signal {-exitcode}"
-        hint = " (out of memory?)" if -exitcode == signal.SIGKILL else ""
-        return f"the worker process was killed by {name}{hint}; see worker.log"
-    return f"the worker process exited with code {exitcode} without a result; see worker.log"

@@ -8,11 +8,17 @@
 | ``VOXFUSION_MAX_UPLOAD_MB`` | 2048 | largest request body (a dataset zip) |
 | ``VOXFUSION_MAX_UNZIPPED_MB`` | 8192 | largest total uncompressed size of a zip |
 | ``VOXFUSION_MAX_ZIP_ENTRIES`` | 200000 | most entries in a zip |
-| ``VOXFUSION_MAX_SESSIONS`` | cpu_count // 4, at least 1 | sessions running at once; more wait in a queue |
+| ``VOXFUSION_MAX_SESSIONS`` | cpu_count // 4, at least 1 (64 with ``ray``) | sessions running at once; more wait in a queue (with ``ray``: sessions handed to the cluster, which queues what does not fit) |
 | ``VOXFUSION_VIEWER_PORT`` | 8080 | viser's own port (0: any free port; -1: no viewer) |
 | ``VOXFUSION_CANCEL_GRACE_S`` | 10 | seconds a cancelled worker gets before it is killed |
 | ``VOXFUSION_RENDER_THREADS`` | 1 | torch threads of the API process (renders, meshes) |
 | ``VOXFUSION_STREAM_IDLE_S`` | 300 | a running stream without a frame for this long is finished (failed if it has none); 0: never |
+| ``VOXFUSION_EXECUTOR`` | ``local`` | where sessions run: ``local`` (worker processes on this machine) or ``ray`` (actors on a Ray cluster, ``pip install '.[ray]'``) |
+| ``VOXFUSION_RAY_ADDRESS`` | ``auto`` | the Ray cluster's GCS address (``host:port``), or ``auto`` (the cluster ``ray start`` began on this machine) |
+| ``VOXFUSION_RAY_SESSION_CPUS`` | 2 | CPUs a Ray session declares (its tracking and mapping processes) |
+| ``VOXFUSION_RAY_SESSION_GPUS`` | 0 | GPUs a Ray session declares when its preset runs on ``auto``/``cuda`` (``paper``); 0: none |
+| ``VOXFUSION_RAY_LOST_S`` | 10 | a Ray session whose node gives no answer for this long fails (its node died or is cut off) |
+| ``VOXFUSION_RAY_SCRATCH`` | ``$TMPDIR/voxfusion-ray`` | folder on each Ray node where sessions write before their files are shipped back |
 
 The data directory is outside the working directory on purpose: sessions survive restarts
 and do not depend on where the server was started (Docker sets ``/data``, a volume).
@@ -40,6 +46,12 @@ def default_max_sessions() -> int:
     """One session per four cores: a session runs a tracking and a mapping process, and each
     uses several torch threads, so more sessions than that mostly share the same cores."""
     return max(1, (os.cpu_count() or 1) // 4)
+
+
+EXECUTORS = ("local", "ray")
+RAY_MAX_SESSIONS = 64
+"""Default ``max_sessions`` with the ``ray`` executor: sessions handed to the cluster at once.
+Ray queues those its nodes have no room for, so this only bounds what the API process tracks."""
 
 
 @dataclass(frozen=True)
@@ -75,6 +87,18 @@ class Settings:
     render_threads: int = 1
     """torch intra-op threads in the API process. One: the API shares the cores with the SLAM
     workers, and oversubscribed cores made a 160x120 render 3-6x slower (2 s -> 7-12 s)."""
+    executor: str = "local"
+    """``local`` (spawned worker processes here) or ``ray`` (``server.ray_executor``)."""
+    ray_address: str = "auto"
+    """GCS address of the Ray cluster (``host:port``) or ``auto``."""
+    ray_session_cpus: float = 2.0
+    """CPUs a Ray session reserves: Ray places it on a node with that many free, or queues it."""
+    ray_session_gpus: float = 0.0
+    """GPUs a Ray session reserves when its preset's device is not ``cpu``."""
+    ray_lost_s: float = 10.0
+    """Seconds without an answer from a Ray session's node before the session fails."""
+    ray_scratch: str | None = None
+    """Folder on the Ray nodes for sessions' working files; None: ``$TMPDIR/voxfusion-ray``."""
 
     @property
     def max_upload_bytes(self) -> int:
@@ -138,10 +162,19 @@ def _port(env: Mapping[str, str], name: str, default: int) -> int:
     return value
 
 
+def _choice(env: Mapping[str, str], name: str, default: str, choices: tuple[str, ...]) -> str:
+    value = (env.get(name) or default).strip().lower()
+    if value not in choices:
+        raise SettingsError(f"{name}={env.get(name)!r} must be one of {', '.join(choices)}")
+    return value
+
+
 def settings_from_env(env: Mapping[str, str] | None = None) -> Settings:
     """Settings from ``VOXFUSION_*`` variables (see the module docstring for the table)."""
     env = os.environ if env is None else env
     data_dir = env.get("VOXFUSION_DATA_DIR") or default_data_dir(env)
+    executor = _choice(env, "VOXFUSION_EXECUTOR", "local", EXECUTORS)
+    sessions_default = RAY_MAX_SESSIONS if executor == "ray" else default_max_sessions()
     return Settings(
         data_dir=Path(data_dir).expanduser(),
         port=_port(env, "VOXFUSION_PORT", 8000),
@@ -149,9 +182,15 @@ def settings_from_env(env: Mapping[str, str] | None = None) -> Settings:
         max_upload_mb=_int(env, "VOXFUSION_MAX_UPLOAD_MB", 2048, 1),
         max_unzipped_mb=_int(env, "VOXFUSION_MAX_UNZIPPED_MB", 8192, 1),
         max_zip_entries=_int(env, "VOXFUSION_MAX_ZIP_ENTRIES", 200_000, 1),
-        max_sessions=_int(env, "VOXFUSION_MAX_SESSIONS", default_max_sessions(), 1),
+        max_sessions=_int(env, "VOXFUSION_MAX_SESSIONS", sessions_default, 1),
         viewer_port=_int(env, "VOXFUSION_VIEWER_PORT", 8080, -1),
         cancel_grace_s=_float(env, "VOXFUSION_CANCEL_GRACE_S", 10.0, 0.0),
         render_threads=_int(env, "VOXFUSION_RENDER_THREADS", 1, 1),
         stream_idle_timeout_s=_float(env, "VOXFUSION_STREAM_IDLE_S", 300.0, 0.0),
+        executor=executor,
+        ray_address=env.get("VOXFUSION_RAY_ADDRESS") or "auto",
+        ray_session_cpus=_float(env, "VOXFUSION_RAY_SESSION_CPUS", 2.0, 0.0),
+        ray_session_gpus=_float(env, "VOXFUSION_RAY_SESSION_GPUS", 0.0, 0.0),
+        ray_lost_s=_float(env, "VOXFUSION_RAY_LOST_S", 10.0, 1.0),
+        ray_scratch=env.get("VOXFUSION_RAY_SCRATCH") or None,
     )
