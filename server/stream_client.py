@@ -11,10 +11,15 @@ Back-pressure: a reader thread takes frames from the source as they arrive and p
 dropped), so the camera never stalls and nothing queues; with ``all_frames`` the reader waits
 for the slot instead (a replay then runs at the server's pace and every frame is processed).
 
-Faults end with one line on stderr and a non-zero exit code: 1 the stream failed (server
+Faults end with a message on stderr and a non-zero exit code: 1 the stream failed (server
 gone, source failed mid-stream), 2 bad source or arguments, 3 the server could not be reached
 or refused the session (401: token), 130 Ctrl-C. The session is finished with the frames it
 has whenever the server is still there.
+
+A stream socket that breaks mid-stream is reopened on the same session (``reconnect``, up to
+``RECONNECT_S`` for a server that cannot be reached meanwhile): after a network blip the
+stream goes on. A server that restarted has no stream for the session any more (it lists it
+as failed, "interrupted: ..."), so the client says how the server lists it and exits 1.
 """
 
 from __future__ import annotations
@@ -39,6 +44,9 @@ BINARY_PREFIX = struct.Struct("<dI")
 HTTP_TIMEOUT_S = 10.0
 ACK_TIMEOUT_S = 90.0
 """Longest wait for one ack: the server holds a frame up to 30 s before answering 503."""
+RECONNECT_S = 15.0
+"""How long a broken stream tries to get back to its session: a network blip, or a server that
+restarts (it comes back without the session's stream; then the session's state is reported)."""
 BUSY_RETRIES = 5
 """Resends of a frame the server answered 503 (behind) before it is counted as dropped."""
 START_TIMEOUT_S = 600.0
@@ -63,6 +71,20 @@ class StreamError(RuntimeError):
     def __init__(self, message: str, code: int = EXIT_FAILED) -> None:
         super().__init__(message)
         self.code = code
+
+
+class Unreachable(StreamError):
+    """Nothing answers at the server's address (not running, or restarting)."""
+
+
+class ConnectionLost(StreamError):
+    """The stream socket broke mid-stream: the session may still be there, worth reconnecting.
+    ``unsent``: the frame whose sending failed (it never left, so it is sent again after a
+    reconnect); None when the break came while waiting for an ack (the server may have it)."""
+
+    def __init__(self, message: str, unsent: PendingFrame | None = None) -> None:
+        super().__init__(message)
+        self.unsent = unsent
 
 
 # --------------------------------------------------------------------------------------------
@@ -159,7 +181,7 @@ class Server:
             raise StreamError(self._http_message(error), EXIT_SERVER) from None
         except (urllib.error.URLError, OSError) as error:
             reason = getattr(error, "reason", error)
-            raise StreamError(f"cannot reach the server at {self.url}: {reason}", EXIT_SERVER) from None
+            raise Unreachable(f"cannot reach the server at {self.url}: {reason}", EXIT_SERVER) from None
 
     def _http_message(self, error: urllib.error.HTTPError) -> str:
         try:
@@ -209,6 +231,9 @@ class Progress:
     """Frames replaced in the slot by newer ones before they could be sent."""
     gave_up: int = 0
     """Frames the server answered 503 (behind) to every resend."""
+    lost: int = 0
+    """Frames in flight when the connection broke (reconnected after; the server may or may
+    not have taken them, so they are not sent twice)."""
     server_fps: float | None = None
     server_frames_done: int | None = None
     ack_latency_s: deque = field(default_factory=lambda: deque(maxlen=LATENCY_SAMPLES))
@@ -227,7 +252,8 @@ class Progress:
     def line(self) -> str:
         fps = "-" if self.server_fps is None else f"{self.server_fps:.1f}"
         done = "-" if self.server_frames_done is None else str(self.server_frames_done)
-        return (f"sent {self.sent}  acked {self.acked}  dropped {self.dropped + self.gave_up}  "
+        lost = f"lost {self.lost}  " if self.lost else ""
+        return (f"sent {self.sent}  acked {self.acked}  dropped {self.dropped + self.gave_up}  {lost}"
                 f"rejected {self.rejected}  "
                 f"server: {done} tracked, {fps} frames/s")
 
@@ -291,9 +317,9 @@ def _receive(socket, timeout: float) -> dict:
     except TimeoutError:
         raise StreamError(f"the server sent no answer within {timeout:g} s") from None
     except ConnectionClosed as error:
-        raise StreamError(f"the server closed the stream ({_close_reason(error)})") from None
+        raise ConnectionLost(f"the server closed the stream ({_close_reason(error)})") from None
     except OSError as error:
-        raise StreamError(f"the connection to the server broke: {error}") from None
+        raise ConnectionLost(f"the connection to the server broke: {error}") from None
     return message if isinstance(message, dict) else {}
 
 
@@ -316,8 +342,10 @@ def send_frame(socket, item: PendingFrame, progress: Progress) -> None:
         sent_at = time.monotonic()
         try:
             socket.send(message)
-        except (ConnectionClosed, OSError) as error:
-            raise StreamError(f"the server went away while sending ({error})") from None
+        except ConnectionClosed as error:
+            raise ConnectionLost(f"the server closed the stream ({_close_reason(error)})", item) from None
+        except OSError as error:
+            raise ConnectionLost(f"the connection to the server broke while sending: {error}", item) from None
         progress.sent += 1
         answer = _receive(socket, ACK_TIMEOUT_S)
         if answer.get("type") == "ack":
@@ -348,7 +376,7 @@ def open_socket(server: Server, session_id: str):
     except InvalidStatus as error:
         raise StreamError(f"the server refused the stream socket ({error.response.status_code})", EXIT_SERVER) from None
     except (WebSocketException, OSError, TimeoutError) as error:
-        raise StreamError(f"cannot open the stream socket: {error}", EXIT_SERVER) from None
+        raise Unreachable(f"cannot open the stream socket: {error}", EXIT_SERVER) from None
     socket.send(json.dumps({}))
     answer = _receive(socket, HTTP_TIMEOUT_S)
     if answer.get("type") != "ready":
@@ -375,6 +403,38 @@ def finish(server: Server, session_id: str, socket) -> int | None:
         return int(server.api("POST", f"/api/sessions/{session_id}/finish", timeout=HTTP_TIMEOUT_S)["frames"])
     except StreamError:
         return None
+
+
+def session_state(server: Server, session_id: str) -> str:
+    """How the server lists the session now, in words (for the message after a fault)."""
+    try:
+        state = server.api("GET", f"/api/sessions/{session_id}", timeout=5)
+    except StreamError:
+        return "the server cannot be reached"
+    error = f" ({state['error']})" if state.get("error") else ""
+    return f"the server lists it as {state.get('status')}{error}, frames tracked: {state.get('frames_done') or 0}"
+
+
+def reconnect(server: Server, session_id: str, lost: ConnectionLost, timeout_s: float | None = None):
+    """Reopen the session's stream socket after ``lost``, waiting up to ``timeout_s`` (default
+    RECONNECT_S) for a server that cannot be reached (restarting); StreamError when it refuses
+    the socket (a restarted server has no stream for the session any more) or does not come back."""
+    timeout_s = RECONNECT_S if timeout_s is None else timeout_s
+    print(f"voxfusion stream: {lost}; reconnecting (up to {timeout_s:g} s)", file=sys.stderr, flush=True)
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            socket = open_socket(server, session_id)
+        except Unreachable:
+            if time.monotonic() > deadline:
+                raise StreamError(f"{lost}; the server did not come back within {timeout_s:g} s") from None
+            time.sleep(0.5)
+            continue
+        except StreamError:
+            raise StreamError(f"{lost}; the session cannot take frames any more: "
+                              f"{session_state(server, session_id)}") from None
+        print("voxfusion stream: reconnected; streaming on", file=sys.stderr, flush=True)
+        return socket
 
 
 def wait_until_tracking(server: Server, session_id: str, out: TextIO, timeout_s: float = START_TIMEOUT_S) -> None:
@@ -477,14 +537,19 @@ def stream(source: FrameSource, server: Server, options: StreamOptions, out: Tex
     if message:
         print(f"voxfusion stream: {message}", file=sys.stderr)
     if frames is None:
-        print(f"voxfusion stream: could not finish session {session_id} (the server is gone); "
+        print(f"voxfusion stream: could not finish session {session_id} ({session_state(server, session_id)}); "
               f"{progress.acked} frames were acknowledged", file=sys.stderr)
         return StreamResult(code or EXIT_FAILED, session_id, progress)
     print(f"voxfusion stream: finished session {session_id}: {frames} frames on the server, "
-          f"{progress.dropped + progress.gave_up} dropped; {progress.latency_summary()}", file=out, flush=True)
+          f"{progress.dropped + progress.gave_up} dropped{_lost(progress)}; {progress.latency_summary()}", file=out,
+          flush=True)
     if options.wait_s is None or code not in (EXIT_OK, EXIT_INTERRUPTED):
         return StreamResult(code, session_id, progress, frames)
     return _wait_for_result(server, session_id, options.wait_s, code, progress, frames, out)
+
+
+def _lost(progress: Progress) -> str:
+    return f", {progress.lost} lost when the connection broke" if progress.lost else ""
 
 
 def _send_source(source: FrameSource, server: Server, session_id: str, options: StreamOptions,
@@ -499,7 +564,17 @@ def _send_source(source: FrameSource, server: Server, session_id: str, options: 
         wait_until_tracking(server, session_id, printer.out)
         reader.start()
         with StatusPoller(server, session_id, progress):
-            code, message = _send_all(socket, slot, progress, printer, None if options.all_frames else MAX_AHEAD)
+            unsent = None
+            while True:
+                try:
+                    code, message = _send_all(socket, slot, progress, printer,
+                                              None if options.all_frames else MAX_AHEAD, unsent)
+                    break
+                except ConnectionLost as lost:
+                    progress.lost += lost.unsent is None
+                    unsent = lost.unsent
+                    socket.close()
+                    socket = reconnect(server, session_id, lost)
     except StreamError as error:
         code, message = error.code, str(error)
     except KeyboardInterrupt:
@@ -548,14 +623,14 @@ def _show(printer: _Printer, progress: Progress, slot: FrameSlot) -> None:
 
 
 def _send_all(socket, slot: FrameSlot, progress: Progress, printer: _Printer,
-              max_ahead: int | None = None) -> tuple[int, str | None]:
-    """Send until the source ends; (exit code, message) where the source failed. With
-    ``max_ahead``, a frame is taken from the slot only once the server has caught up (the
-    newest one then)."""
+              max_ahead: int | None = None, first: PendingFrame | None = None) -> tuple[int, str | None]:
+    """Send ``first`` (a frame a broken connection did not send), then until the source ends;
+    (exit code, message) where the source failed. With ``max_ahead``, a frame is taken from
+    the slot only once the server has caught up (the newest one then)."""
     while True:
-        if max_ahead is not None and progress.acked > max_ahead:
+        if first is None and max_ahead is not None and progress.acked > max_ahead:
             wait_for_server(progress, max_ahead, tick=lambda: _show(printer, progress, slot))
-        item = slot.get()
+        item, first = first or slot.get(), None
         if item is None:
             break
         send_frame(socket, item, progress)

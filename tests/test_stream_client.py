@@ -119,8 +119,12 @@ def test_unreachable_server_and_bad_source(tum_folder, tmp_path, capsys):
 
 
 @needs_runtime
-def test_server_going_away_mid_stream_exits_non_zero(tmp_path, capsys):
-    """The server stops while a slow replay streams: one clear line, exit 1, within seconds."""
+def test_server_going_away_mid_stream_exits_non_zero(tmp_path, monkeypatch, capsys):
+    """The server stops while a slow replay streams (and does not come back within the
+    reconnect window): a clear message, exit 1, within seconds."""
+    from server import stream_client
+
+    monkeypatch.setattr(stream_client, "RECONNECT_S", 3.0)
     live = start_server(tmp_path / "data")
     url = live.url
     stopper = threading.Timer(2.0, lambda: setattr(live.server, "should_exit", True))
@@ -135,8 +139,148 @@ def test_server_going_away_mid_stream_exits_non_zero(tmp_path, capsys):
     err = capsys.readouterr().err
     assert code == 1, err
     assert time.monotonic() - started < 30
-    assert "closed the stream" in err or "went away" in err or "broke" in err
+    assert "closed the stream" in err or "broke" in err
+    assert "the server did not come back within 3 s" in err
+    assert "could not finish session" in err and "the server cannot be reached" in err
+
+
+def when_tracking(url: str, then, frames: int = 1, timeout_s: float = 300.0, token: str | None = None
+                  ) -> threading.Thread:
+    """A thread that calls ``then()`` once the server's running session has tracked ``frames``."""
+    import httpx
+
+    headers = {"authorization": f"Bearer {token}"} if token else {}
+
+    def watch() -> None:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            sessions = httpx.get(f"{url}/api/sessions", headers=headers).json()
+            if any(s["status"] == "running" and (s.get("frames_done") or 0) >= frames for s in sessions):
+                break
+            time.sleep(0.1)
+        then()
+
+    watcher = threading.Thread(target=watch, daemon=True)
+    watcher.start()
+    return watcher
+
+
+@needs_runtime
+def test_server_restarting_mid_stream_reports_the_session(tmp_path, monkeypatch, capsys):
+    """The server restarts (same port, same data) while a replay streams: the client waits for
+    it, finds the session can take no more frames (a restart ends it as "interrupted") and
+    says so; exit 1."""
+    import tests.live_server as live_server
+    from server import stream_client
+
+    monkeypatch.setattr(stream_client, "RECONNECT_S", 120.0)  # the old server's stop waits for its worker
+    live = start_server(tmp_path / "data")
+    port, restarted = int(live.url.rsplit(":", 1)[1]), []
+
+    def restart() -> None:
+        live.stop()
+        monkeypatch.setattr(live_server, "free_port", lambda: port)
+        restarted.append(start_server(tmp_path / "data"))
+
+    watcher = when_tracking(live.url, restart)
+    try:
+        code = main(["stream", "synthetic:orbit?frames=600&width=40&height=30", "--url", live.url, "--preset",
+                     "test", "--fps", "10", "--quiet"])
+    finally:
+        watcher.join(timeout=120)
+        for server in restarted or [live]:
+            server.stop()
+    err = capsys.readouterr().err
+    assert code == 1, err
+    assert "reconnecting" in err
+    assert "the session cannot take frames any more: the server lists it as failed (interrupted" in err, err
     assert "could not finish session" in err
+
+
+class CuttingProxy:
+    """A TCP proxy on 127.0.0.1 in front of a server; ``cut()`` breaks the connections open now
+    (a network blip); later ones pass."""
+
+    def __init__(self, upstream: str) -> None:
+        import socket
+
+        self.upstream = ("127.0.0.1", int(upstream.rsplit(":", 1)[1]))
+        self.listener = socket.create_server(("127.0.0.1", 0))
+        self.url = f"http://127.0.0.1:{self.listener.getsockname()[1]}"
+        self.sockets, self.lock = [], threading.Lock()
+        threading.Thread(target=self._accept, daemon=True).start()
+
+    def _accept(self) -> None:
+        import socket
+
+        while True:
+            try:
+                client, _ = self.listener.accept()
+            except OSError:
+                return
+            server = socket.create_connection(self.upstream)
+            with self.lock:
+                self.sockets += [client, server]
+            for source, sink in ((client, server), (server, client)):
+                threading.Thread(target=self._pump, args=(source, sink), daemon=True).start()
+
+    @staticmethod
+    def _pump(source, sink) -> None:
+        try:
+            while data := source.recv(65536):
+                sink.sendall(data)
+        except OSError:
+            pass
+        for end in (source, sink):
+            end.close()
+
+    def cut(self) -> None:
+        import socket
+
+        with self.lock:
+            sockets, self.sockets = self.sockets, []
+        for end in sockets:
+            try:
+                end.shutdown(socket.SHUT_RDWR)
+            except OSError:
+                pass
+
+    def close(self) -> None:
+        self.listener.close()
+        self.cut()
+
+
+@needs_runtime
+def test_broken_connection_reconnects_to_the_same_session(server_url, tum_folder, monkeypatch, capsys):
+    """The connection breaks mid-stream (the proxy cuts it just before the third frame) while
+    the server stays up: the client reopens the session's socket and streams on; every frame is
+    on the server but one that was waiting for its ack (counted as lost), and the session finishes."""
+    from server import stream_client
+
+    root, _ = tum_folder
+    proxy, send_frame, calls = CuttingProxy(server_url), stream_client.send_frame, []
+
+    def cut_before_the_third(socket, item, progress) -> None:
+        calls.append(item.index)
+        if len(calls) == 3:
+            proxy.cut()
+            time.sleep(0.3)  # the client's socket sees the end (or not: then its ack never comes)
+        send_frame(socket, item, progress)
+
+    monkeypatch.setattr(stream_client, "send_frame", cut_before_the_third)
+    try:
+        code = main(["stream", str(root), "--url", proxy.url, "--token", TOKEN, "--preset", "test", "--all-frames",
+                     "--quiet"])
+    finally:
+        proxy.close()
+    out, err = capsys.readouterr()
+    assert code == 0, err
+    assert "reconnecting" in err and "reconnected" in err
+    lost = 1 if "1 lost when the connection broke" in out else 0
+    assert frames_on_server(out) + lost == FRAMES
+    session_id = out.split("session ", 1)[1].split()[0]
+    state = wait_until_ended(server_url, session_id, 300, frames=FRAMES - lost)
+    assert state["status"] in ("running", "finished") and state["frames_done"] == FRAMES - lost
 
 
 @needs_runtime
@@ -175,12 +319,15 @@ def frames_on_server(out: str) -> int:
     return int(out.split("frames on the server")[0].split()[-1])
 
 
-def wait_until_ended(server_url: str, session_id: str, timeout_s: float) -> dict:
-    """The session's status once it no longer runs (fails the test after ``timeout_s``)."""
+def wait_until_ended(server_url: str, session_id: str, timeout_s: float, frames: int | None = None) -> dict:
+    """The session's status once it no longer runs, or once it has tracked ``frames`` when
+    given (the final refinement can take minutes on a loaded machine); fails after ``timeout_s``."""
     import httpx
 
     headers, deadline = {"authorization": f"Bearer {TOKEN}"}, time.monotonic() + timeout_s
     while (state := httpx.get(f"{server_url}/api/sessions/{session_id}", headers=headers).json())["status"] == "running":
+        if frames is not None and (state.get("frames_done") or 0) >= frames:
+            break
         assert time.monotonic() < deadline, state
         time.sleep(0.3)
     return state
@@ -575,24 +722,6 @@ def test_r3d_export_without_depth_size_or_timestamps(tmp_path):
         open_source(str(tmp_path / "bad.r3d"))
 
 
-def unplug_when_tracking(server_url: str, fake, frames: int = 3, timeout_s: float = 300.0) -> threading.Thread:
-    """A thread that pulls the phone out once the server's running session has tracked ``frames``."""
-    import httpx
-
-    def watch() -> None:
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            sessions = httpx.get(f"{server_url}/api/sessions", headers={"authorization": f"Bearer {TOKEN}"}).json()
-            if any(s["status"] == "running" and (s.get("frames_done") or 0) >= frames for s in sessions):
-                break
-            time.sleep(0.2)
-        fake.close()
-
-    watcher = threading.Thread(target=watch, daemon=True)
-    watcher.start()
-    return watcher
-
-
 @needs_runtime
 def test_record3d_phone_unplugged_mid_stream_end_to_end(server_url, tmp_path, monkeypatch, capsys):
     """A phone streams a synthetic orbit (back and forth) into the live server and is pulled out
@@ -609,7 +738,7 @@ def test_record3d_phone_unplugged_mid_stream_end_to_end(server_url, tmp_path, mo
                         np.full((30, 40), 2, np.uint8), (K[0, 0], K[1, 1], K[0, 2], K[1, 2])) for f in sequence]
     fake = FakeUsbmuxd(tmp_path / "usbmuxd", (orbit + orbit[::-1]) * 40, interval_s=0.1)
     monkeypatch.setenv("USBMUXD_SOCKET_ADDRESS", fake.address)
-    watcher = unplug_when_tracking(server_url, fake)
+    watcher = when_tracking(server_url, fake.close, frames=3, token=TOKEN)
     try:
         code = main(["stream", "record3d", "--url", server_url, "--token", TOKEN, "--preset", "test", "--quiet"])
     finally:
