@@ -653,6 +653,16 @@ def test_record3d_live_through_the_package(phone):
     assert reds == sorted(set(reds)) and reds[0] == 0, "newest frames, in order, the first one included"
 
 
+def test_record3d_stops_at_max_frames_and_closes_while_streaming(phone):
+    """--max-frames ends a live stream early; closing it while the phone still streams
+    returns at once (the callbacks are dropped first)."""
+    source = open_source("record3d", max_frames=2)
+    items = list(source.frames(lambda: False))
+    started = time.monotonic()
+    source.close()
+    assert [item.index for item in items] == [0, 1] and time.monotonic() - started < 1.0
+
+
 def test_record3d_device_choice_and_absence(phone, tmp_path, monkeypatch):
     with pytest.raises(SourceError, match="no device nope; connected: " + phone.udid):
         open_source("record3d", serial="nope")
