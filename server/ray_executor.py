@@ -143,6 +143,8 @@ class RayExecutor:
         self._lock = threading.Lock()
         self._ray = None
         self._gcs: str | None = None
+        self._actor_class = None
+        self._initialized_here = False
 
     def connect(self):
         """The ``ray`` module, connected; ExecutorError when the cluster cannot be reached."""
@@ -153,6 +155,8 @@ class RayExecutor:
             if gcs is not None and (why := probe(gcs)) is not None:
                 raise ExecutorError(f"{where} cannot be reached: {why}")
             ray = import_ray(gcs)
+            if ray.is_initialized() and gcs is not None and ray.get_runtime_context().gcs_address != gcs:
+                ray.shutdown()  # connected to another cluster (an earlier server in this process)
             if not ray.is_initialized():
                 options = {"_node_ip_address": "127.0.0.1"} if gcs and _is_loopback(_host_port(gcs)[0]) else {}
                 try:
@@ -160,9 +164,17 @@ class RayExecutor:
                              configure_logging=False, **options)
                 except (ConnectionError, RuntimeError, ValueError) as error:
                     raise ExecutorError(f"{where} cannot be reached: {error}") from None
-                self._gcs = ray.get_runtime_context().gcs_address
+                self._initialized_here = True
+            self._gcs = ray.get_runtime_context().gcs_address
+            if self._actor_class is None:
+                self._actor_class = ray.remote(SessionActor)
             self._ray = ray
             return ray
+
+    @property
+    def actor_class(self):
+        """``SessionActor`` as a Ray actor class (made once: each one is exported to the cluster)."""
+        return self._actor_class
 
     def prepare(self, job: WorkerJob, directory: Path, stream: bool) -> "RayExecution":
         frames = queue.Queue(maxsize=self.settings.stream_queue_frames) if stream else None
@@ -188,7 +200,11 @@ class RayExecutor:
         return None if why is None else f"the Ray cluster at {gcs} cannot be reached: {why}"
 
     def close(self) -> None:
-        pass  # the driver connection ends with the process; actors are owned by it and end too
+        """Disconnect when this executor connected: the session actors, owned by this driver,
+        end with the connection."""
+        if self._initialized_here and self._ray is not None and self._ray.is_initialized():
+            self._ray.shutdown()
+        self._initialized_here = False
 
 
 class RayExecution:
@@ -221,7 +237,7 @@ class RayExecution:
         except Exception as error:  # noqa: BLE001 - e.g. ObjectStoreFullError; the message says which
             raise ExecutorError(f"could not ship the input to the Ray cluster: {type(error).__name__}: {error}") \
                 from None
-        actor_class = ray.remote(SessionActor)
+        actor_class = self.executor.actor_class
         options = dict(self.executor.resources(self.job.preset), max_concurrency=4, max_restarts=0,
                        name=None, lifetime=None)
         self._actor = actor_class.options(**options).remote(self.job, str(self.directory), package_ref,
