@@ -133,6 +133,11 @@ class FrameSlot:
             self._cond.notify_all()
             return item
 
+    def ended(self) -> bool:
+        """The source has ended and its last frame was taken: nothing more will come."""
+        with self._cond:
+            return self._closed and self._item is None
+
     def close(self, error: str | None = None) -> None:
         with self._cond:
             self._closed = True
@@ -527,6 +532,17 @@ def stream(source: FrameSource, server: Server, options: StreamOptions, out: Tex
         return StreamResult(error.code, None, progress)
     print(f"voxfusion stream: session {session_id} from {source.info.name}", file=out)
     print(f"voxfusion stream: open {server.page_url(session_id)} to watch it", file=out, flush=True)
+    with StatusPoller(server, session_id, progress):  # to the end: frames are tracked after finishing too
+        result = _stream_session(source, server, session_id, options, progress, out)
+    if progress.track_latency_s or progress.ack_latency_s:
+        print(f"voxfusion stream: latency ({len(progress.track_latency_s)} of {progress.acked} frames tracked "
+              f"while the client watched): {progress.latency_summary()}", file=out, flush=True)
+    return result
+
+
+def _stream_session(source: FrameSource, server: Server, session_id: str, options: StreamOptions,
+                    progress: Progress, out: TextIO) -> StreamResult:
+    """Send, finish and (``--wait``) wait for the result of the session just created."""
     printer = _Printer(out, options.quiet)
     socket, code, message = _send_source(source, server, session_id, options, progress, printer)
     printer.update(progress, force=True)
@@ -541,8 +557,7 @@ def stream(source: FrameSource, server: Server, options: StreamOptions, out: Tex
               f"{progress.acked} frames were acknowledged", file=sys.stderr)
         return StreamResult(code or EXIT_FAILED, session_id, progress)
     print(f"voxfusion stream: finished session {session_id}: {frames} frames on the server, "
-          f"{progress.dropped + progress.gave_up} dropped{_lost(progress)}; {progress.latency_summary()}", file=out,
-          flush=True)
+          f"{progress.dropped + progress.gave_up} dropped{_lost(progress)}", file=out, flush=True)
     if options.wait_s is None or code not in (EXIT_OK, EXIT_INTERRUPTED):
         return StreamResult(code, session_id, progress, frames)
     return _wait_for_result(server, session_id, options.wait_s, code, progress, frames, out)
@@ -563,18 +578,17 @@ def _send_source(source: FrameSource, server: Server, session_id: str, options: 
         socket = open_socket(server, session_id)
         wait_until_tracking(server, session_id, printer.out)
         reader.start()
-        with StatusPoller(server, session_id, progress):
-            unsent = None
-            while True:
-                try:
-                    code, message = _send_all(socket, slot, progress, printer,
-                                              None if options.all_frames else MAX_AHEAD, unsent)
-                    break
-                except ConnectionLost as lost:
-                    progress.lost += lost.unsent is None
-                    unsent = lost.unsent
-                    socket.close()
-                    socket = reconnect(server, session_id, lost)
+        unsent = None
+        while True:
+            try:
+                code, message = _send_all(socket, slot, progress, printer,
+                                          None if options.all_frames else MAX_AHEAD, unsent)
+                break
+            except ConnectionLost as lost:
+                progress.lost += lost.unsent is None
+                unsent = lost.unsent
+                socket.close()
+                socket = reconnect(server, session_id, lost)
     except StreamError as error:
         code, message = error.code, str(error)
     except KeyboardInterrupt:
@@ -628,6 +642,8 @@ def _send_all(socket, slot: FrameSlot, progress: Progress, printer: _Printer,
     (exit code, message) where the source failed. With ``max_ahead``, a frame is taken from
     the slot only once the server has caught up (the newest one then)."""
     while True:
+        if first is None and slot.ended():
+            break  # nothing more will come: no waiting for the server
         if first is None and max_ahead is not None and progress.acked > max_ahead:
             wait_for_server(progress, max_ahead, tick=lambda: _show(printer, progress, slot))
         item, first = first or slot.get(), None
