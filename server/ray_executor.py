@@ -295,11 +295,12 @@ class RayExecution:
         waited = time.monotonic() - (since or self._pending_since)
         if waited < lost_s + DRAIN_WAIT_S:
             return
-        if self._worker is not None:
-            self._end(f"lost the Ray node {self._where()} that ran this session: no answer for {waited:.0f} s "
-                      f"(the node died or is cut off; VOXFUSION_RAY_LOST_S={lost_s:g})")
-            return
         gone = self.executor.cluster_gone()
+        if self._worker is not None:
+            why = gone or "the node died or is cut off"
+            self._end(f"lost the Ray node {self._where()} that ran this session: no answer for {waited:.0f} s "
+                      f"({why}; VOXFUSION_RAY_LOST_S={lost_s:g})")
+            return
         if gone is not None:
             self._end(f"{gone}; the session never started")
         else:

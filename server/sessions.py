@@ -254,7 +254,8 @@ class SessionManager:
             for session in running:
                 # A worker that already reported its end keeps it; a user's cancel stays one.
                 if session.end_reason is None and session.cancel_requested_at is None and session.done is None:
-                    session.end_reason = ("failed", INTERRUPTED_RUNNING)
+                    waiting = session.status.status == "queued"  # handed to Ray, no node yet
+                    session.end_reason = ("failed", INTERRUPTED_QUEUED if waiting else INTERRUPTED_RUNNING)
                 self._request_stop(session)
             for session_id in list(self._queue):
                 self._set_status(self._sessions[session_id], "failed", INTERRUPTED_QUEUED)
