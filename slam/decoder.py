@@ -32,6 +32,11 @@ class Decoder(nn.Module):
         self.sdf_head = nn.Linear(config.hidden_dim, 1 + config.feature_dim)
         self.color_head = _mlp([config.feature_dim] + [config.color_hidden_dim] * config.color_layers + [3])
 
+    def trunk_linears(self) -> list[nn.Linear]:
+        """The trunk's layers in order; each is followed by a ReLU (``slam.kernels.fused``
+        runs the trunk from these)."""
+        return [m for m in self.trunk.modules() if isinstance(m, nn.Linear)]
+
     def sdf_and_feature(self, emb: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(S, D) embeddings -> SDF (S,) in units of tr and feature (S, F)."""
         out = self.sdf_head(self.trunk(emb))

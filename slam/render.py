@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 import torch
 
+from . import kernels
 from .voxels import lookup_sorted, morton_decode, morton_encode
 
 
@@ -372,12 +373,34 @@ def interpolate_with_gradient(points: torch.Tensor, voxel_index: torch.Tensor, v
     """TriLerp of corner embeddings and its exact spatial derivative, without autograd.
 
     points (S, 3) map frame, voxel_index (S,) -> features (S, D), d features / d point
-    (S, 3, D) per metre. ``interpolate_embeddings`` under autograd is the reference.
+    (S, 3, D) per metre. ``interpolate_embeddings`` under autograd is the reference. On float32
+    CPU tensors one numba pass (``slam.kernels``; ``segments`` is then not needed).
     """
+    if kernels.use_numba(points, view.embeddings):
+        from .kernels.fused import interpolate_with_slopes
+
+        return interpolate_with_slopes(points, voxel_index, view.voxel_coords, view.voxel_corners,
+                                       view.voxel_size, view.embeddings)
     local, feats = _local_and_corner_embeddings(points, voxel_index, view, segments)
     w, dw = trilinear_weights_and_gradients(local)
     both = torch.bmm(torch.cat([w[:, None, :], dw / view.voxel_size], 1), feats)  # (S, 4, D)
     return both[:, 0], both[:, 1:]
+
+
+def decode_samples(points: torch.Tensor, voxel_index: torch.Tensor, view: MapView,
+                   decoder) -> tuple[torch.Tensor, torch.Tensor]:
+    """SDF (S,) and trunk output (S, H) of the samples: points (S, 3), voxel_index (S,).
+
+    ``decoder.sdf_and_hidden(interpolate_embeddings(...))``; for a ``Decoder`` on float32 CPU
+    tensors, the fused numba kernels of ``slam.kernels.fused`` compute the same numbers
+    (and gradients) without the per-sample intermediates (``VOXFUSION_KERNELS`` chooses).
+    """
+    if hasattr(decoder, "trunk_linears") and kernels.use_numba(points, view.embeddings, decoder.sdf_head.weight):
+        from .kernels.fused import field_sdf_and_hidden
+
+        return field_sdf_and_hidden(points, voxel_index, view.voxel_coords, view.voxel_corners,
+                                    view.voxel_size, view.embeddings, decoder)
+    return decoder.sdf_and_hidden(interpolate_embeddings(points, voxel_index, view))
 
 
 # ------------------------------------------------------------------ weights
@@ -454,8 +477,7 @@ def render_rays(origins: torch.Tensor, dirs: torch.Tensor, view: MapView, decode
         samples = sample_points_from_hits(hits, step, offsets)
     r = samples.ray_index
     points = origins[r] + samples.t[:, None] * dirs[r]
-    feats = interpolate_embeddings(points, samples.voxel_index, view)
-    sdf, hidden = decoder.sdf_and_hidden(feats)
+    sdf, hidden = decode_samples(points, samples.voxel_index, view, decoder)
     w = sdf_weights(sdf, samples.t, r, num_rays, truncation)
     wsum = torch.zeros(num_rays, device=w.device, dtype=w.dtype).index_add(0, r, w)
     norm = 1.0 / (wsum + 1e-8)

@@ -1,0 +1,142 @@
+"""The field's hot path with numba's fused kernels, as torch autograd Functions.
+
+``FusedField``: interpolation of the corner embeddings, the decoder's trunk and its SDF row
+in one Function, the same numbers as
+``decoder.sdf_and_hidden(slam.render.interpolate_embeddings(points, voxel_index, view))``.
+The per-sample work that torch spreads over a dozen operators, each writing an (S, 8),
+(S, 8, D) or (S, H) intermediate (gathers, weights, products, ReLU masks, index_add), is
+one numba pass forward (gather + trilinear) and, backward, one pass for the SDF row with
+the last ReLU, one per other ReLU, and one that scatters straight into the embedding rows
+and the points. Every layer stays a matrix product: MKL's beat numba loops there.
+
+``interpolate_with_slopes``: ``slam.render.interpolate_with_gradient`` in one pass.
+
+Only for float32 CPU tensors; ``slam.kernels.use_numba`` decides.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from . import numba_kernels, set_threads
+
+
+def _np(t: torch.Tensor) -> np.ndarray:
+    return t.detach().contiguous().numpy()
+
+
+class FusedField(torch.autograd.Function):
+    """(points (S, 3), voxel_index (S,), coords (Nv, 3) float32, corners (Nv, 8) int64,
+    voxel_size, embeddings (Nc, D), sdf_weight (1 + F, H), sdf_bias (1 + F,),
+    W1, b1, ..., WL, bL the trunk's layers) -> sdf (S,), hidden (S, H).
+
+    Differentiable in points, embeddings and every decoder parameter (the SDF head's rows
+    other than the first get zero from here; ``feature_from_hidden`` adds theirs).
+    Saved for backward: the interpolated x (S, D) and each layer's output (S, H), which
+    plain autograd keeps too; none of its (S, 8) weights, gathered rows or masks.
+    """
+
+    @staticmethod
+    def forward(ctx, points, voxel_index, coords, corners, voxel_size, embeddings, sdf_weight, sdf_bias, *layers):
+        chunks = set_threads()
+        S, D = points.shape[0], embeddings.shape[1]
+        x = points.new_empty(S, D)
+        numba_kernels().interpolate(_np(points), _np(voxel_index), _np(coords), _np(corners), _np(embeddings),
+                                    np.float32(voxel_size), chunks, x.numpy())
+        hs, h = [], x
+        for W, b in zip(layers[0::2], layers[1::2]):
+            h = torch.addmm(b.detach(), h, W.detach().t()).relu_()
+            hs.append(h)
+        sdf = torch.mv(h, sdf_weight.detach()[0]) + sdf_bias.detach()[0]
+        ctx.save_for_backward(points, voxel_index, coords, corners, embeddings, sdf_weight, x, *hs, *layers)
+        ctx.voxel_size = voxel_size
+        ctx.num_layers = len(layers) // 2
+        return sdf, h
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, g_sdf, g_hidden):
+        kernels = numba_kernels()
+        chunks = set_threads()
+        L = ctx.num_layers
+        points, voxel_index, coords, corners, embeddings, sdf_weight, x, *rest = ctx.saved_tensors
+        hs, layers = [h.detach() for h in rest[:L]], rest[L:]
+        need = ctx.needs_input_grad
+        S = x.shape[0]
+        g_sdf = hs[-1].new_zeros(S) if g_sdf is None else g_sdf.contiguous()
+        g_hid = _np(g_hidden) if g_hidden is not None else np.zeros((0, 0), np.float32)
+        # The SDF row and the hidden output share the last ReLU: one pass gives the
+        # gradient at its input.
+        g_z = torch.empty_like(hs[-1])
+        kernels.head_backward(g_sdf.numpy(), g_hid, hs[-1].numpy(), _np(sdf_weight[0]), chunks, g_z.numpy())
+        g_sdf_weight = g_sdf_bias = None
+        if need[6]:
+            g_sdf_weight = torch.zeros_like(sdf_weight)
+            g_sdf_weight[0] = torch.mv(hs[-1].t(), g_sdf)
+        if need[7]:
+            g_sdf_bias = torch.zeros(sdf_weight.shape[0], dtype=g_sdf.dtype)
+            g_sdf_bias[0] = g_sdf.sum()
+        g_layers: list[torch.Tensor | None] = [None] * (2 * L)
+        inputs = [x] + hs[:-1]
+        for k in range(L - 1, -1, -1):
+            if need[8 + 2 * k]:
+                g_layers[2 * k] = g_z.t() @ inputs[k]
+            if need[9 + 2 * k]:
+                g_layers[2 * k + 1] = g_z.sum(0)
+            if k == 0 and not (need[0] or need[5]):
+                break
+            g_z = g_z @ layers[2 * k].detach()
+            if k > 0:
+                kernels.relu_backward_(g_z.numpy(), hs[k - 1].numpy(), chunks)
+        g_emb = g_points = None
+        if need[0] or need[5]:
+            D = embeddings.shape[1]
+            g_parts = embeddings.new_zeros((chunks, embeddings.shape[0], D) if need[5] else (0, 0, D))
+            g_points = points.new_empty(S, 3) if need[0] else points.new_empty(0, 3)
+            kernels.interpolate_backward(
+                g_z.numpy(), _np(points), _np(voxel_index), _np(coords), _np(corners), _np(embeddings),
+                np.float32(ctx.voxel_size), chunks, need[5], need[0], g_parts.numpy(), g_points.numpy())
+            g_emb = (g_parts[0] if chunks == 1 else g_parts.sum(0)) if need[5] else None
+            g_points = g_points if need[0] else None
+        return (g_points, None, None, None, None, g_emb, g_sdf_weight, g_sdf_bias, *g_layers)
+
+
+def field_sdf_and_hidden(points: torch.Tensor, voxel_index: torch.Tensor, voxel_coords: torch.Tensor,
+                         voxel_corners: torch.Tensor, voxel_size: float, embeddings: torch.Tensor,
+                         decoder) -> tuple[torch.Tensor, torch.Tensor]:
+    """``FusedField`` for a ``slam.decoder.Decoder``: points (S, 3), voxel_index (S,) ->
+    sdf (S,), hidden (S, H)."""
+    params = [p for layer in decoder.trunk_linears() for p in (layer.weight, layer.bias)]
+    return FusedField.apply(points, voxel_index, voxel_coords, voxel_corners, voxel_size, embeddings,
+                            decoder.sdf_head.weight, decoder.sdf_head.bias, *params)
+
+
+def interpolate_with_slopes(points: torch.Tensor, voxel_index: torch.Tensor, voxel_coords: torch.Tensor,
+                            voxel_corners: torch.Tensor, voxel_size: float,
+                            embeddings: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Features (S, D) and d features / d point (S, 3, D) per metre, no autograd."""
+    S, D = points.shape[0], embeddings.shape[1]
+    feats = points.new_empty(S, D)
+    dfeats = points.new_empty(S, 3, D)
+    numba_kernels().interpolate_with_slopes(
+        _np(points), _np(voxel_index), _np(voxel_coords), _np(voxel_corners), _np(embeddings),
+        np.float32(voxel_size), set_threads(), feats.numpy(), dfeats.numpy())
+    return feats, dfeats
+
+
+def warm_up_kernels() -> None:
+    """Run every kernel once on a two-voxel map (compiles, or loads numba's disk cache)."""
+    from ..config import DecoderConfig
+    from ..decoder import Decoder
+
+    D = 4
+    coords = torch.tensor([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    corners = torch.arange(16).reshape(2, 8)
+    embeddings = torch.randn(16, D, requires_grad=True)
+    decoder = Decoder(DecoderConfig(hidden_dim=8, feature_dim=4, color_hidden_dim=4), D)
+    points = torch.rand(5, 3, requires_grad=True)
+    voxel_index = torch.zeros(5, dtype=torch.long)
+    sdf, hidden = field_sdf_and_hidden(points, voxel_index, coords, corners, 1.0, embeddings, decoder)
+    (sdf.sum() + hidden.sum()).backward()
+    interpolate_with_slopes(points.detach(), voxel_index, coords, corners, 1.0, embeddings.detach())

@@ -1,0 +1,212 @@
+"""numba kernels on numpy arrays: the field's per-sample work fused into one pass each way.
+
+Importing this module imports numba; ``slam.kernels`` only does so when the numba path is
+selected. Every kernel works on float32 arrays and int64 indices, writes into arrays the
+caller allocates, and runs its outer loop over ``prange`` (the caller sets numba's thread
+count to torch's). Samples are processed in contiguous chunks, one per thread, so that a
+kernel that scatters into embedding rows can give each chunk its own accumulator: no
+atomics, and the sum is the same for the same thread count.
+
+Corner c of a voxel sits at offset (c & 1, (c >> 1) & 1, (c >> 2) & 1), as in
+``slam.render.trilinear_weights``; ``local`` is the position inside the voxel in [0, 1]^3.
+
+``cache=True`` keeps the compiled code next to this file (or in numba's user cache when the
+package directory is read-only), so only the first process on a machine compiles.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+# Reassociation lets LLVM vectorise the reductions; no nnan/ninf, so a NaN still propagates
+# as it does in torch; no arcp, so points / voxel_size rounds as torch's division does (a
+# sample on a voxel face must land on the same side of the clamp).
+_FASTMATH = {"reassoc", "contract", "nsz"}
+_ONE = np.float32(1.0)
+_ZERO = np.float32(0.0)
+
+
+@njit(cache=True, fastmath=_FASTMATH, inline="always")
+def _local(points, i, coords, v, voxel_size, local, inside):
+    """local[a] = clamp(points[i, a] / voxel_size - coords[v, a], 0, 1); inside[a] = the clamp
+    passes the gradient (torch's clamp: min <= x <= max)."""
+    for a in range(3):
+        x = points[i, a] / voxel_size - coords[v, a]
+        inside[a] = x >= _ZERO and x <= _ONE
+        local[a] = min(max(x, _ZERO), _ONE)
+
+
+@njit(cache=True, fastmath=_FASTMATH, inline="always")
+def _corner_weights(local, w):
+    """w[c] = trilinear weight of corner c, multiplied in ``trilinear_weights``' order (z y x)."""
+    for c in range(8):
+        fx = local[0] if c & 1 else _ONE - local[0]
+        fy = local[1] if (c >> 1) & 1 else _ONE - local[1]
+        fz = local[2] if (c >> 2) & 1 else _ONE - local[2]
+        w[c] = fz * fy * fx
+
+
+@njit(cache=True, fastmath=_FASTMATH, inline="always")
+def _corner_weight_slopes(local, dw):
+    """dw[a, c] = d w[c] / d local[a]."""
+    for c in range(8):
+        bx, by, bz = c & 1, (c >> 1) & 1, (c >> 2) & 1
+        fx = local[0] if bx else _ONE - local[0]
+        fy = local[1] if by else _ONE - local[1]
+        fz = local[2] if bz else _ONE - local[2]
+        sx = _ONE if bx else -_ONE
+        sy = _ONE if by else -_ONE
+        sz = _ONE if bz else -_ONE
+        dw[0, c] = fz * fy * sx
+        dw[1, c] = fz * sy * fx
+        dw[2, c] = sz * fy * fx
+
+
+@njit(cache=True, inline="always")
+def _scratch():
+    """One thread's per-sample buffers: local (3,), inside (3,), weights (8,), slopes (3, 8)."""
+    return (np.empty(3, np.float32), np.empty(3, np.bool_), np.empty(8, np.float32),
+            np.empty((3, 8), np.float32))
+
+
+def _chunk(n, chunks, t):
+    return n * t // chunks, n * (t + 1) // chunks
+
+
+_chunk = njit(cache=True, inline="always")(_chunk)
+
+
+@njit(parallel=True, cache=True, fastmath=_FASTMATH)
+def interpolate(points, voxel_index, coords, corners, embeddings, voxel_size, chunks, x_out):
+    """Trilinear interpolation of the corner embeddings, per sample.
+
+    points (S, 3), voxel_index (S,), coords (Nv, 3), corners (Nv, 8), embeddings (Nc, D)
+    -> x_out (S, D). The first layer stays a matrix product: a per-sample 16 x H product
+    here measured 7x slower than MKL's (23k samples: 7.2 against 1.0 ms).
+    """
+    S, D = x_out.shape
+    for t in prange(chunks):
+        lo, hi = _chunk(S, chunks, t)
+        local, inside, w, _ = _scratch()
+        for i in range(lo, hi):
+            v = voxel_index[i]
+            _local(points, i, coords, v, voxel_size, local, inside)
+            _corner_weights(local, w)
+            for d in range(D):
+                x_out[i, d] = _ZERO
+            for c in range(8):
+                row = corners[v, c]
+                wc = w[c]
+                for d in range(D):
+                    x_out[i, d] += wc * embeddings[row, d]
+
+
+@njit(parallel=True, cache=True, fastmath=_FASTMATH)
+def head_backward(g_sdf, g_hidden, hidden, w_row, chunks, g_z):
+    """Gradient at the last trunk layer's pre-activation.
+
+    g_z (S, H) = (g_hidden + g_sdf w_row^T) * (hidden > 0): the SDF row ``hidden @ w_row``
+    and the hidden output share the ReLU. g_sdf (S,), g_hidden (S, H) or (0, 0) when the
+    hidden output got no gradient, hidden (S, H) after the ReLU, w_row (H,).
+    """
+    S, H = g_z.shape
+    has_hidden = g_hidden.shape[0] == S
+    for t in prange(chunks):
+        lo, hi = _chunk(S, chunks, t)
+        for i in range(lo, hi):
+            gs = g_sdf[i]
+            for j in range(H):
+                g = gs * w_row[j]
+                if has_hidden:
+                    g += g_hidden[i, j]
+                g_z[i, j] = g if hidden[i, j] > _ZERO else _ZERO
+
+
+@njit(parallel=True, cache=True, fastmath=_FASTMATH)
+def relu_backward_(g, h, chunks):
+    """g (S, H) *= (h > 0) in place: the gradient through a ReLU whose output is h."""
+    S, H = g.shape
+    for t in prange(chunks):
+        lo, hi = _chunk(S, chunks, t)
+        for i in range(lo, hi):
+            for j in range(H):
+                if not h[i, j] > _ZERO:
+                    g[i, j] = _ZERO
+
+
+@njit(parallel=True, cache=True, fastmath=_FASTMATH)
+def interpolate_backward(g_x, points, voxel_index, coords, corners, embeddings, voxel_size, chunks,
+                         need_emb, need_points, g_emb_parts, g_points):
+    """Backward of ``interpolate``: g_x (S, D) the gradient at the interpolated embedding.
+
+    With ``need_emb`` each chunk t adds its samples' embedding gradient straight into
+    g_emb_parts[t] (chunks, Nc, D), zeroed by the caller (no (S, 8, D) products, no sort).
+    With ``need_points`` g_points (S, 3) gets d loss / d point (zero on an axis where the
+    local coordinate was clamped, as torch's clamp does).
+    """
+    S, D = g_x.shape
+    for t in prange(chunks):
+        lo, hi = _chunk(S, chunks, t)
+        local, inside, w, dw = _scratch()
+        for i in range(lo, hi):
+            v = voxel_index[i]
+            _local(points, i, coords, v, voxel_size, local, inside)
+            _corner_weights(local, w)
+            if need_emb:
+                for c in range(8):
+                    row = corners[v, c]
+                    wc = w[c]
+                    for d in range(D):
+                        g_emb_parts[t, row, d] += wc * g_x[i, d]
+            if need_points:
+                _corner_weight_slopes(local, dw)
+                ga0 = _ZERO
+                ga1 = _ZERO
+                ga2 = _ZERO
+                for c in range(8):
+                    row = corners[v, c]
+                    dot = _ZERO
+                    for d in range(D):
+                        dot += embeddings[row, d] * g_x[i, d]
+                    ga0 += dw[0, c] * dot
+                    ga1 += dw[1, c] * dot
+                    ga2 += dw[2, c] * dot
+                g_points[i, 0] = ga0 / voxel_size if inside[0] else _ZERO
+                g_points[i, 1] = ga1 / voxel_size if inside[1] else _ZERO
+                g_points[i, 2] = ga2 / voxel_size if inside[2] else _ZERO
+
+
+@njit(parallel=True, cache=True, fastmath=_FASTMATH)
+def interpolate_with_slopes(points, voxel_index, coords, corners, embeddings, voxel_size, chunks,
+                            feats, dfeats):
+    """Trilinear interpolation and its spatial derivative, forward only.
+
+    -> feats (S, D) and dfeats (S, 3, D) = d feats / d point per metre (the clamp ignored, as
+    ``slam.render.interpolate_with_gradient`` does).
+    """
+    S, D = feats.shape
+    for t in prange(chunks):
+        lo, hi = _chunk(S, chunks, t)
+        local, inside, w, dw = _scratch()
+        acc = np.empty((4, D), np.float32)
+        for i in range(lo, hi):
+            v = voxel_index[i]
+            _local(points, i, coords, v, voxel_size, local, inside)
+            _corner_weights(local, w)
+            _corner_weight_slopes(local, dw)
+            acc[:] = _ZERO
+            for c in range(8):
+                row = corners[v, c]
+                w0, w1, w2, w3 = w[c], dw[0, c] / voxel_size, dw[1, c] / voxel_size, dw[2, c] / voxel_size
+                for d in range(D):
+                    e = embeddings[row, d]
+                    acc[0, d] += w0 * e
+                    acc[1, d] += w1 * e
+                    acc[2, d] += w2 * e
+                    acc[3, d] += w3 * e
+            for d in range(D):
+                feats[i, d] = acc[0, d]
+                dfeats[i, 0, d] = acc[1, d]
+                dfeats[i, 1, d] = acc[2, d]
+                dfeats[i, 2, d] = acc[3, d]
