@@ -11,6 +11,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from . import kernels
 from .config import DecoderConfig
 
 
@@ -21,6 +22,33 @@ def _mlp(sizes: list[int]) -> nn.Sequential:
         if i < len(sizes) - 2:
             layers.append(nn.ReLU(inplace=True))
     return nn.Sequential(*layers)
+
+
+class _TwoLinears(torch.autograd.Function):
+    """z = (h Wf^T + bf) Wc^T + bc as one product with Wc Wf (C, H), gradients included.
+
+    h (S, H), Wf (F, H), bf (F,), Wc (C, F), bc (C,) -> z (S, C). With f = h Wf^T + bf and
+    M = g_z^T h (C, H), s = sum of g_z over samples: g_h = g_z (Wc Wf), g_Wc = M Wf^T + s bf^T,
+    g_Wf = Wc^T M, g_bf = Wc^T s, g_bc = s: two (S, H)-sized products, the rest is H x H.
+    """
+
+    @staticmethod
+    def forward(ctx, h, wf, bf, wc, bc):
+        ctx.save_for_backward(h, wf, bf, wc)
+        return torch.addmm(wc @ bf + bc, h, (wc @ wf).t())
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, g_z):
+        h, wf, bf, wc = ctx.saved_tensors
+        need = ctx.needs_input_grad
+        g_h = g_z @ (wc @ wf) if need[0] else None
+        m = g_z.t() @ h
+        s = g_z.sum(0)
+        g_wf = wc.t() @ m if need[1] else None
+        g_bf = wc.t() @ s if need[2] else None
+        g_wc = torch.addr(m @ wf.t(), s, bf) if need[3] else None
+        return g_h, g_wf, g_bf, g_wc, s if need[4] else None
 
 
 class Decoder(nn.Module):
@@ -56,6 +84,19 @@ class Decoder(nn.Module):
         """(S, H) trunk output -> (S, F) feature, the same numbers as ``sdf_and_feature``."""
         w, b = self.sdf_head.weight, self.sdf_head.bias
         return torch.nn.functional.linear(hidden, w[1:], b[1:])
+
+    def color_from_hidden(self, hidden: torch.Tensor) -> torch.Tensor:
+        """(S, H) trunk output -> (S, 3) RGB: ``color(feature_from_hidden(hidden))`` with the
+        feature rows of the SDF head and the colour head's first layer multiplied into one
+        matrix (no activation lies between them). Three (S, H)-sized products forward and
+        backward instead of six; the feature is never formed. ``VOXFUSION_KERNELS=torch``
+        runs the plain two layers."""
+        if kernels.requested() == "torch":
+            return self.color(self.feature_from_hidden(hidden))
+        first, rest = self.color_head[0], self.color_head[1:]
+        w, b = self.sdf_head.weight, self.sdf_head.bias
+        z = _TwoLinears.apply(hidden, w[1:], b[1:], first.weight, first.bias)
+        return torch.sigmoid(rest(z))
 
     def sdf(self, emb: torch.Tensor) -> torch.Tensor:
         """(S, D) -> (S,) SDF only."""

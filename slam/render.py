@@ -403,6 +403,13 @@ def decode_samples(points: torch.Tensor, voxel_index: torch.Tensor, view: MapVie
     return decoder.sdf_and_hidden(interpolate_embeddings(points, voxel_index, view))
 
 
+def color_of_hidden(decoder, hidden: torch.Tensor) -> torch.Tensor:
+    """(S, H) trunk output -> (S, 3) RGB; ``Decoder.color_from_hidden`` where the decoder has it."""
+    if hasattr(decoder, "color_from_hidden"):
+        return decoder.color_from_hidden(hidden)
+    return decoder.color(decoder.feature_from_hidden(hidden))
+
+
 # ------------------------------------------------------------------ weights
 def first_surface_mask(sdf: torch.Tensor, t: torch.Tensor, ray_index: torch.Tensor, num_rays: int,
                        truncation: float) -> torch.Tensor:
@@ -484,7 +491,7 @@ def render_rays(origins: torch.Tensor, dirs: torch.Tensor, view: MapView, decode
     depth = torch.zeros_like(wsum).index_add(0, r, w * samples.t) * norm
     depth_var = torch.zeros_like(wsum).index_add(0, r, w * (samples.t - depth.detach()[r]) ** 2) * norm
     active = torch.nonzero(w.detach() > color_weight_eps, as_tuple=True)[0]
-    rgb_active = decoder.color(decoder.feature_from_hidden(hidden[active]))
+    rgb_active = color_of_hidden(decoder, hidden[active])
     color = accumulate_along_rays(w[active], rgb_active, r[active], num_rays) * norm[:, None]
     hit = torch.zeros(num_rays, dtype=torch.bool, device=origins.device)
     hit[r] = True

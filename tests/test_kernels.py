@@ -159,6 +159,30 @@ def test_render_rays_and_losses_match_plain_torch(monkeypatch, threads):
         assert_close(ref_grads[name], got_grads[name], name, rtol=5e-4)
 
 
+def test_colour_from_hidden_matches_the_two_plain_layers(monkeypatch):
+    """``Decoder.color_from_hidden`` (the feature rows and the colour head's first layer as
+    one product) against ``color(feature_from_hidden(...))``: RGB and every gradient."""
+    _, decoder, *_ = random_scene()
+    gen = torch.Generator().manual_seed(3)
+    hidden = torch.relu(torch.randn(500, decoder.config.hidden_dim, generator=gen))
+    upstream = torch.randn(500, 3, generator=gen)
+    results = []
+    for name in ("torch", "numba"):
+        backend(monkeypatch, name)
+        h = hidden.clone().requires_grad_(True)
+        decoder.zero_grad(set_to_none=True)
+        rgb = decoder.color_from_hidden(h)
+        (rgb * upstream).sum().backward()
+        grads = {n: p.grad for n, p in decoder.named_parameters() if p.grad is not None}
+        results.append((rgb.detach(), h.grad, grads))
+    (ref_rgb, ref_h, ref_p), (rgb, g_h, g_p) = results
+    assert_close(ref_rgb, rgb, "rgb")
+    assert_close(ref_h, g_h, "hidden")
+    assert ref_p.keys() == g_p.keys() and "sdf_head.weight" in ref_p
+    for name in ref_p:
+        assert_close(ref_p[name], g_p[name], name)
+
+
 def test_interpolate_with_gradient_matches_plain_torch(monkeypatch, threads):
     vmap, _, origins, dirs, gen = random_scene()
     samples = samples_of(vmap, origins, dirs, gen)
