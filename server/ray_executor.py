@@ -65,6 +65,8 @@ SYNC_S = 1.0
 PROBE_TIMEOUT_S = 2.0
 """How long the GCS port probe before a start waits for a connection."""
 FORWARD_POLL_S = 0.25
+EXIT_GRACE_S = 30.0
+"""How long a worker that sent its WorkerDone may take to exit before its process group is killed."""
 INPUT_DIR = "input"
 
 
@@ -438,7 +440,7 @@ class SessionActor:
         self._events._writer.close()
         self._synced: dict[str, tuple[int, int]] = {}
         self._synced_at = 0.0
-        self._done = False
+        self._done_at: float | None = None
 
     def drain(self, wait_s: float, limit: int = 200) -> dict:
         """Events so far (waits up to ``wait_s`` for the first), changed files, and whether the
@@ -458,12 +460,14 @@ class SessionActor:
             except (EOFError, OSError, ValueError):
                 break
         if any(isinstance(e, WorkerDone) for e in events):
-            self._done = True
-            self._process.join(timeout=30.0)  # run_worker returns right after its WorkerDone
-        ended = (self._done or exited) and len(events) < limit
-        files = self._changed_files(force=ended)
+            self._done_at = time.monotonic()  # its outputs are complete: ship them all now
+        elif self._done_at is not None and not exited and time.monotonic() - self._done_at > EXIT_GRACE_S:
+            _kill_group(self._process.pid)  # reported its end but does not exit: end it
+        files = self._changed_files(force=exited or self._done_at is not None)
+        # Never wait here for the process to exit (a slow exit would read as a lost node in the
+        # API): a later drain sees it gone.
+        ended = exited and len(events) < limit
         if ended:
-            self._process.join(timeout=1.0)
             shutil.rmtree(self.scratch, ignore_errors=True)
         return {"events": events, "files": files, "ended": ended, "exitcode": self._process.exitcode}
 
@@ -499,6 +503,17 @@ class SessionActor:
 
     def stop(self) -> None:
         self._stop.set()
+
+
+def _kill_group(group: int | None) -> None:
+    import signal
+
+    if group is None:
+        return
+    try:
+        os.killpg(group, signal.SIGKILL)
+    except (ProcessLookupError, PermissionError):
+        pass
 
 
 def _spawn_with_plain_main(process) -> None:

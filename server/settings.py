@@ -17,7 +17,7 @@
 | ``VOXFUSION_RAY_ADDRESS`` | ``auto`` | the Ray cluster's GCS address (``host:port``), or ``auto`` (the cluster ``ray start`` began on this machine) |
 | ``VOXFUSION_RAY_SESSION_CPUS`` | 2 | CPUs a Ray session declares (its tracking and mapping processes) |
 | ``VOXFUSION_RAY_SESSION_GPUS`` | 0 | GPUs a Ray session declares when its preset runs on ``auto``/``cuda`` (``paper``); 0: none |
-| ``VOXFUSION_RAY_LOST_S`` | 10 | a Ray session whose node gives no answer for this long fails (its node died or is cut off) |
+| ``VOXFUSION_RAY_LOST_S`` | 20 | a Ray session whose node gives no answer for this long fails (its node died or is cut off) |
 | ``VOXFUSION_RAY_SCRATCH`` | ``$TMPDIR/voxfusion-ray`` | folder on each Ray node where sessions write before their files are shipped back |
 
 The data directory is outside the working directory on purpose: sessions survive restarts
@@ -95,7 +95,7 @@ class Settings:
     """CPUs a Ray session reserves: Ray places it on a node with that many free, or queues it."""
     ray_session_gpus: float = 0.0
     """GPUs a Ray session reserves when its preset's device is not ``cpu``."""
-    ray_lost_s: float = 10.0
+    ray_lost_s: float = 20.0
     """Seconds without an answer from a Ray session's node before the session fails."""
     ray_scratch: str | None = None
     """Folder on the Ray nodes for sessions' working files; None: ``$TMPDIR/voxfusion-ray``."""
@@ -191,6 +191,6 @@ def settings_from_env(env: Mapping[str, str] | None = None) -> Settings:
         ray_address=env.get("VOXFUSION_RAY_ADDRESS") or "auto",
         ray_session_cpus=_float(env, "VOXFUSION_RAY_SESSION_CPUS", 2.0, 0.0),
         ray_session_gpus=_float(env, "VOXFUSION_RAY_SESSION_GPUS", 0.0, 0.0),
-        ray_lost_s=_float(env, "VOXFUSION_RAY_LOST_S", 10.0, 1.0),
+        ray_lost_s=_float(env, "VOXFUSION_RAY_LOST_S", 20.0, 1.0),
         ray_scratch=env.get("VOXFUSION_RAY_SCRATCH") or None,
     )

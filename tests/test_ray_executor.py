@@ -39,7 +39,7 @@ def cluster() -> Iterator[LocalRayCluster]:
 @pytest.fixture(scope="module")
 def client(cluster, tmp_path_factory) -> Iterator[TestClient]:
     with running_app(tmp_path_factory.mktemp("ray-data"), executor="ray", ray_address=cluster.info.address,
-                     ray_session_cpus=2, max_sessions=8, ray_lost_s=10.0, cancel_grace_s=5.0,
+                     ray_session_cpus=2, max_sessions=8, ray_lost_s=20.0, cancel_grace_s=5.0,
                      ray_scratch=str(tmp_path_factory.mktemp("ray-scratch"))) as client:
         yield client
 
@@ -117,7 +117,7 @@ def test_cancel_ends_the_work_on_its_node(client):
 @needs_runtime
 def test_a_killed_node_fails_its_session_alone(client, cluster):
     """Last in this module: the cluster has one node left after it."""
-    doomed, other = start(client, LONG_SPEC), start(client, "orbit?frames=30&width=80&height=60")
+    doomed, other = start(client, LONG_SPEC), start(client, "orbit?frames=12&width=80&height=60")
     victim = wait_for(client, doomed, statuses=("running",), timeout=SESSION_TIMEOUT_S,
                       condition=running_with_a_pose)
     cluster.kill_node(victim["worker"]["node"])
