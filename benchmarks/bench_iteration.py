@@ -13,12 +13,20 @@ from the real renderer unnoticed. Two end-to-end rows time the real thing:
 optimised). Medians over ``--iterations`` after 3 warm-up iterations, with 1 torch thread and
 with torch's default.
 
+``--kernels torch|numba`` forces the field's kernels (``VOXFUSION_KERNELS``; default: numba
+where it imports). With numba's fused kernels the interpolation runs inside the SDF decoder's
+stage. ``--ab ROUNDS`` adds a same-run comparison: rounds that alternate the two backends on
+the end-to-end rows, medians of wall and of thread CPU time (the machine is shared, so CPU
+time is the steadier of the two), and their ratios.
+
     python benchmarks/bench_iteration.py [--quick] [--rays 1024] [--iterations 20] [--json FILE]
+        [--kernels torch|numba] [--ab 8] [--threads 1,2]
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
 import sys
 import time
@@ -41,12 +49,15 @@ from common import (
     write_json,
 )
 
+from slam import kernels
 from slam.frames import backproject, prepare_frame, sample_pixels
 from slam.losses import LossWeights, compute_losses
 from slam.mapping import training_far
 from slam.render import (
     RenderOutput,
     accumulate_along_rays,
+    color_of_hidden,
+    decode_samples,
     interpolate_embeddings,
     ray_voxel_intersections,
     render_rays,
@@ -101,10 +112,14 @@ def staged_render(o, d, view, decoder, *, near, far, step, truncation, max_hits,
         samples = sample_points_from_hits(hits, step, offsets)
         r = samples.ray_index
         points = o[r] + samples.t[:, None] * d[r]
-    with timer("interpolation"):
-        feats = interpolate_embeddings(points, samples.voxel_index, view)
-    with timer("decoder (SDF)"):
-        sdf, hidden = decoder.sdf_and_hidden(feats)
+    if kernels.use_numba(points, view.embeddings):
+        with timer("decoder (SDF)"):  # the fused kernels interpolate inside the decoder
+            sdf, hidden = decode_samples(points, samples.voxel_index, view, decoder)
+    else:
+        with timer("interpolation"):
+            feats = interpolate_embeddings(points, samples.voxel_index, view)
+        with timer("decoder (SDF)"):
+            sdf, hidden = decoder.sdf_and_hidden(feats)
     with timer("weights + accumulation"):
         w = sdf_weights(sdf, samples.t, r, num_rays, truncation)
         wsum = torch.zeros(num_rays, dtype=w.dtype).index_add(0, r, w)
@@ -113,7 +128,7 @@ def staged_render(o, d, view, decoder, *, near, far, step, truncation, max_hits,
         depth_var = torch.zeros_like(wsum).index_add(0, r, w * (samples.t - depth.detach()[r]) ** 2) * norm
         active = torch.nonzero(w.detach() > color_weight_eps, as_tuple=True)[0]
     with timer("decoder (colour)"):
-        rgb_active = decoder.color(decoder.feature_from_hidden(hidden[active]))
+        rgb_active = color_of_hidden(decoder, hidden[active])
     with timer("weights + accumulation"):
         color = accumulate_along_rays(w[active], rgb_active, r[active], num_rays) * norm[:, None]
         hit = torch.zeros(num_rays, dtype=torch.bool)
@@ -163,6 +178,11 @@ class IterationBench:
         return timer.seconds
 
     def render_rays_iteration(self) -> float:
+        return self.timed_render_rays_iteration()[0]
+
+    def timed_render_rays_iteration(self) -> tuple[float, float]:
+        """Wall and thread CPU seconds of one render_rays + losses + backward + step."""
+        c0 = time.thread_time()
         t0 = time.perf_counter()
         o, d, rgb, depth = draw_rays(self.frames, self.num_rays, self.generator)
         out = render_rays(o, d, self.submap.view(), self.submap.decoder, **self._render_args(depth))
@@ -171,12 +191,16 @@ class IterationBench:
         self.optimizer.zero_grad(set_to_none=True)
         losses.total.backward()
         self.optimizer.step()
-        return time.perf_counter() - t0
+        return time.perf_counter() - t0, time.thread_time() - c0
 
     def mapper_iteration(self) -> float:
+        return self.timed_mapper_iteration()[0]
+
+    def timed_mapper_iteration(self) -> tuple[float, float]:
+        c0 = time.thread_time()
         t0 = time.perf_counter()
         self.mapper.optimize(self.submap, 1)
-        return time.perf_counter() - t0
+        return time.perf_counter() - t0, time.thread_time() - c0
 
     def allocation(self) -> float:
         """Back-projection, keyframe test and allocation of one frame into an empty map."""
@@ -237,6 +261,69 @@ def run(bench: IterationBench, threads: int, warmup: int, iterations: int) -> di
     return result
 
 
+def ab_rounds(bench: IterationBench, threads: int, rounds: int, per_round: int) -> dict[str, dict[str, list[float]]]:
+    """Rounds alternating ``VOXFUSION_KERNELS=torch`` and ``numba`` (which goes first
+    alternates too); per round and backend the median wall and CPU seconds of each
+    end-to-end row. -> {row: {"torch wall": [...], "numba cpu": [...], ...}}."""
+    torch.set_num_threads(threads)
+    rows = {"render_rays + losses + backward + step": bench.timed_render_rays_iteration,
+            "Mapper.optimize, 1 iteration": bench.timed_mapper_iteration}
+    out: dict[str, dict[str, list[float]]] = {row: {} for row in rows}
+    before = os.environ.get("VOXFUSION_KERNELS")
+    try:
+        for k in range(rounds):
+            for backend in ("torch", "numba") if k % 2 == 0 else ("numba", "torch"):
+                os.environ["VOXFUSION_KERNELS"] = backend
+                for row, fn in rows.items():
+                    fn()  # one untimed: the other backend ran last
+                    walls, cpus = zip(*[fn() for _ in range(per_round)])
+                    out[row].setdefault(f"{backend} wall", []).append(statistics.median(walls))
+                    out[row].setdefault(f"{backend} cpu", []).append(statistics.median(cpus))
+                staged = [bench.staged_iteration() for _ in range(per_round)]
+                out.setdefault("stages", {}).setdefault(backend, []).extend(staged)
+    finally:
+        if before is None:
+            os.environ.pop("VOXFUSION_KERNELS", None)
+        else:
+            os.environ["VOXFUSION_KERNELS"] = before
+    return out
+
+
+def ab_stage_table(results: dict[int, dict]) -> str:
+    """Markdown: the paper-style stages (median ms over the A/B rounds' staged iterations),
+    torch and numba side by side per thread count."""
+    headers, columns = ["stage (median ms)"], []
+    for threads, per_row in results.items():
+        for backend in ("torch", "numba"):
+            staged = per_row["stages"][backend]
+            result = {name: median_ms([x.get(name, 0.0) for x in staged]) for name in STAGES}
+            result["staged total"] = median_ms([sum(x.get(n, 0.0) for n in STAGES) for x in staged])
+            columns.append(dict(paper_rows({**result, "voxel allocation (one frame, empty map)": float("nan"),
+                                            "render_rays + losses + backward + step": float("nan"),
+                                            "Mapper.optimize, one iteration": float("nan")})))
+            headers.append(f"{backend}, {threads} thread{'s' if threads > 1 else ''}")
+    names = [n for n in columns[0] if columns[0][n] == columns[0][n]]  # the staged rows (not NaN)
+    return markdown_table(headers, [[n] + [f"{c[n]:.1f}" for c in columns] for n in names])
+
+
+def ab_table(results: dict[int, dict]) -> str:
+    """Markdown: per thread count and row, torch and numba medians (ms) and torch / numba."""
+    rows = []
+    for threads, per_row in results.items():
+        for row, series in per_row.items():
+            if row == "stages":
+                continue
+            cells = [f"{row}, {threads} thread{'s' if threads > 1 else ''}"]
+            for kind in ("wall", "cpu"):
+                t, n = series[f"torch {kind}"], series[f"numba {kind}"]
+                ratios = [a / b for a, b in zip(t, n)]
+                cells += [f"{median_ms(t):.1f}", f"{median_ms(n):.1f}",
+                          f"{statistics.median(ratios):.2f}x ({min(ratios):.2f}-{max(ratios):.2f})"]
+            rows.append(cells)
+    return markdown_table(["row (median ms over rounds)", "torch wall", "numba wall", "wall ratio (range)",
+                           "torch CPU", "numba CPU", "CPU ratio (range)"], rows)
+
+
 def profile_table(bench: IterationBench, iterations: int, rows: int = 15) -> str:
     """torch.profiler's top operators by self CPU time over a few staged iterations."""
     from torch.profiler import ProfilerActivity, profile
@@ -274,7 +361,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--iterations", type=int, default=20)
     parser.add_argument("--profile", action="store_true", help="also print torch.profiler's top operators (1 thread)")
     parser.add_argument("--json", type=Path, default=None)
+    parser.add_argument("--kernels", choices=("torch", "numba"), default=None,
+                        help="force the field's kernels (VOXFUSION_KERNELS); default: numba where it imports")
+    parser.add_argument("--threads", default=None, help="comma-separated torch thread counts (default: 1 and torch's)")
+    parser.add_argument("--ab", type=int, default=0, metavar="ROUNDS",
+                        help="also alternate torch and numba kernels for ROUNDS rounds (same run, medians, ratios)")
     args = parser.parse_args(argv)
+    if args.kernels:
+        os.environ["VOXFUSION_KERNELS"] = args.kernels
     from slam.config import preset
 
     default_threads = torch.get_num_threads()
@@ -284,6 +378,9 @@ def main(argv: list[str] | None = None) -> int:
     iterations = 3 if args.quick else args.iterations
     print(f"# One mapping iteration, {args.rays} rays, {args.preset} preset\n")
     print(f"start: {load_line()}")
+    warm = kernels.warm_up()
+    print(f"kernels: {'numba' if kernels.use_numba(torch.zeros(1)) else 'torch'}"
+          + (f" (warm-up {warm:.1f} s)" if warm else ""))
     t0 = time.perf_counter()
     try:
         mapper, frames, label = build_map(config, args.quick)
@@ -296,9 +393,15 @@ def main(argv: list[str] | None = None) -> int:
     print(f"staged vs render_rays: max |difference| {mismatch:.2e}"
           + ("" if mismatch < 1e-4 else "  WARNING: render_rays changed; update staged_render"))
     results = {}
-    for threads in sorted({1, default_threads}):
+    thread_counts = sorted({int(t) for t in args.threads.split(",")} if args.threads else {1, default_threads})
+    for threads in thread_counts:
         results[threads] = run(bench, threads, 1 if args.quick else 3, iterations)
         print(f"threads {threads}: done, {load_line()}", flush=True)
+    ab = {}
+    if args.ab:
+        for threads in thread_counts:
+            ab[threads] = ab_rounds(bench, threads, args.ab, 3 if args.quick else 6)
+            print(f"A/B threads {threads}: done, {load_line()}", flush=True)
     if args.profile:
         torch.set_num_threads(1)
         print(profile_table(bench, iterations=5))
@@ -313,12 +416,20 @@ def main(argv: list[str] | None = None) -> int:
                       "ms", f"<= {TARGET_MS:.0f}", f"staged sum {r['staged total']:.0f} ms; Mapper.optimize "
                       f"({config.mapping.window_size}x{config.mapping.num_rays} rays) {r['Mapper.optimize, one iteration']:.0f} ms")
                for t, r in results.items()]
+    if ab:
+        print(f"\nSame-run A/B, {args.ab} alternating rounds of 1 + {3 if args.quick else 6} iterations per backend:\n")
+        print(ab_table(ab))
+        print(f"\nStages in the same rounds ({args.ab} x {3 if args.quick else 6} staged iterations per backend):\n")
+        print(ab_stage_table(ab))
     print()
     print(figures_table(figures))
     print(f"\ntotal {time.perf_counter() - t0:.0f} s; end: {load_line()}")
     write_json(args.json, figures_payload("One mapping iteration (issue 3)", figures, {
         "map": label, "rays": args.rays, "breakdown_ms": {str(t): r for t, r in results.items()},
-        "table": markdown_table(headers, rows), "staged_mismatch": mismatch}))
+        "table": markdown_table(headers, rows), "staged_mismatch": mismatch,
+        "kernels_ab_ms": {str(t): {row: {k: [v * 1000 for v in vs] for k, vs in series.items()}
+                                   for row, series in r.items() if row != "stages"} for t, r in ab.items()},
+        "kernels_ab_stages": {str(t): ab_stage_table({t: r}) for t, r in ab.items()}}))
     return 0
 
 
