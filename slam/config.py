@@ -114,6 +114,10 @@ class TrackingConfig:
     resample_rays: bool = False
     """Draw new pixels every iteration (True) or keep one set per frame, so that the losses
     of the iterations compare and the lowest-loss pose is meaningful (False)."""
+    border_margin: float = 0.0
+    """Gauss-Newton only: leave out rays whose observed point lies within this many metres of
+    the map's border at the initial pose (``slam.tracking.interior_rays``), unless that leaves
+    fewer than ``min_valid_ratio`` of the rays (0: off)."""
     outlier_factor: float = 10.0
     """Rays whose depth error exceeds this times the median are dropped."""
     convergence_tol: float = 1e-5

@@ -10,8 +10,10 @@ Two optimisers: ``adam`` (the paper's; new pixels each iteration if ``resample_r
 lowest-loss pose is returned) and ``gauss_newton`` (Levenberg-Marquardt on the same loss with
 the closed-form model of ``slam.gauss_newton``; one ray set, steps accepted only when the
 loss falls; optionally a prior towards the initial guess, ``tracking.motion_prior``, for the
-directions a plain wall leaves unobserved). Tracking reports failure when too few rays hit
-the map, the median depth residual stays too large or the estimate jumped implausibly far
+directions a plain wall leaves unobserved; and ``tracking.border_margin``, which leaves out
+rays ending near the map's border, whose misses would otherwise pull the pose back into the
+map). Tracking reports failure when too few rays hit the map, the median depth residual
+stays too large or the estimate jumped implausibly far
 (then the guess is returned).
 
 Optionally (``tracking.feature_count`` > 0, the ``cpu`` preset) sparse ORB correspondences
@@ -38,6 +40,7 @@ from .losses import LossWeights, compute_losses
 from .mapping import MapSnapshot, training_far
 from .maps import optimised_voxel_mask
 from .render import MapView, render_rays
+from .voxels import lookup_sorted, morton_encode, voxel_coords_of
 
 
 @dataclass(frozen=True)
@@ -117,14 +120,33 @@ def tracking_bounds(depth: torch.Tensor, truncation: float, band: float,
     With ``band > 0`` only ``depth -+ band * tr`` is sampled. The renderer keeps weights only
     within tr of a ray's first zero crossing, and for a pose close enough to track that
     crossing lies within a few centimetres of the observed depth, so the samples outside the
-    band carry no weight: skipping them changes nothing but the cost (5-6x fewer samples
-    indoors). The whole ray (``band = 0``, as in the paper) is the plain reference.
+    band carry no weight: rendered depth and colour are unchanged (5-6x fewer samples
+    indoors). The free-space loss is not: it then sees only the band's front part
+    (``depth - band * tr`` to ``depth - tr``) instead of the whole ray in front of the
+    surface. The whole ray (``band = 0``, as in the paper) is the plain reference.
     """
     far = training_far(depth, truncation, max_distance)
     if band <= 0:
         return torch.full_like(depth, 0.05), far
     near = torch.clamp(depth - band * truncation, min=0.05)
     return near, torch.clamp(depth + band * truncation, max=max_distance)
+
+
+def interior_rays(T_map_cam: torch.Tensor, dirs_cam: torch.Tensor, depth: torch.Tensor, view: MapView,
+                  margin: float) -> torch.Tensor:
+    """Rays whose observed surface point lies at least ``margin`` (metres, along each axis)
+    inside the map's voxels at pose T_map_cam (4, 4). dirs_cam (R, 3) with z = 1, depth (R,)
+    -> (R,) bool.
+
+    A ray that ends near the map's border hits at one pose and misses a little further on, so
+    the tracking cost, which charges a miss, falls as the pose moves back into the map. Where
+    the view fixes nothing else (a plain wall along the direction of travel) that alone
+    decides the pose, and the camera lags behind its true motion frame after frame.
+    """
+    p = (dirs_cam * depth[:, None]) @ T_map_cam[:3, :3].T + T_map_cam[:3, 3]
+    shifts = torch.cat([torch.zeros(1, 3), torch.eye(3) * margin, -torch.eye(3) * margin]).to(p)
+    codes = morton_encode(voxel_coords_of((p[:, None, :] + shifts).reshape(-1, 3), view.voxel_size))
+    return (lookup_sorted(view.voxel_codes, codes) >= 0).reshape(-1, shifts.shape[0]).all(1)
 
 
 def constant_velocity_guess(previous: list[torch.Tensor], enabled: bool) -> torch.Tensor:
@@ -216,7 +238,12 @@ class Tracker:
         if not bool(first.hit.any()):
             return 0, float("inf"), T0_map, 0.0, float("inf"), T0_map, None
         med = first.residual[first.hit].median()
-        inlier = (first.hit & (first.residual <= c.outlier_factor * med + 1e-6)).float()
+        inlier = first.hit & (first.residual <= c.outlier_factor * med + 1e-6)
+        if c.border_margin > 0:
+            inner = inlier & interior_rays(T0_map, batch.dirs_cam, batch.depth, fmap.view, c.border_margin)
+            if int(inner.sum()) >= c.min_valid_ratio * inlier.numel():
+                inlier = inner
+        inlier = inlier.float()
         start = linearise_at(T0_map, inlier)
         if c.motion_prior > 0:
             prior = MotionPrior.scaled_to(start, c.motion_prior)

@@ -163,9 +163,12 @@ class SparseVoxelMap:
         return lookup_sorted(self.voxel_codes, codes)
 
     def count_new(self, points: torch.Tensor) -> tuple[int, int]:
-        """How many distinct voxels the points hit, and how many of those are not allocated.
+        """How many distinct voxels the points hit, and how many of those are not allocated,
+        without changing the map (the paper's ``N_o`` and ``N_c`` against allocated voxels).
 
-        Used by keyframe selection (``p_kf = N_c / N_o``) without changing the map.
+        The mapper's keyframe test counts against the voxels its keyframes observed instead
+        (``slam.mapping``: every frame allocates, so allocated voxels would starve the test);
+        this stays for tools that ask about the map itself (``bench_iteration.py``).
         """
         codes = torch.unique(morton_encode(voxel_coords_of(points, self.voxel_size)))
         missing = lookup_sorted(self.voxel_codes, codes) < 0

@@ -25,7 +25,9 @@ from slam.maps import SubMap
 from slam.render import render_rays
 from slam.gauss_newton import limit_step, linearise
 from slam.geometry import se3_exp
-from slam.tracking import FrozenMap, Tracker, constant_velocity_guess, tracking_bounds
+from slam.render import MapView
+from slam.tracking import FrozenMap, Tracker, constant_velocity_guess, interior_rays, tracking_bounds
+from slam.voxels import morton_encode
 
 CPU = torch.device("cpu")
 BASE = preset("test")
@@ -301,6 +303,30 @@ def test_tracking_recovers_a_perturbed_pose(trained, frames, optimizer):
         assert t2 < 0.35 * t0 and r2 < 0.25 * r0, (t2, r2)
     assert result.hit_ratio > 0.9 and result.depth_residual < 0.05
     assert 1 <= result.iterations <= CONFIG.tracking.iterations
+
+
+def test_interior_rays_leave_out_points_near_the_map_border():
+    # A 5 x 5 x 1 slab of 0.2 m voxels: x, y in [0, 1) m, z in [0, 0.2) m.
+    ijk = torch.tensor([[i, j, 0] for i in range(5) for j in range(5)])
+    view = MapView(torch.sort(morton_encode(ijk))[0], torch.zeros(25, 8, dtype=torch.long), torch.zeros(1, 16), 0.2)
+    T = torch.eye(4)
+    T[:3, 3] = torch.tensor([0.0, 0.0, -0.9])  # camera 0.9 m in front of the slab, looking along +z
+    dirs = torch.tensor([[0.50, 0.50, 1.0], [0.03, 0.50, 1.0], [0.97, 0.50, 1.0], [0.50, 0.50, 1.0]])
+    depth = torch.tensor([1.0, 1.0, 1.0, 1.4])  # points at z = 0.1, except the last (z = 0.5: outside)
+    assert interior_rays(T, dirs, depth, view, 0.05).tolist() == [True, False, False, False]
+    # 3 cm from the border: inside with a 2 cm margin, not with 5 cm.
+    assert interior_rays(T, dirs, depth, view, 0.02).tolist() == [True, True, True, False]
+
+
+@pytest.mark.parametrize("margin", [0.0, 0.05])
+def test_tracking_with_a_border_margin_recovers_a_perturbed_pose(trained, frames, margin):
+    config = replace(CONFIG, tracking=replace(CONFIG.tracking, optimizer="gauss_newton", border_margin=margin))
+    fmap = FrozenMap(trained.mapper.snapshot(), config, CPU)
+    T_gt = gt_pose(frames[0])
+    delta = torch.eye(4)
+    delta[:3, 3] = torch.tensor([0.02, 0.0, 0.0])
+    result = Tracker(config, CPU).track(frames[0], fmap, T_gt @ delta)
+    assert result.ok and pose_error(result.T_world_cam, T_gt)[0] < 0.7 * 0.02
 
 
 def test_tracking_fails_far_outside_the_map(trained, frames):
