@@ -12,7 +12,7 @@ $(STAMP): pyproject.toml
 	# The pinned CPU build first: a bare 'torch' requirement would pull CUDA wheels.
 	# Users with a GPU install their own torch build before running make.
 	$(BIN)/python -c "import torch" 2>/dev/null || $(BIN)/pip install -q torch==2.13.0
-	$(BIN)/pip install -q -e ".[dev,realsense,ray]"
+	$(BIN)/pip install -q -e ".[dev,realsense,ray,record3d]"
 	touch $(STAMP)
 
 setup: $(STAMP)
