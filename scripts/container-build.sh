@@ -88,11 +88,19 @@ check_plain() {
 }
 
 check_ray() {
+    # Known limit (2026-12-02): `ray start` rewrites --node-ip-address=127.0.0.1 to the machine's
+    # interface address (ray.scripts: resolve_ip_for_localhost), and for a worker node the switch
+    # that keeps loopback (RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0) makes it refuse to start. Where
+    # only loopback may be used, the Ray check therefore does not run unless asked for.
+    if [[ ${VOXFUSION_CONTAINER_RAY_ANY_IP:-0} != 1 ]]; then
+        log "ray check skipped: its worker node would bind the interface address (set VOXFUSION_CONTAINER_RAY_ANY_IP=1)"
+        return 3
+    fi
     local port gcs agent head=voxfusion-ray-head worker=voxfusion-ray-worker
     port=$(free_port); gcs=$(free_port); agent=$(free_port)
     # The API on the head (a driver needs a raylet of its own; the head has no CPUs for sessions).
     run_container "$head" localhost/voxfusion-ray -e VOXFUSION_EXECUTOR=ray -e VOXFUSION_RAY_ADDRESS="127.0.0.1:$gcs" \
-        -e VOXFUSION_VIEWER_PORT=-1 -e VOXFUSION_RAY_SESSION_CPUS=2 -- \
+        -e VOXFUSION_VIEWER_PORT=-1 -e VOXFUSION_RAY_SESSION_CPUS=2 -e RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0 -- \
         sh -c "ray start --head --port=$gcs --num-cpus=0 --include-dashboard=false --disable-usage-stats \
                --node-ip-address=127.0.0.1 && exec voxfusion serve --host 127.0.0.1 --port $port"
     # Both nodes share the host's network: the worker's dashboard agent needs a port of its own.

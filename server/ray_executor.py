@@ -228,28 +228,47 @@ class RayExecution:
         self._exitcode: int | None = None
         self._forwarder: threading.Thread | None = None
         self._closing = threading.Event()
+        self._launch_began = 0.0
 
     # -- starting --------------------------------------------------------------------------
 
     def start(self) -> None:
-        ray = self._ray = self.executor.connect()
-        package = pack_input(self.directory / INPUT_DIR) if _reads_files(self.job) else None
+        """Launch in a thread of its own and return at once: connecting and shipping the input
+        take seconds (forever, when a cluster stops answering mid-connect), and the manager calls
+        this under its lock, which every API request takes. The session is running once the actor
+        reports its node (WorkerPlaced); a launch that fails or does not finish within
+        ``ray_lost_s`` fails the session with the reason."""
+        self._launch_began = time.monotonic()
+        threading.Thread(target=self._launch, daemon=True, name=f"ray-start-{self.job.session_id}").start()
+        return None
+
+    def _launch(self) -> None:
         try:
-            package_ref = None if package is None else ray.put(package)
-        except Exception as error:  # noqa: BLE001 - e.g. ObjectStoreFullError; the message says which
-            raise ExecutorError(f"could not ship the input to the Ray cluster: {type(error).__name__}: {error}") \
-                from None
-        actor_class = self.executor.actor_class
-        options = dict(self.executor.resources(self.job.preset), max_concurrency=4, max_restarts=0,
-                       name=None, lifetime=None)
-        self._actor = actor_class.options(**options).remote(self.job, str(self.directory), package_ref,
-                                                             self.executor.settings.ray_scratch)
+            ray = self._ray = self.executor.connect()
+            package = pack_input(self.directory / INPUT_DIR) if _reads_files(self.job) else None
+            try:
+                package_ref = None if package is None else ray.put(package)
+            except Exception as error:  # noqa: BLE001 - e.g. ObjectStoreFullError; the message says which
+                raise ExecutorError(f"could not ship the input to the Ray cluster: {type(error).__name__}: "
+                                    f"{error}") from None
+            options = dict(self.executor.resources(self.job.preset), max_concurrency=4, max_restarts=0)
+            actor = self.executor.actor_class.options(**options).remote(
+                self.job, str(self.directory), package_ref, self.executor.settings.ray_scratch)
+        except ExecutorError as error:
+            self._end(str(error))
+            return
+        except Exception as error:  # noqa: BLE001 - anything Ray raises fails this session, with its text
+            self._end(f"could not start the session on the Ray cluster: {type(error).__name__}: {error}")
+            return
+        self._actor = actor
+        if self._ended:  # cancelled or timed out meanwhile
+            self.finish(None)
+            return
         self._submit_drain()
         if self.frame_queue is not None:
             self._forwarder = threading.Thread(target=self._forward_frames, daemon=True,
                                                name=f"ray-frames-{self.job.session_id}")
             self._forwarder.start()
-        return None  # running once the actor reports its node (WorkerPlaced)
 
     # -- events ----------------------------------------------------------------------------
 
@@ -258,7 +277,14 @@ class RayExecution:
         self._pending_since = time.monotonic()
 
     def poll(self, limit: int) -> list[object]:
-        if self._ended or self._pending is None:
+        if self._ended:
+            return []
+        if self._pending is None:  # still launching
+            waited = time.monotonic() - self._launch_began
+            if waited > self.executor.settings.ray_lost_s:
+                self._end(f"could not start the session on the Ray cluster within {waited:.0f} s "
+                          f"(VOXFUSION_RAY_ADDRESS={self.executor.settings.ray_address}: connecting or shipping "
+                          f"the input did not finish; VOXFUSION_RAY_LOST_S)")
             return []
         ray = self._ray
         ready, _ = ray.wait([self._pending], timeout=0)
@@ -351,7 +377,10 @@ class RayExecution:
         return not self._ended
 
     def request_stop(self) -> None:
-        if self._actor is None or self._ended:
+        if self._ended:
+            return
+        if self._actor is None:  # still launching: the launch thread ends what it made
+            self._end(None)
             return
         if self._worker is None:  # still waiting for a node: nothing runs yet
             self.kill()
@@ -359,7 +388,7 @@ class RayExecution:
         self._actor.stop.remote()
 
     def kill(self) -> None:
-        if self._actor is not None:
+        if self._actor is not None and self._ray is not None:
             try:
                 self._ray.kill(self._actor, no_restart=True)
             except Exception as error:  # noqa: BLE001 - an actor already gone with its node
@@ -373,7 +402,7 @@ class RayExecution:
 
     def finish(self, worker_pid: int | None) -> None:
         self._closing.set()
-        if self._actor is not None:
+        if self._actor is not None and self._ray is not None:
             try:
                 self._ray.kill(self._actor, no_restart=True)  # its worker's process group ends with it
             except Exception:  # noqa: BLE001 - gone already
