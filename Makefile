@@ -13,6 +13,8 @@ $(STAMP): pyproject.toml
 	# Users with a GPU install their own torch build before running make.
 	$(BIN)/python -c "import torch" 2>/dev/null || $(BIN)/pip install -q torch==2.13.0
 	$(BIN)/pip install -q -e ".[dev,realsense,ray,record3d]"
+	# Compile the numba kernels into numba's disk cache now, not in a user's first frame.
+	$(BIN)/python -c "import slam.kernels as k; print(f'numba kernels ready in {k.warm_up():.1f} s')"
 	touch $(STAMP)
 
 setup: $(STAMP)
