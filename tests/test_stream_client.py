@@ -295,14 +295,16 @@ def test_ctrl_c_finishes_the_session_with_the_frames_sent(server_url, tum_folder
 
     root, _ = tum_folder
     process = subprocess.Popen([sys.executable, "-m", "server.cli", "stream", str(root), "--url", server_url,
-                                "--token", TOKEN, "--preset", "test", "--fps", "2"],
+                                "--token", TOKEN, "--preset", "test", "--fps", "0.25"],
                                cwd=Path(__file__).resolve().parents[1], stdout=subprocess.PIPE,
                                stderr=subprocess.PIPE, text=True)
     try:
         first = process.stdout.readline()
         assert first.startswith("voxfusion stream: session "), first + process.stderr.read()
         session_id = first.split()[3]
-        time.sleep(1.5)  # a few frames at 2 Hz
+        # Interrupt once the server has tracked a frame (a fixed 1.5 s sent none under load 15);
+        # at 0.25 Hz the 8 frames take 32 s, so the stream is still running then.
+        wait_until_ended(server_url, session_id, 60, frames=1)
         os.kill(process.pid, signal.SIGINT)
         out, err = process.communicate(timeout=60)
     finally:
