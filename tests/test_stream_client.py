@@ -304,7 +304,7 @@ def test_ctrl_c_finishes_the_session_with_the_frames_sent(server_url, tum_folder
         session_id = first.split()[3]
         # Interrupt once the server has tracked a frame (a fixed 1.5 s sent none under load 15);
         # at 0.25 Hz the 8 frames take 32 s, so the stream is still running then.
-        wait_until_ended(server_url, session_id, 60, frames=1)
+        wait_until_tracked(server_url, session_id, 1, 120)
         os.kill(process.pid, signal.SIGINT)
         out, err = process.communicate(timeout=60)
     finally:
@@ -316,6 +316,17 @@ def test_ctrl_c_finishes_the_session_with_the_frames_sent(server_url, tum_folder
     assert 1 <= sent < FRAMES
     state = wait_until_ended(server_url, session_id, SESSION_END_S)
     assert state["status"] == "finished" and state["frames_done"] == sent
+
+
+def wait_until_tracked(server_url: str, session_id: str, frames: int, timeout_s: float) -> None:
+    """Until the session has tracked ``frames`` (it may first wait in the queue behind an earlier
+    test's session); fails after ``timeout_s``."""
+    import httpx
+
+    headers, deadline = {"authorization": f"Bearer {TOKEN}"}, time.monotonic() + timeout_s
+    while (httpx.get(f"{server_url}/api/sessions/{session_id}", headers=headers).json().get("frames_done") or 0) < frames:
+        assert time.monotonic() < deadline, f"session {session_id} tracked no frame in {timeout_s} s"
+        time.sleep(0.3)
 
 
 def frames_on_server(out: str) -> int:
