@@ -226,3 +226,26 @@ def test_selection_rules(monkeypatch):
     backend(monkeypatch, "fast")
     with pytest.raises(ValueError):
         kernels.use_numba(f32)
+
+
+def test_a_one_thread_process_never_starts_numbas_thread_pool():
+    # The pool's idle OpenMP workers spin: the tracking and mapping processes, one thread
+    # each on two cores, ran at half speed while it was started. A fresh process, since this
+    # one may have started the pool in the 2-thread tests.
+    import subprocess
+    import sys
+
+    code = (
+        "import torch, numba.np.ufunc.parallel as pool\n"
+        "torch.set_num_threads(1)\n"
+        "from slam.kernels.fused import _run_every_kernel\n"
+        "_run_every_kernel()\n"
+        "assert not pool._is_initialized, 'one thread started the pool'\n"
+        "torch.set_num_threads(2)\n"
+        "_run_every_kernel()\n"
+        "print(pool._is_initialized)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    # Two threads do start it: the check above can see a started pool.
+    assert out.stdout.strip() == "True"

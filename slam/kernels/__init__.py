@@ -67,11 +67,14 @@ def use_numba(*tensors: torch.Tensor) -> bool:
 
 
 def set_threads() -> int:
-    """Give numba torch's thread count (``torch.set_num_threads`` rules both); returns it."""
+    """Give numba torch's thread count (``torch.set_num_threads`` rules both); returns it.
+    At one thread numba is left alone: ``numba.set_num_threads`` starts its thread pool, and
+    the kernels run serial copies (``numba_cpu._TwoWays``)."""
     import numba
 
     n = max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS))
-    numba.set_num_threads(n)
+    if n > 1:
+        numba.set_num_threads(n)
     return n
 
 

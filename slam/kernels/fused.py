@@ -126,7 +126,18 @@ def interpolate_with_slopes(points: torch.Tensor, voxel_index: torch.Tensor, vox
 
 
 def warm_up_kernels() -> None:
-    """Run every kernel once on a two-voxel map (compiles, or loads numba's disk cache)."""
+    """Run every kernel once on a two-voxel map (compiles, or loads numba's disk cache), in
+    its serial copy and, where torch has more than one thread, its parallel one."""
+    threads = torch.get_num_threads()
+    try:
+        for n in sorted({1, threads}):
+            torch.set_num_threads(n)
+            _run_every_kernel()
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _run_every_kernel() -> None:
     from ..config import DecoderConfig
     from ..decoder import Decoder
 
