@@ -1,16 +1,18 @@
 """The mapping process (paper: Mapping Process and Dynamic Voxel Management).
 
 For every tracked frame the mapper
-1. decides whether it is a keyframe: the ratio ``p_kf = N_c / N_o`` of voxels the frame would
-   newly allocate to the voxels it observes exceeds ``keyframe_ratio``, or no keyframe was
-   taken for ``keyframe_max_interval`` frames;
+1. decides whether it is a keyframe: the ratio ``p_kf = N_c / N_o`` exceeds
+   ``keyframe_ratio``, or no keyframe was taken for ``keyframe_max_interval`` frames. ``N_o``
+   counts the voxels the frame observes and ``N_c`` those of them that no keyframe has
+   observed yet: the paper's ``N_c`` is the voxels the frame would newly allocate, but here
+   every tracked frame allocates (step 2), so counting allocations would starve the test;
 2. allocates the voxels of every successfully tracked frame's back-projected depth (at depth
-   and +-tr, so the truncation band around the surface lies inside allocated voxels); the
-   keyframe ratio counts voxels no keyframe has observed, so allocating every frame does not
-   starve keyframe selection;
-3. jointly optimises embeddings, decoder and the poses of the keyframes in a window of
-   ``window_size`` frames (random earlier keyframes plus the newest frame; the first keyframe
-   is fixed to remove the gauge freedom);
+   and +-tr, so the truncation band around the surface lies inside allocated voxels);
+3. jointly optimises embeddings, decoder and keyframe poses over a window of ``window_size``
+   frames: random earlier keyframes, the newest keyframe and, when the frame is no keyframe,
+   the frame itself with its tracked pose held fixed (the paper optimises that pose too; this
+   keeps the tracker's pose as the frame's estimate). The first keyframe of a map is fixed to
+   remove the gauge freedom;
 4. at the end of a sequence, ``global_bundle_adjustment`` does the same over every keyframe
    of the submap (the paper's intra-map optimisation).
 

@@ -6,9 +6,10 @@ the camera frame, which keeps rotation and translation well conditioned far from
 origin), on the paper's four losses over ``N_t`` pixels with valid depth. Rays whose depth
 residual exceeds ``outlier_factor`` times the median are dropped.
 
-Two optimisers: ``adam`` (the paper's; new pixels each iteration if ``resample_rays``, the
-lowest-loss pose is returned) and ``gauss_newton`` (Levenberg-Marquardt on the same loss with
-the closed-form model of ``slam.gauss_newton``; one ray set, steps accepted only when the
+Two optimisers: ``adam`` (the paper's; new pixels each iteration if ``resample_rays``; the
+lowest-loss pose, or the last one with ``keep_best_iterate`` off, as in the release) and
+``gauss_newton`` (Levenberg-Marquardt on the same loss with the
+closed-form model of ``slam.gauss_newton``; one ray set, steps accepted only when the
 loss falls; optionally a prior towards the initial guess, ``tracking.motion_prior``, for the
 directions a plain wall leaves unobserved; and ``tracking.border_margin``, which leaves out
 rays ending near the map's border, whose misses would otherwise pull the pose back into the
@@ -317,6 +318,11 @@ class Tracker:
             sched.step()
             if float((torch.cat([rho, phi]).detach() - prev).norm()) < c.convergence_tol:
                 break
+        if not c.keep_best_iterate and np.isfinite(best[0]):
+            # The release's choice: the pose after the last step (its loss and ray statistics
+            # are those of the last evaluated iterate, one step before).
+            T_last = (T0_map @ se3_exp(torch.cat([rho, phi]))).detach()
+            return it, loss, T_last, hit_ratio, float(med)
         loss, T_best_map, hit_ratio, residual_med = best
         return it, loss, T_best_map, hit_ratio, residual_med
 

@@ -18,7 +18,7 @@ from slam.config import preset
 from slam.data import open_sequence
 from slam.features import Correspondences
 from slam.frames import TensorFrame, pixels_at, prepare_frame, sample_pixels, sample_stacked_pixels, stack_frames
-from slam.geometry import se3_inverse, so3_exp
+from slam.geometry import se3_inverse, se3_log, so3_exp
 from slam.losses import LossWeights, compute_losses
 from slam.mapping import Mapper, MapSnapshot, TrackedFrame
 from slam.maps import SubMap
@@ -305,6 +305,40 @@ def test_tracking_recovers_a_perturbed_pose(trained, frames, optimizer):
     assert 1 <= result.iterations <= CONFIG.tracking.iterations
 
 
+def assert_recovers_2cm(config, trained, frames) -> None:
+    """Tracking frame 0 from 2 cm off its GT pose ends well within 2 cm of it."""
+    fmap = FrozenMap(trained.mapper.snapshot(), config, CPU)
+    T_gt = gt_pose(frames[0])
+    delta = torch.eye(4)
+    delta[:3, 3] = torch.tensor([0.02, 0.0, 0.0])
+    result = Tracker(config, CPU).track(frames[0], fmap, T_gt @ delta)
+    assert result.ok and pose_error(result.T_world_cam, T_gt)[0] < 0.7 * 0.02
+
+
+@pytest.mark.parametrize("keep_best", [True, False])
+def test_adam_returns_the_best_iterate_or_the_last_one_as_the_release(trained, frames, keep_best):
+    # One evaluated iterate: the best is the start itself; the last is the pose after Adam's
+    # one step, which moves each twist coordinate by about lr whatever the gradient.
+    lr = 1e-3
+    config = replace(CONFIG, tracking=replace(CONFIG.tracking, optimizer="adam", iterations=1, lr_rot=lr,
+                                              lr_trans=lr, keep_best_iterate=keep_best))
+    fmap = FrozenMap(trained.mapper.snapshot(), config, CPU)
+    T_init = gt_pose(frames[0])
+    result = Tracker(config, CPU).track(frames[0], fmap, T_init)
+    moved = float(se3_log(se3_inverse(T_init.double()) @ result.T_world_cam.double()).abs().max())
+    if keep_best:
+        assert moved < 1e-6
+    else:
+        assert lr * 0.5 < moved < lr * 1.5, moved
+
+
+def test_the_paper_preset_tracker_recovers_a_perturbed_pose(trained, frames):
+    # The paper's tracker (Adam, new rays each iteration, the last iterate, whole rays, every
+    # voxel) on the test map; only the ray count is cut to keep the test fast.
+    paper = preset("paper").tracking
+    assert_recovers_2cm(replace(CONFIG, tracking=replace(paper, num_rays=256, iterations=30)), trained, frames)
+
+
 def test_interior_rays_leave_out_points_near_the_map_border():
     # A 5 x 5 x 1 slab of 0.2 m voxels: x, y in [0, 1) m, z in [0, 0.2) m.
     ijk = torch.tensor([[i, j, 0] for i in range(5) for j in range(5)])
@@ -321,12 +355,7 @@ def test_interior_rays_leave_out_points_near_the_map_border():
 @pytest.mark.parametrize("margin", [0.0, 0.05])
 def test_tracking_with_a_border_margin_recovers_a_perturbed_pose(trained, frames, margin):
     config = replace(CONFIG, tracking=replace(CONFIG.tracking, optimizer="gauss_newton", border_margin=margin))
-    fmap = FrozenMap(trained.mapper.snapshot(), config, CPU)
-    T_gt = gt_pose(frames[0])
-    delta = torch.eye(4)
-    delta[:3, 3] = torch.tensor([0.02, 0.0, 0.0])
-    result = Tracker(config, CPU).track(frames[0], fmap, T_gt @ delta)
-    assert result.ok and pose_error(result.T_world_cam, T_gt)[0] < 0.7 * 0.02
+    assert_recovers_2cm(config, trained, frames)
 
 
 def test_tracking_fails_far_outside_the_map(trained, frames):
