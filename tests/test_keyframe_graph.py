@@ -90,6 +90,12 @@ def test_a_loop_bends_the_drift_out_inside_maps():
     last = [k for k in keyframes if k.map_id == 2]
     motion = rigid_motion([maps[2].T_world_map @ k.T_map_cam for k in last], [solved.keyframe_poses[(0, k.frame_index)] for k in last])
     assert np.allclose(solved.map_poses[2], motion @ maps[2].T_world_map, atol=1e-9)
+    # ...except the world's first map, whose first keyframe anchors the world: it stays put
+    # while its other keyframes move (a best fit over them would move the world's origin).
+    assert np.array_equal(solved.map_poses[0], maps[0].T_world_map)
+    moved = max(np.abs(solved.keyframe_poses[(0, k.frame_index)] - maps[0].T_world_map @ k.T_map_cam).max()
+                for k in keyframes if k.map_id == 0)
+    assert moved > 1e-3
 
 
 def test_a_wrong_loop_is_switched_off():

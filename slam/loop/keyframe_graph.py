@@ -17,7 +17,8 @@ What follows from the solution:
   (``slam.outputs.refine_with_keyframes``);
 - each map's ``T_world_map`` becomes the rigid motion that best carries its keyframes from
   their old to their new poses, and the keyframes' poses in the map are re-expressed under
-  it. The neural map itself stays rigid: what is left inside a map is the part of the drift
+  it; the world's first map keeps its pose (its first keyframe anchors the graph, and the
+  world is that map's frame). The neural map itself stays rigid: what is left inside a map is the part of the drift
   that its geometry holds (fixing that needs re-fitting the map to the new poses).
 
 Odometry edges get the uncertainty the tracker reported: each tracked frame's curvature
@@ -240,7 +241,9 @@ def optimise_keyframe_graph(maps: list[MapNode], keyframes: list[KeyframeNode], 
     map_poses: dict[int, np.ndarray] = {}
     for m in maps:
         members = [i for i, k in enumerate(nodes) if k.map_id == m.map_id]
-        if not members:
+        if not members or (anchors and m.map_id == maps[0].map_id):
+            # The world's first map stays where its anchor keyframe holds the world: a best
+            # fit over its keyframes would move the world's origin with them.
             map_poses[m.map_id] = np.asarray(m.T_world_map, np.float64)
             continue
         motion = rigid_motion([before[i] for i in members], [after[i] for i in members])
