@@ -295,16 +295,19 @@ def test_ctrl_c_finishes_the_session_with_the_frames_sent(server_url, tum_folder
 
     root, _ = tum_folder
     process = subprocess.Popen([sys.executable, "-m", "server.cli", "stream", str(root), "--url", server_url,
-                                "--token", TOKEN, "--preset", "test", "--fps", "0.25"],
+                                "--token", TOKEN, "--preset", "test", "--fps", "0.05"],
                                cwd=Path(__file__).resolve().parents[1], stdout=subprocess.PIPE,
                                stderr=subprocess.PIPE, text=True)
     try:
         first = process.stdout.readline()
         assert first.startswith("voxfusion stream: session "), first + process.stderr.read()
         session_id = first.split()[3]
-        # Interrupt once the server has tracked a frame (a fixed 1.5 s sent none under load 15);
-        # at 0.25 Hz the 8 frames take 32 s, so the stream is still running then.
+        # Interrupt once the server has tracked a frame (a fixed 1.5 s sent none under load 15).
+        # At 0.05 Hz the 8 frames take 160 s, more than the wait's bound, so the stream is still
+        # sending then (at 0.25 Hz, a session queued 32 s behind an earlier test's had been
+        # sent whole and finished before the interrupt).
         wait_until_tracked(server_url, session_id, 1, 120)
+        assert process.poll() is None, "the stream ended before the interrupt"
         os.kill(process.pid, signal.SIGINT)
         out, err = process.communicate(timeout=60)
     finally:
