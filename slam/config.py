@@ -395,7 +395,8 @@ def _cpu() -> SLAMConfig:
         # step forward costs and a step back is kept, frame after frame where nothing else
         # fixes the direction of travel. Same-load A/B, one bench_loops.py run each: laps hall
         # 16.2 -> 7.0 cm with loops (41.4 -> 19.7 cm without); fr1/rpy 150 frames 4.0 -> 4.5 cm
-        # (earlier runs without it: 3.8-4.6 cm), fr1/desk 0.29 -> 0.31 cm.
+        # (earlier runs without it: 3.8-4.6 cm), fr1/desk 0.29 -> 0.31 cm, synthetic walk 200
+        # frames 0.69 -> 0.83 cm (a young map's border is near everything the camera sees).
         tracking=TrackingConfig(optimizer="gauss_newton", num_rays=512, iterations=6,
                                 feature_count=1000, feature_weight=0.003, motion_prior=0.01,
                                 feature_dense_check=True, border_margin=0.1),
