@@ -146,6 +146,19 @@ def test_server_going_away_mid_stream_exits_non_zero(tmp_path, monkeypatch, caps
     assert "could not finish session" in err and "the server cannot be reached" in err
 
 
+def wait_until_idle(url: str, token: str | None = None, timeout_s: float = 300.0) -> None:
+    """Until no session of the server is queued or running (an earlier test's may still be
+    refining): a test that times its own session then starts it at once. Fails after
+    ``timeout_s``."""
+    import httpx
+
+    headers = {"authorization": f"Bearer {token}"} if token else {}
+    deadline = time.monotonic() + timeout_s
+    while any(s["status"] in ("queued", "running") for s in httpx.get(f"{url}/api/sessions", headers=headers).json()):
+        assert time.monotonic() < deadline, f"the server still had sessions running after {timeout_s} s"
+        time.sleep(0.3)
+
+
 def when_tracking(url: str, then, frames: int = 1, timeout_s: float = 300.0, token: str | None = None
                   ) -> threading.Thread:
     """A thread that calls ``then()`` once the server's running session has tracked ``frames``."""
@@ -294,8 +307,9 @@ def test_ctrl_c_finishes_the_session_with_the_frames_sent(server_url, tum_folder
     import sys
 
     root, _ = tum_folder
+    wait_until_idle(server_url, TOKEN)
     process = subprocess.Popen([sys.executable, "-m", "server.cli", "stream", str(root), "--url", server_url,
-                                "--token", TOKEN, "--preset", "test", "--fps", "0.05"],
+                                "--token", TOKEN, "--preset", "test", "--fps", "0.25"],
                                cwd=Path(__file__).resolve().parents[1], stdout=subprocess.PIPE,
                                stderr=subprocess.PIPE, text=True)
     try:
@@ -303,10 +317,10 @@ def test_ctrl_c_finishes_the_session_with_the_frames_sent(server_url, tum_folder
         assert first.startswith("voxfusion stream: session "), first + process.stderr.read()
         session_id = first.split()[3]
         # Interrupt once the server has tracked a frame (a fixed 1.5 s sent none under load 15).
-        # At 0.05 Hz the 8 frames take 160 s, more than the wait's bound, so the stream is still
-        # sending then (at 0.25 Hz, a session queued 32 s behind an earlier test's had been
-        # sent whole and finished before the interrupt).
-        wait_until_tracked(server_url, session_id, 1, 120)
+        # The server was idle, so the session started at once; at 0.25 Hz the 8 frames take
+        # 32 s, and the stream is still sending then (a session queued behind an earlier
+        # test's had been sent whole before it tracked a frame: exit 0).
+        wait_until_tracked(server_url, session_id, 1, 30)
         assert process.poll() is None, "the stream ended before the interrupt"
         os.kill(process.pid, signal.SIGINT)
         out, err = process.communicate(timeout=60)
@@ -766,6 +780,7 @@ def test_record3d_phone_unplugged_mid_stream_end_to_end(server_url, tmp_path, mo
                         np.full((30, 40), 2, np.uint8), (K[0, 0], K[1, 1], K[0, 2], K[1, 2])) for f in sequence]
     fake = FakeUsbmuxd(tmp_path / "usbmuxd", (orbit + orbit[::-1]) * 40, interval_s=0.1)
     monkeypatch.setenv("USBMUXD_SOCKET_ADDRESS", fake.address)
+    wait_until_idle(server_url, TOKEN)  # the watcher looks at whichever session runs
     watcher = when_tracking(server_url, fake.close, frames=3, token=TOKEN)
     try:
         code = main(["stream", "record3d", "--url", server_url, "--token", TOKEN, "--preset", "test", "--quiet"])
