@@ -309,18 +309,22 @@ def test_ctrl_c_finishes_the_session_with_the_frames_sent(server_url, tum_folder
     root, _ = tum_folder
     wait_until_idle(server_url, TOKEN)
     process = subprocess.Popen([sys.executable, "-m", "server.cli", "stream", str(root), "--url", server_url,
-                                "--token", TOKEN, "--preset", "test", "--fps", "0.25"],
+                                "--token", TOKEN, "--preset", "test", "--fps", "0.1"],
                                cwd=Path(__file__).resolve().parents[1], stdout=subprocess.PIPE,
-                               stderr=subprocess.PIPE, text=True)
+                               stderr=subprocess.PIPE, text=True,
+                               # A suite started in the background by a non-interactive shell
+                               # inherits SIGINT ignored, and Python then keeps it ignored:
+                               # the client would stream on to the end (exit 0).
+                               preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         first = process.stdout.readline()
         assert first.startswith("voxfusion stream: session "), first + process.stderr.read()
         session_id = first.split()[3]
         # Interrupt once the server has tracked a frame (a fixed 1.5 s sent none under load 15).
-        # The server was idle, so the session started at once; at 0.25 Hz the 8 frames take
-        # 32 s, and the stream is still sending then (a session queued behind an earlier
-        # test's had been sent whole before it tracked a frame: exit 0).
-        wait_until_tracked(server_url, session_id, 1, 30)
+        # The server was idle, so the session started at once; at 0.1 Hz the 8 frames take
+        # 80 s, more than the wait's bound, so the stream is still sending then (a session
+        # queued behind an earlier test's had been sent whole before it tracked a frame).
+        wait_until_tracked(server_url, session_id, 1, 60)
         assert process.poll() is None, "the stream ended before the interrupt"
         os.kill(process.pid, signal.SIGINT)
         out, err = process.communicate(timeout=60)
