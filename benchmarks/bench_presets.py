@@ -62,9 +62,9 @@ def main() -> int:
     print(load_line())
     with tempfile.TemporaryDirectory(prefix="bench-presets-") as tmp:
         work = Path(tmp)
-        for name, source, frames in sources(work, args.rpy_frames, args.walk_frames):
+        for window, (name, source, frames) in enumerate(sources(work, args.rpy_frames, args.walk_frames)):
             for preset in presets:
-                r = run_one(source, frames, preset, work / f"{preset}_{len(results)}", args.timeout)
+                r = run_one(source, frames, preset, work / f"{preset}_{window}", args.timeout)
                 results.setdefault(name, {})[preset] = r
                 print(name, preset, json.dumps(r)[:300], flush=True)
     rows = []

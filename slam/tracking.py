@@ -8,14 +8,13 @@ residual exceeds ``outlier_factor`` times the median are dropped.
 
 Two optimisers: ``adam`` (the paper's; new pixels each iteration if ``resample_rays``; the
 lowest-loss pose, or the last one with ``keep_best_iterate`` off, as in the release) and
-``gauss_newton`` (Levenberg-Marquardt on the same loss with the
-closed-form model of ``slam.gauss_newton``; one ray set, steps accepted only when the
-loss falls; optionally a prior towards the initial guess, ``tracking.motion_prior``, for the
-directions a plain wall leaves unobserved; and ``tracking.border_margin``, which leaves out
-rays ending near the map's border, whose misses would otherwise pull the pose back into the
-map). Tracking reports failure when too few rays hit the map, the median depth residual
-stays too large or the estimate jumped implausibly far
-(then the guess is returned).
+``gauss_newton`` (Levenberg-Marquardt on the same loss with the closed-form model of
+``slam.gauss_newton``; one ray set, steps accepted only when the loss falls; optionally a
+prior towards the initial guess, ``tracking.motion_prior``, for the directions a plain wall
+leaves unobserved; and ``tracking.border_margin``, which leaves out rays ending near the
+map's border, whose misses would otherwise pull the pose back into the map). Tracking
+reports failure when too few rays hit the map, the median depth residual stays too large or
+the estimate jumped implausibly far (then the guess is returned).
 
 Optionally (``tracking.feature_count`` > 0, the ``cpu`` preset) sparse ORB correspondences
 to the previous frame (``slam.features``) start the optimisation at their PnP pose and add

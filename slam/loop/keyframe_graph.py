@@ -18,8 +18,9 @@ What follows from the solution:
 - each map's ``T_world_map`` becomes the rigid motion that best carries its keyframes from
   their old to their new poses, and the keyframes' poses in the map are re-expressed under
   it; the world's first map keeps its pose (its first keyframe anchors the graph, and the
-  world is that map's frame). The neural map itself stays rigid: what is left inside a map is the part of the drift
-  that its geometry holds (fixing that needs re-fitting the map to the new poses).
+  world is that map's frame). The neural map itself stays rigid: what is left inside a map
+  is the part of the drift that its geometry holds (fixing that needs re-fitting the map to
+  the new poses).
 
 Odometry edges get the uncertainty the tracker reported: each tracked frame's curvature
 (``TrackingResult.information``) becomes a covariance (``frame_covariance``) that is large
