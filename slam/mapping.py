@@ -24,6 +24,7 @@ from __future__ import annotations
 import random
 import time
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 import torch
@@ -89,6 +90,9 @@ class MapSnapshot:
     corner_updates: np.ndarray | None = None
     """(Nc,) int32: optimisation steps in which each embedding row received a gradient
     (None: unknown, every voxel counts as trained)."""
+    frames_integrated: int = 0
+    """Tracked frames the mapping side had integrated (all maps and agents) when this copy
+    was taken: the tracker compares it with the frames it sent to know how old the map is."""
 
 
 @dataclass(frozen=True)
@@ -292,15 +296,17 @@ class Mapper:
         return chosen + [submap.keyframes[-1]]
 
     def optimize(self, submap: SubMap, iterations: int,
-                 current: tuple[TensorFrame, torch.Tensor] | None = None) -> dict[str, float]:
+                 current: tuple[TensorFrame, torch.Tensor] | None = None,
+                 interrupted: Callable[[], bool] | None = None) -> dict[str, float]:
         """Joint optimisation over the window; ``current`` adds the newest non-keyframe with a
-        fixed pose. Returns the last iteration's losses."""
+        fixed pose; ``interrupted`` is asked before each iteration whether to stop (new work
+        arrived). Returns the last iteration's losses."""
         m = self.config.mapping
         window = self._window(submap)
         if current is not None:
             window = window[-(m.window_size - 1):] if m.window_size > 1 else []
         fixed = [] if current is None else [current]
-        return self._joint_optimisation(submap, window, fixed, iterations, m.num_rays)
+        return self._joint_optimisation(submap, window, fixed, iterations, m.num_rays, interrupted=interrupted)
 
     def global_bundle_adjustment(self, submap: SubMap, iterations: int, num_rays: int,
                                  deadline: float | None = None) -> dict[str, float]:
@@ -321,7 +327,8 @@ class Mapper:
 
     def _joint_optimisation(self, submap: SubMap, keyframes: list[Keyframe],
                             fixed: list[tuple[TensorFrame, torch.Tensor]], iterations: int,
-                            rays_per_frame: int, deadline: float | None = None) -> dict[str, float]:
+                            rays_per_frame: int, deadline: float | None = None,
+                            interrupted: Callable[[], bool] | None = None) -> dict[str, float]:
         """Adam on embeddings and decoder (and, with ``optimize_poses``, a twist per keyframe
         but the submap's first) over ``rays_per_frame`` rays of every keyframe and of every
         ``fixed`` (frame, T_map_cam). Keyframe poses take their twists at the end."""
@@ -342,7 +349,7 @@ class Mapper:
         self.last_iterations = 0
         for _ in range(iterations):
             tq = time.perf_counter()
-            if deadline is not None and tq > deadline:
+            if (deadline is not None and tq > deadline) or (interrupted is not None and interrupted()):
                 break
             self.last_iterations += 1
             batch = self._sample(sources, stack, rays_per_frame)

@@ -20,8 +20,9 @@ import queue
 import signal
 import time
 import traceback
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import torch
@@ -30,7 +31,7 @@ from .config import SLAMConfig, config_from_dict
 from .data.frame import Frame
 from .events import KeyframeEvent, MapUpdateEvent, PosesUpdatedEvent
 from .frames import prepare_frame
-from .mapping import Mapper, NewMap, TrackedFrame
+from .mapping import Mapper, MapSnapshot, NewMap, TrackedFrame
 
 _POLL_SECONDS = 0.2
 END = None
@@ -153,6 +154,11 @@ class _MapperSide:
     keyframe_graph: dict | None = None
     odometry_covariance: dict[int, np.ndarray] = field(default_factory=dict)
     """agent -> covariances of its frames tracked since its last keyframe, summed."""
+    frames_integrated: int = 0
+
+    def snapshot(self, submap) -> MapSnapshot:
+        """The tracker's copy of ``submap``, stamped with the frames integrated so far."""
+        return replace(self.mapper.snapshot(submap), frames_integrated=self.frames_integrated)
 
 
 def _make_side(config: SLAMConfig, device: torch.device, out_dir: Path, emit_meshes: bool, seed: int) -> _MapperSide:
@@ -245,6 +251,7 @@ def _integrate(side: _MapperSide, msg: FrameMessage, optimize: bool) -> list[Rep
         side.keyframes_since_checkpoint = 0
         _save_map(side)
     side.busy += time.perf_counter() - t0
+    side.frames_integrated += 1
     return out
 
 
@@ -262,7 +269,7 @@ def _close_loops(side: _MapperSide, submap, frame: Frame) -> list[Reply]:
     out += [("event", c) for c in closures]
     if closures:
         for active in mapper.active.values():
-            out.append(("snapshot", mapper.snapshot(active)))
+            out.append(("snapshot", side.snapshot(active)))
         if side.emit_meshes:
             moved = {c.map_id for c in closures} | {c.match_map for c in closures}
             for map_id in sorted(moved):
@@ -374,20 +381,21 @@ def _integrate_batch(side: _MapperSide, work: list[FrameMessage]) -> list[Reply]
     for i, msg in enumerate(work):
         out += _integrate(side, msg, optimize=last[msg.agent] == i)
     for agent in sorted(last):
-        out.append(("snapshot", side.mapper.snapshot(side.mapper.active[agent])))
+        out.append(("snapshot", side.snapshot(side.mapper.active[agent])))
     return out
 
 
-def _idle_step(side: _MapperSide) -> list[Reply]:
+def _idle_step(side: _MapperSide, frame_waiting: Callable[[], bool]) -> list[Reply]:
     """Nothing queued: keep optimising the active maps (the paper's mapper never idles), so
-    the tracker gets a better map by the time the next frame arrives."""
+    the tracker gets a better map by the time the next frame arrives; a frame that arrives
+    meanwhile stops the step, rather than wait for it and reach the tracker's map later."""
     mapper = side.mapper
     t0 = time.perf_counter()
     out: list[Reply] = []
     for submap in list(mapper.active.values()):
-        mapper.optimize(submap, mapper.config.mapping.iterations)
+        mapper.optimize(submap, mapper.config.mapping.iterations, interrupted=frame_waiting)
         mapper.version += 1
-        out.append(("snapshot", mapper.snapshot(submap)))
+        out.append(("snapshot", side.snapshot(submap)))
     side.busy += time.perf_counter() - t0
     return out
 
@@ -414,7 +422,7 @@ def _mapping_process(config_dict: dict, device_name: str, out_dir: str, emit_mes
             try:
                 msg = frames.get(timeout=0 if side.mapper.active else _POLL_SECONDS)
             except queue.Empty:
-                for reply in _idle_step(side):
+                for reply in _idle_step(side, lambda: not frames.empty()):
                     replies.put(reply)
                 continue
             batch = [msg]

@@ -226,6 +226,22 @@ def test_global_bundle_adjustment_moves_every_keyframe_but_the_first():
     assert all(torch.equal(a, kf.T_map_cam) for a, kf in zip(held, submap.keyframes))
 
 
+def test_an_interrupted_optimisation_stops_before_its_next_iteration(frames):
+    # The mapping process's idle steps stop this way when a frame arrives.
+    mapper = Mapper(CONFIG, CPU, seed=0)
+    mapper.process(TrackedFrame(frames[0], gt_pose(frames[0])), optimize=False)
+    asked: list[int] = []
+
+    def interrupted() -> bool:
+        asked.append(1)
+        return len(asked) > 3
+
+    losses = mapper.optimize(mapper.current, 10, interrupted=interrupted)
+    assert mapper.last_iterations == 3 and len(asked) == 4 and losses
+    mapper.optimize(mapper.current, 2)
+    assert mapper.last_iterations == 2
+
+
 def test_final_budget_caps_iterations_by_keyframes_and_time_by_the_run():
     from slam.mapping_process import final_budget
 
