@@ -153,7 +153,8 @@ def _agent_joined(agent: int, stats: "MapperStats | None") -> bool:
 
 def write_outputs(out: Path, config: SLAMConfig, tracks: list["AgentTrack"], stats: "MapperStats | None",
                   status: str, error: str | None, elapsed: float, total: int | None, tracking_busy: float,
-                  use_gt_poses: bool, map_poses: dict[int, np.ndarray] | None = None) -> "RunResult":
+                  use_gt_poses: bool, map_poses: dict[int, np.ndarray] | None = None,
+                  map_waits: tuple[int, float] = (0, 0.0)) -> "RunResult":
     from .eval.trajectory import Trajectory, write_tum
     from .runtime import RunResult
 
@@ -205,11 +206,13 @@ def write_outputs(out: Path, config: SLAMConfig, tracks: list["AgentTrack"], sta
                                     if stats and stats.refinement else None),
         "keyframe_graph": stats.keyframe_graph if stats else None,
         "tracking_failures": sum(t.tracking_failures for t in tracks),
+        "map_waits": map_waits[0],
         "frames_interpolated": sum(t.interpolated for t in trajectories),
         "timings_s": {
             "wall": elapsed,
             "tracking_busy": tracking_busy,
             "mapping_busy": mapping_busy,
+            "tracking_waited_for_map": map_waits[1],
             **({f"mapping_{k}": v for k, v in stats.timings.items()} if stats else {}),
         },
         "busy_share": {

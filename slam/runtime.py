@@ -132,6 +132,11 @@ class _TrackingSide:
     busy: float = 0.0
     mapper_stats: MapperStats | None = None
     loops: int = 0
+    frames_sent: int = 0
+    """Frames handed to the mapping side; ``frames_integrated`` of them are in the newest snapshots."""
+    frames_integrated: int = 0
+    map_waits: int = 0
+    map_wait_seconds: float = 0.0
 
     def frozen_map(self, map_id: int) -> FrozenMap:
         """The tracker's copy of a map, rebuilt only when a newer snapshot arrived, placed
@@ -184,6 +189,7 @@ def _handle_replies(replies: list[tuple[str, object]], side: _TrackingSide, emit
         if kind == "snapshot":
             snap: MapSnapshot = payload  # type: ignore[assignment]
             side.snapshots[snap.map_id] = snap
+            side.frames_integrated = max(side.frames_integrated, snap.frames_integrated)
         elif kind == "map_poses":
             side.move_maps(payload)  # type: ignore[arg-type]
         elif kind == "event":
@@ -223,6 +229,16 @@ def _track_map(side: _TrackingSide, track: AgentTrack, channel, emit) -> int:
             return parent
         _handle_replies(channel.poll(block=True), side, emit)
     return track.active_map
+
+
+def _wait_for_map(side: _TrackingSide, lag: int, channel, emit) -> None:
+    """Block until the mapper has integrated all but ``lag`` of the frames sent to it (its
+    snapshots say how many they hold)."""
+    t0 = time.perf_counter()
+    side.map_waits += 1
+    while side.frames_integrated < side.frames_sent - lag:
+        _handle_replies(channel.poll(block=True), side, emit)
+    side.map_wait_seconds += time.perf_counter() - t0
 
 
 _MIN_TRACKABLE_DEPTH = 0.01
@@ -292,6 +308,9 @@ def _estimate_pose(side: _TrackingSide, track: AgentTrack, frame: Frame, raw: Fr
         _count_failure(track, config)
         T_mc = np.linalg.inv(side.map_poses[track.active_map]) @ T
         return None, FrameRecord(frame.index, float(frame.timestamp), track.active_map, T_mc, False, gt)
+    lag = config.runtime.max_map_lag
+    if lag >= 0 and side.frames_integrated < side.frames_sent - lag:
+        _wait_for_map(side, lag, channel, emit)
     t0 = time.perf_counter()
     map_id = _track_map(side, track, channel, emit)
     fmap = side.frozen_map(map_id)
@@ -401,6 +420,7 @@ def run_slam(sources: list[Iterable[Frame]], config: SLAMConfig, out_dir: str | 
                            K=np.asarray(frame.K, np.float64), image_size=(frame.width, frame.height)))
             if msg is not None:
                 channel.submit(msg)
+                side.frames_sent += 1
             _handle_replies(channel.poll(), side, emit)
             done += 1
             fps = done / max(time.perf_counter() - started, 1e-9)
@@ -442,7 +462,8 @@ def run_slam(sources: list[Iterable[Frame]], config: SLAMConfig, out_dir: str | 
     emit(PhaseEvent("writing"))
     tracks = sorted(side.agents.values(), key=lambda t: t.agent) if side is not None else []
     result = write_outputs(out, config, tracks, side.mapper_stats if side else None, status, error, elapsed, total,
-                           side.busy if side else 0.0, use_gt_poses, side.map_poses if side else None)
+                           side.busy if side else 0.0, use_gt_poses, side.map_poses if side else None,
+                           (side.map_waits, side.map_wait_seconds) if side else (0, 0.0))
     if side is not None:
         emit(_stats_event(side, total, result.fps, started, done, ate=result.ate_rmse))
     emit(FinishedEvent(status, error))

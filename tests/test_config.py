@@ -102,6 +102,7 @@ def test_json_file_overrides_field_by_field(tmp_path):
     ({"runtime": {"processes": 1}}, "runtime.processes must be bool"),
     ({"render": {"truncation": "0.1"}}, "render.truncation must be float"),
     ({"runtime": {"device": 0}}, "runtime.device must be str"),
+    ({"runtime": {"max_map_lag": -2}}, "runtime.max_map_lag must be -1"),
 ])
 def test_bad_overrides_raise_config_error_naming_them(tmp_path, payload, message):
     with pytest.raises(ConfigError, match=message.replace(".", r"\.")):
