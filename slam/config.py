@@ -320,7 +320,8 @@ class RuntimeConfig:
     many frames old (0: every frame sees the map with its predecessor; -1: no wait, only the
     queue bounds how far the tracker runs ahead). Accuracy for speed where the map is young
     everywhere the camera looks: synthetic laps hall, 780 frames, loops on, one run each,
-    -1 / 1 / 0: 7.44 / 6.24 / 4.88 cm ATE at 3.08 / 1.55 / 1.25 frames/s; TUM fr1/rpy 150
+    -1 / 1 / 0: 7.44 / 6.24 / 4.88 cm ATE at 3.08 / 1.55 / 1.25 frames/s (a second lag-0
+    run: 5.35 cm at 0.92; two more without a wait: 5.86 and 6.42 cm); TUM fr1/rpy 150
     frames, -1 / 0: 4.37 / 4.71 cm at 2.00 / 0.88 frames/s. Off in every preset: real
     sequences pay the speed and gain nothing."""
     checkpoint_every_keyframes: int = 10
