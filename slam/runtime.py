@@ -233,7 +233,9 @@ def _track_map(side: _TrackingSide, track: AgentTrack, channel, emit) -> int:
 
 def _wait_for_map(side: _TrackingSide, lag: int, channel, emit) -> None:
     """Block until the mapper has integrated all but ``lag`` of the frames sent to it (its
-    snapshots say how many they hold)."""
+    snapshots say how many they hold); -1: no wait. Counts the waits that blocked."""
+    if lag < 0 or side.frames_integrated >= side.frames_sent - lag:
+        return
     t0 = time.perf_counter()
     side.map_waits += 1
     while side.frames_integrated < side.frames_sent - lag:
@@ -308,9 +310,7 @@ def _estimate_pose(side: _TrackingSide, track: AgentTrack, frame: Frame, raw: Fr
         _count_failure(track, config)
         T_mc = np.linalg.inv(side.map_poses[track.active_map]) @ T
         return None, FrameRecord(frame.index, float(frame.timestamp), track.active_map, T_mc, False, gt)
-    lag = config.runtime.max_map_lag
-    if lag >= 0 and side.frames_integrated < side.frames_sent - lag:
-        _wait_for_map(side, lag, channel, emit)
+    _wait_for_map(side, config.runtime.max_map_lag, channel, emit)
     t0 = time.perf_counter()
     map_id = _track_map(side, track, channel, emit)
     fmap = side.frozen_map(map_id)
