@@ -4,7 +4,8 @@
 #
 #   bash scripts/container-build.sh [base|plain|ray|all]      (default: all)
 #
-# Needs Debian's podman, runc and debootstrap (apt-get install podman runc debootstrap) and root.
+# Needs Debian's podman, runc, debootstrap and python3-yaml (apt-get install podman runc debootstrap
+# python3-yaml) and root.
 # No Docker daemon and no Docker Hub here, so:
 #   * storage driver vfs and runtime runc (podman --storage-driver vfs --runtime runc), with a
 #     containers.conf that sets no default ulimits (CONTAINERS_CONF);
@@ -14,7 +15,8 @@
 #     it holds a torch wheel; its 2.13.0+cpu sorts above PyPI's CUDA 2.13.0), else from
 #     PyTorch's CPU index (TORCH_PIP_ARGS build argument);
 #   * pip in the build reaches PyPI with this host's CA bundle (/etc/ssl/certs, mounted).
-# Containers use the host's network and every server and Ray node binds 127.0.0.1.
+# The plain image's container uses the host's network and binds 127.0.0.1; the Ray check runs
+# in a pod that has no network but loopback (check_ray says why).
 # Prints the build times, image sizes and each end-to-end check; exits non-zero on a failure.
 set -euo pipefail
 
@@ -29,9 +31,11 @@ export CONTAINERS_CONF="$WORK/containers.conf"
 printf '[containers]\ndefault_ulimits = []\n' > "$CONTAINERS_CONF"
 PODMAN=(podman --storage-driver vfs --runtime runc)
 NAMES=()
+PODS=()
 
 cleanup() {
     for name in "${NAMES[@]}"; do "${PODMAN[@]}" rm -f "$name" >/dev/null 2>&1 || true; done
+    for pod in "${PODS[@]}"; do "${PODMAN[@]}" pod rm -f "$pod" >/dev/null 2>&1 || true; done
 }
 trap cleanup EXIT
 
@@ -87,30 +91,54 @@ check_plain() {
     drive "$port" "plain image" || { "${PODMAN[@]}" logs "$name" | tail -30; return 1; }
 }
 
+compose_service() {  # compose_service SERVICE: its shell command, then its environment as NAME=VALUE lines
+    python3 - "$REPO/deploy/compose.ray.yml" "$1" <<'PY'
+import sys
+
+import yaml  # Debian: python3-yaml
+
+service = yaml.safe_load(open(sys.argv[1]))["services"][sys.argv[2]]
+command = service["command"]
+assert command[:2] == ["sh", "-c"], f"{sys.argv[2]}: expected sh -c COMMAND, got {command}"
+print(command[2].replace("$$", "$"))  # compose's escape for a literal $
+for name, value in (service.get("environment") or {}).items():
+    print(f"{name}={value}")
+PY
+}
+
 check_ray() {
-    # Known limit (2026-12-02): `ray start` rewrites --node-ip-address=127.0.0.1 to the machine's
-    # interface address (ray.scripts: resolve_ip_for_localhost), and for a worker node the switch
-    # that keeps loopback (RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0) makes it refuse to start. Where
-    # only loopback may be used, the Ray check therefore does not run unless asked for.
-    if [[ ${VOXFUSION_CONTAINER_RAY_ANY_IP:-0} != 1 ]]; then
-        log "ray check skipped: its worker node would bind the interface address (set VOXFUSION_CONTAINER_RAY_ANY_IP=1)"
-        return 3
-    fi
-    local port gcs agent head=voxfusion-ray-head worker=voxfusion-ray-worker
-    port=$(free_port); gcs=$(free_port); agent=$(free_port)
-    # The API on the head (a driver needs a raylet of its own; the head has no CPUs for sessions).
-    run_container "$head" localhost/voxfusion-ray -e VOXFUSION_EXECUTOR=ray -e VOXFUSION_RAY_ADDRESS="127.0.0.1:$gcs" \
-        -e VOXFUSION_VIEWER_PORT=-1 -e VOXFUSION_RAY_SESSION_CPUS=2 -e RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0 -- \
-        sh -c "ray start --head --port=$gcs --num-cpus=0 --include-dashboard=false --disable-usage-stats \
-               --node-ip-address=127.0.0.1 && exec voxfusion serve --host 127.0.0.1 --port $port"
-    # Both nodes share the host's network: the worker's dashboard agent needs a port of its own.
-    # `ray start` rewrites a 127.0.0.1 address to the machine's interface address, where this head
-    # does not listen; a name for 127.0.0.1 is left alone.
-    run_container "$worker" localhost/voxfusion-ray --add-host voxfusion-head:127.0.0.1 -- \
-        sh -c "sleep 10; until ray start --address=voxfusion-head:$gcs --node-ip-address=127.0.0.1 --num-cpus=2 \
-               --dashboard-agent-listen-port=$agent --disable-usage-stats --block; do sleep 3; done"
-    drive "$port" "ray images (API on the head, one worker node)" --ray \
+    # The compose file's own commands (deploy/compose.ray.yml: the API on the Ray head, one
+    # worker node), each in its own container, in a pod whose network namespace holds only the
+    # loopback interface (--network none). There `ray start` keeps 127.0.0.1: it swaps a loopback
+    # --node-ip-address for the address of the route to the internet, and without an interface
+    # there is none (on the host's network it took the machine's interface address, where only
+    # loopback may be used here). Adapted to the shared namespace: the hosts file names `api`
+    # (compose's service name) and the pod's host name 127.0.0.1, the worker's dashboard agent
+    # takes a port of its own, and the drive script runs inside the pod.
+    local pod=voxfusion-ray-pod head=voxfusion-ray-head worker=voxfusion-ray-worker token=container-check
+    local head_command worker_command agent=52400
+    head_command=$(compose_service api | head -1)
+    worker_command=$(compose_service ray-worker | head -1)
+    worker_command=${worker_command/ --block/ --dashboard-agent-listen-port=$agent --block}
+    local head_env=()
+    while IFS= read -r line; do
+        [[ $line == VOXFUSION_TOKEN=* ]] && line="VOXFUSION_TOKEN=$token"
+        head_env+=(-e "$line")
+    done < <(compose_service api | tail -n +2)
+    printf '127.0.0.1 localhost api voxfusion-ray\n' > "$WORK/hosts"
+    "${PODMAN[@]}" pod rm -f "$pod" >/dev/null 2>&1 || true
+    "${PODMAN[@]}" pod create --name "$pod" --network none --hostname voxfusion-ray >/dev/null
+    PODS+=("$pod")
+    local mounts=(-v "$WORK/hosts:/etc/hosts:ro" -v "$REPO/scripts:/drive:ro" --shm-size 1g)
+    "${PODMAN[@]}" run -d --pod "$pod" --name "$head" "${mounts[@]}" "${head_env[@]}" -e VOXFUSION_VIEWER_PORT=-1 \
+        localhost/voxfusion-ray sh -c "$head_command" >/dev/null
+    "${PODMAN[@]}" run -d --pod "$pod" --name "$worker" "${mounts[@]}" -e RAY_WORKER_CPUS=2 \
+        localhost/voxfusion-ray sh -c "sleep 10; $worker_command" >/dev/null
+    "${PODMAN[@]}" exec "$head" python /drive/container-drive.py --port 8000 --token "$token" --ray \
+        --label "ray images, compose commands (API on the head, one worker node, loopback-only pod)" \
         || { "${PODMAN[@]}" logs "$head" | tail -30; "${PODMAN[@]}" logs "$worker" | tail -30; return 1; }
+    # Nothing in the pod could listen on the machine's interfaces: it has none but loopback.
+    "${PODMAN[@]}" exec "$head" python -c "import socket; print('pod interfaces:', [n for _, n in socket.if_nameindex()])"
 }
 
 case $STEP in

@@ -2,7 +2,7 @@
 a synthetic session to the end, a render of it. Standard library only (runs on the host's
 python3). Every loop is bounded in time; exits 1 with the reason on the first failure.
 
-    python3 scripts/container-drive.py --port 8000 [--label TEXT] [--ray]
+    python3 scripts/container-drive.py --port 8000 [--label TEXT] [--ray] [--token TOKEN]
 """
 
 from __future__ import annotations
@@ -17,11 +17,12 @@ import urllib.request
 SPEC = "orbit?frames=20&width=80&height=60"
 START_TIMEOUT_S = 300.0
 SESSION_TIMEOUT_S = 600.0
+HEADERS = {"Content-Type": "application/json"}
 
 
 def call(base: str, path: str, body: dict | None = None, timeout: float = 30.0) -> tuple[int, bytes]:
     data = None if body is None else json.dumps(body).encode()
-    request = urllib.request.Request(base + path, data=data, headers={"Content-Type": "application/json"})
+    request = urllib.request.Request(base + path, data=data, headers=HEADERS)
     try:
         with urllib.request.urlopen(request, timeout=timeout) as response:
             return response.status, response.read()
@@ -83,7 +84,10 @@ def main() -> None:
     parser.add_argument("--port", type=int, required=True)
     parser.add_argument("--label", default="container")
     parser.add_argument("--ray", action="store_true", help="expect the session to run on a Ray node")
+    parser.add_argument("--token", default=None, help="the server's VOXFUSION_TOKEN, if it has one")
     args = parser.parse_args()
+    if args.token:
+        HEADERS["Authorization"] = f"Bearer {args.token}"
     base = f"http://127.0.0.1:{args.port}"
     up = wait_until_up(base)
     status, page = call(base, "/")
