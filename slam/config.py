@@ -65,14 +65,45 @@ class RenderConfig:
     """tr: SDF truncation distance (metres)."""
     chunk_rays: int = 4096
     """Rays rendered at once when rendering whole images (bounds memory)."""
+    mask_in_front: bool = True
+    """The first-surface mask (``slam.render.first_surface_mask``) also drops samples more
+    than tr in front of a ray's first zero crossing (True, ours: a young map's free space is
+    not yet at s = 1 and those samples drag the rendered depth toward the camera), or only
+    those more than tr behind it (False, the paper; the release masks behind the crossing
+    too). Every renderer follows it: mapping, both trackers, views, loop verification.
+    Issue 21 item 4 (``benchmarks/bench_fidelity.py``)."""
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.mask_in_front, bool):
+            raise ConfigError(f"render.mask_in_front must be true or false, got {self.mask_in_front!r}")
+
+
+LOSS_NORMALISATIONS = ("ray", "slots")
 
 
 @dataclass(frozen=True)
 class LossConfig:
+    """The mapper's losses (the tracker has its own weights, ``tracking.*_weight``)."""
+
     rgb_weight: float = 0.5
     depth_weight: float = 1.0
     sdf_weight: float = 5000.0
     fs_weight: float = 10.0
+    normalisation: str = "ray"
+    """How the free-space and SDF terms are averaged (``slam.losses.compute_losses``).
+    ``ray`` (ours, the paper's ``1/|P| sum_p 1/S_p sum_s``): over a ray's masked samples,
+    then over rays. ``slots`` (the release's ``criterion.py``): the sum over masked samples
+    divided by every slot of the padded (rays x most samples of any ray) sample tensor, the
+    free-space term then scaled by the share of SDF-band samples and the SDF term by the
+    share of free-space samples; the weights above are the release's, tuned for that. Here
+    rays stop 2 tr behind the observed depth, so the padded width is the longest such ray's.
+    The mapper only: the tracker keeps per-ray means (its Gauss-Newton model, miss cost and
+    feature weight are written for them). Issue 21 item 3 (``benchmarks/bench_fidelity.py``)."""
+
+    def __post_init__(self) -> None:
+        if self.normalisation not in LOSS_NORMALISATIONS:
+            raise ConfigError(f"loss.normalisation must be one of {', '.join(map(repr, LOSS_NORMALISATIONS))}, "
+                              f"got {self.normalisation!r}")
 
 
 @dataclass(frozen=True)
@@ -188,6 +219,12 @@ class MappingConfig:
     lr_pose: float = 1e-3
     optimize_poses: bool = True
     """Bundle adjustment: optimise keyframe poses in the window (the first keyframe is fixed)."""
+    optimize_current_pose: bool = False
+    """With ``optimize_poses``: the newest frame, when it is no keyframe, joins the window with
+    its pose optimised too (the paper; the release then keeps that pose as the frame's
+    estimate), and its refined pose replaces the tracked one in the trajectory and in the
+    tracker's motion history (``slam.runtime``). False (ours so far): it joins with its
+    tracked pose held fixed. Issue 21 item 2 (``benchmarks/bench_fidelity.py``)."""
     keyframe_ratio: float = 0.05
     """p_kf threshold: new-voxel / observed-voxel ratio that makes a keyframe."""
     keyframe_max_interval: int = 50
@@ -206,6 +243,11 @@ class MappingConfig:
     most of its run refining (a 9-frame upload spent 106 of 114 s there)."""
     final_min_seconds: float = 10.0
     """The least wall time the time cap leaves the final bundle adjustment."""
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.optimize_current_pose, bool):
+            raise ConfigError("mapping.optimize_current_pose must be true or false, "
+                              f"got {self.optimize_current_pose!r}")
 
 
 @dataclass(frozen=True)

@@ -106,23 +106,26 @@ def linearise(T_map_cam: torch.Tensor, dirs_cam: torch.Tensor, rgb_gt: torch.Ten
               near: torch.Tensor, far: torch.Tensor, step: float, truncation: float,
               max_hits: int, weights: LossWeights, max_depth: float = 10.0,
               color_weight_eps: float = 1e-5, eps_depth: float = 5e-3,
-              eps_color: float = 1e-2, miss_cost: float | None = None) -> Linearisation:
+              eps_color: float = 1e-2, miss_cost: float | None = None,
+              mask_in_front: bool = True) -> Linearisation:
     """The tracking loss of R rays at pose T_map_cam (4, 4) and its Gauss-Newton model.
 
     dirs_cam (R, 3) camera-frame directions with z = 1, rgb_gt (R, 3), depth_gt (R,),
     ray_weight (R,) in {0, 1} (outliers) or None; near, far (R,) sampling bounds.
     ``eps_depth`` / ``eps_color`` floor the residuals in the IRLS weights of the L1 terms;
     ``miss_cost``: see the denominators below (None: the losses exactly as compute_losses).
-    Renders exactly as ``slam.render.render_rays`` (mid-step samples) with no autograd.
+    Renders exactly as ``slam.render.render_rays`` (mid-step samples, the same
+    ``mask_in_front``) with no autograd.
     """
     with torch.no_grad():
         return _linearise(T_map_cam, dirs_cam, rgb_gt, depth_gt, ray_weight, view, decoder,
                           near, far, step, truncation, max_hits, weights, max_depth,
-                          color_weight_eps, eps_depth, eps_color, miss_cost)
+                          color_weight_eps, eps_depth, eps_color, miss_cost, mask_in_front)
 
 
 def _linearise(T, dirs_cam, rgb_gt, depth_gt, ray_weight, view, decoder, near, far, step, tr,
-               max_hits, lw: LossWeights, max_depth, color_eps, eps_depth, eps_color, miss_cost):
+               max_hits, lw: LossWeights, max_depth, color_eps, eps_depth, eps_color, miss_cost,
+               mask_in_front=True):
     R_, o = T[:3, :3], T[:3, 3]
     num_rays = dirs_cam.shape[0]
     dirs = dirs_cam @ R_.T
@@ -135,7 +138,7 @@ def _linearise(T, dirs_cam, rgb_gt, depth_gt, ray_weight, view, decoder, near, f
 
     field = field_with_gradients(points, samples.voxel_index, view, decoder, segments=samples.segments)
     s = field.sdf
-    w, dw_ds = sdf_weights_and_slope(s, t, r, num_rays, tr)
+    w, dw_ds = sdf_weights_and_slope(s, t, r, num_rays, tr, mask_in_front)
     # The colour head only where a sample has weight, as in render_rays.
     active = torch.nonzero(w > color_eps, as_tuple=True)[0]
     rgb, grad_rgb = color_with_gradients(field, decoder, active)

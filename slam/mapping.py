@@ -10,9 +10,10 @@ For every tracked frame the mapper
    and +-tr, so the truncation band around the surface lies inside allocated voxels);
 3. jointly optimises embeddings, decoder and keyframe poses over a window of ``window_size``
    frames: random earlier keyframes, the newest keyframe and, when the frame is no keyframe,
-   the frame itself with its tracked pose held fixed (the paper optimises that pose too; this
-   keeps the tracker's pose as the frame's estimate). The first keyframe of a map is fixed to
-   remove the gauge freedom;
+   the frame itself with its tracked pose held fixed (the paper optimises that pose too, and
+   so does ``mapping.optimize_current_pose``: the refined pose is then the frame's estimate,
+   ``MappingStep.T_map_cam``). The first keyframe of a map is fixed to remove the gauge
+   freedom;
 4. at the end of a sequence, ``global_bundle_adjustment`` does the same over every keyframe
    of the submap (the paper's intra-map optimisation).
 
@@ -106,6 +107,9 @@ class MappingStep:
     map_id: int = 0
     started_map: str | None = None
     """The reason a map was started with this frame (None: none was)."""
+    T_map_cam: torch.Tensor | None = None
+    """(4, 4) the frame's pose in map ``map_id`` as the window optimised it
+    (``mapping.optimize_current_pose``; None: the tracked pose was held)."""
 
 
 @dataclass
@@ -141,6 +145,11 @@ class Mapper:
         self.timer = _Timer()
         self.last_iterations = 0
         """Iterations the last joint optimisation ran (fewer than asked when its deadline passed)."""
+        self.last_current_pose: torch.Tensor | None = None
+        """T_map_cam (4, 4) of the last ``optimize``'s ``current`` frame after it, when its pose
+        was optimised (``mapping.optimize_current_pose``); None otherwise."""
+        self._frame_poses: list[torch.Tensor] = []
+        """T_map_cam of the last joint optimisation's non-keyframe frames after it."""
         self.active: dict[int, SubMap] = {}
         """agent -> the map it is mapping into."""
         self._rng = random.Random(seed)
@@ -275,7 +284,7 @@ class Mapper:
             losses = self.optimize(submap, iters, current)
         self.version += 1
         return MappingStep(tracked.frame.index, is_kf, ratio, new_voxels, losses, time.perf_counter() - t0,
-                           submap.map_id, started)
+                           submap.map_id, started, self.last_current_pose if optimize else None)
 
     def _keyframe_coverage(self, submap: SubMap, points: torch.Tensor) -> tuple[int, int, torch.Tensor]:
         """(N_o, N_c, codes): voxels the frame observes, how many of them no keyframe has
@@ -298,15 +307,20 @@ class Mapper:
     def optimize(self, submap: SubMap, iterations: int,
                  current: tuple[TensorFrame, torch.Tensor] | None = None,
                  interrupted: Callable[[], bool] | None = None) -> dict[str, float]:
-        """Joint optimisation over the window; ``current`` adds the newest non-keyframe with a
-        fixed pose; ``interrupted`` is asked before each iteration whether to stop (new work
-        arrived). Returns the last iteration's losses."""
+        """Joint optimisation over the window; ``current`` adds the newest non-keyframe, with a
+        fixed pose unless ``mapping.optimize_current_pose`` (then ``last_current_pose`` holds
+        its optimised pose); ``interrupted`` is asked before each iteration whether to stop
+        (new work arrived). Returns the last iteration's losses."""
         m = self.config.mapping
         window = self._window(submap)
         if current is not None:
             window = window[-(m.window_size - 1):] if m.window_size > 1 else []
-        fixed = [] if current is None else [current]
-        return self._joint_optimisation(submap, window, fixed, iterations, m.num_rays, interrupted=interrupted)
+        frames = [] if current is None else [current]
+        free_frames = current is not None and m.optimize_poses and m.optimize_current_pose
+        losses = self._joint_optimisation(submap, window, frames, iterations, m.num_rays, interrupted=interrupted,
+                                          free_frames=free_frames)
+        self.last_current_pose = self._frame_poses[0] if free_frames else None
+        return losses
 
     def global_bundle_adjustment(self, submap: SubMap, iterations: int, num_rays: int,
                                  deadline: float | None = None) -> dict[str, float]:
@@ -328,16 +342,21 @@ class Mapper:
     def _joint_optimisation(self, submap: SubMap, keyframes: list[Keyframe],
                             fixed: list[tuple[TensorFrame, torch.Tensor]], iterations: int,
                             rays_per_frame: int, deadline: float | None = None,
-                            interrupted: Callable[[], bool] | None = None) -> dict[str, float]:
+                            interrupted: Callable[[], bool] | None = None,
+                            free_frames: bool = False) -> dict[str, float]:
         """Adam on embeddings and decoder (and, with ``optimize_poses``, a twist per keyframe
         but the submap's first) over ``rays_per_frame`` rays of every keyframe and of every
-        ``fixed`` (frame, T_map_cam). Keyframe poses take their twists at the end."""
+        ``fixed`` (frame, T_map_cam). Keyframe poses take their twists at the end; with
+        ``free_frames`` the ``fixed`` frames' poses get twists too, and ``_frame_poses`` holds
+        their optimised T_map_cam afterwards."""
         m, r = self.config.mapping, self.config.render
         optimizer = self._ensure_optimizer(submap)
         sources = [kf.frame for kf in keyframes] + [frame for frame, _ in fixed]
         T_start = torch.stack([kf.T_map_cam for kf in keyframes] + [T for _, T in fixed])  # (S, 4, 4)
         first_kf = submap.keyframes[0]
         free = [i for i, kf in enumerate(keyframes) if m.optimize_poses and kf is not first_kf]
+        if free_frames:
+            free += range(len(keyframes), len(sources))
         free_rows = torch.tensor(free, dtype=torch.long, device=self.device)
         # One (P, 6) tensor for all free poses: Adam is per coordinate, so this is the same
         # update as one optimiser per keyframe, at one batched exp map per iteration.
@@ -366,8 +385,10 @@ class Mapper:
                               near=torch.full((n,), 0.05, device=self.device),
                               far=training_far(d_gt, r.truncation, r.max_distance),
                               step=r.step_ratio * submap.voxels.voxel_size, truncation=r.truncation,
-                              max_hits=r.max_hits, offsets=torch.rand(n, generator=self._gen).to(self.device))
-            losses = compute_losses(out, c_gt, d_gt, r.truncation, weights, max_depth=r.max_distance)
+                              max_hits=r.max_hits, offsets=torch.rand(n, generator=self._gen).to(self.device),
+                              mask_in_front=r.mask_in_front)
+            losses = compute_losses(out, c_gt, d_gt, r.truncation, weights, max_depth=r.max_distance,
+                                    normalisation=self.config.loss.normalisation)
             tb = time.perf_counter()
             optimizer.zero_grad(set_to_none=True)
             if pose_opt is not None:
@@ -379,11 +400,15 @@ class Mapper:
                 pose_opt.step()
             self.timer.add("render", tb - tq)
             self.timer.add("backward", time.perf_counter() - tb)
+        self._frame_poses = [T for _, T in fixed]
         if free:
             with torch.no_grad():
                 moved = T_start[free_rows] @ se3_exp(twists.detach())
                 for i, T_new in zip(free, moved):
-                    keyframes[i].T_map_cam = T_new
+                    if i < len(keyframes):
+                        keyframes[i].T_map_cam = T_new
+                    else:
+                        self._frame_poses[i - len(keyframes)] = T_new
         return {} if losses is None else {k: float(v) for k, v in losses.as_floats().items()}
 
     def _sample(self, sources: list[TensorFrame], stack: FrameStack | None, num: int) -> PixelBatch:

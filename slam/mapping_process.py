@@ -4,8 +4,9 @@ For every tracked frame the mapping side integrates it into its agent's active m
 (``slam.mapping.Mapper``); for every new keyframe the loop closer (``slam.loop.closing``)
 runs the appearance check, geometric verification and, for an accepted loop, the
 hierarchical pose optimisation. It answers with map snapshots (by version), events, map
-poses after a loop, and at the end the statistics. At the end of a sequence every map gets
-its global bundle adjustment before the mesh and checkpoint are written.
+poses after a loop, frame poses the window refined (``FramePose``), and at the end the
+statistics. At the end of a sequence every map gets its global bundle adjustment before the
+mesh and checkpoint are written.
 
 ``_ProcessMapper`` runs all of this in a spawned process fed by a bounded queue
 (back-pressure instead of unbounded lag); ``_InlineMapper`` runs it in the caller
@@ -78,6 +79,18 @@ class FrameMessage:
     """(reason, map id, T_world_map) of a map this frame starts."""
     covariance: np.ndarray | None = None
     """(6, 6) the tracker's uncertainty of this frame's pose (``keyframe_graph.frame_covariance``)."""
+
+
+@dataclass(frozen=True)
+class FramePose:
+    """A frame's pose as the mapper's window optimised it (``mapping.optimize_current_pose``),
+    in the frame of the map it was integrated into: ``map_id``, ``T_map_cam`` (4, 4) float64.
+    The tracking side puts it in place of the tracked pose (``slam.runtime``)."""
+
+    agent: int
+    frame_index: int
+    map_id: int
+    T_map_cam: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -227,6 +240,9 @@ def _integrate(side: _MapperSide, msg: FrameMessage, optimize: bool) -> list[Rep
         T_world_cam = mapper.maps.by_id(msg.map_id).T_world_map @ T_map_cam
     step = mapper.process(TrackedFrame(tf, T_world_cam, msg.tracking_ok, msg.agent, new_map), optimize=optimize)
     out: list[Reply] = []
+    if step.T_map_cam is not None:
+        out.append(("frame_pose", FramePose(msg.agent, step.frame_index, step.map_id,
+                                            step.T_map_cam.detach().cpu().numpy().astype(np.float64))))
     submap = mapper.active[msg.agent]
     cfg = mapper.config
     if msg.covariance is not None:

@@ -11,7 +11,8 @@ SDF units: the decoder predicts ``s`` in units of the truncation ``tr`` (free sp
 ``s = 1``), as in the paper's implementation; the paper's weight
 ``w = sigmoid(s / tr) * sigmoid(-s / tr)`` is applied to it, which makes the weights peak
 within a few centimetres of the surface. Samples more than ``tr`` past the first sign change
-of a ray are masked (the paper masks points behind the truncation region).
+of a ray are masked (the paper masks points behind the truncation region), and by default
+also those more than ``tr`` in front of it (``RenderConfig.mask_in_front``).
 """
 
 from __future__ import annotations
@@ -412,14 +413,16 @@ def color_of_hidden(decoder, hidden: torch.Tensor) -> torch.Tensor:
 
 # ------------------------------------------------------------------ weights
 def first_surface_mask(sdf: torch.Tensor, t: torch.Tensor, ray_index: torch.Tensor, num_rays: int,
-                       truncation: float) -> torch.Tensor:
+                       truncation: float, mask_in_front: bool = True) -> torch.Tensor:
     """(S,) bool: the sample lies within tr of its ray's first zero crossing.
 
-    The paper masks samples more than tr behind the first zero crossing. We also mask those
-    more than tr in front of it: while a map is young its free space is not yet at s = 1,
-    and those samples drag the rendered depth toward the camera; the tracker then "fixes"
-    that by backing the camera away, a drift that compounds (observed on every sequence we
-    tried). Rays without a crossing keep all their samples.
+    The paper masks samples more than tr behind the first zero crossing. With
+    ``mask_in_front`` (the default, ``RenderConfig.mask_in_front``) we also mask those more
+    than tr in front of it: while a map is young its free space is not yet at s = 1, and
+    those samples drag the rendered depth toward the camera; the tracker then "fixes" that
+    by backing the camera away, a drift that compounds (observed on every sequence we tried).
+    Without it, only the samples behind are masked, as in the paper. Rays without a crossing
+    keep all their samples.
     """
     with torch.no_grad():
         same_ray = ray_index[1:] == ray_index[:-1]
@@ -433,25 +436,28 @@ def first_surface_mask(sdf: torch.Tensor, t: torch.Tensor, ray_index: torch.Tens
             t_zero = t0 + (t1 - t0) * s0 / (s0 - s1)
             first = first.scatter_reduce(0, ray_index[:-1][change], t_zero, "amin")
         crossing = first[ray_index]
-        return (t < crossing + truncation) & ((t > crossing - truncation) | torch.isinf(crossing))
+        behind_ok = t < crossing + truncation
+        if not mask_in_front:
+            return behind_ok
+        return behind_ok & ((t > crossing - truncation) | torch.isinf(crossing))
 
 
 def sdf_weights(sdf: torch.Tensor, t: torch.Tensor, ray_index: torch.Tensor, num_rays: int,
-                truncation: float) -> torch.Tensor:
+                truncation: float, mask_in_front: bool = True) -> torch.Tensor:
     """w = sigmoid(s/tr) * sigmoid(-s/tr), kept only within tr of the first surface
     (``first_surface_mask``). sdf (S,) in units of tr, t (S,), ray_index (S,) sorted -> (S,)."""
     w = torch.sigmoid(sdf / truncation) * torch.sigmoid(-sdf / truncation)
-    return w * first_surface_mask(sdf, t, ray_index, num_rays, truncation)
+    return w * first_surface_mask(sdf, t, ray_index, num_rays, truncation, mask_in_front)
 
 
 def sdf_weights_and_slope(sdf: torch.Tensor, t: torch.Tensor, ray_index: torch.Tensor, num_rays: int,
-                          truncation: float) -> tuple[torch.Tensor, torch.Tensor]:
+                          truncation: float, mask_in_front: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
     """``sdf_weights`` and its derivative dw/ds (S,), the mask held fixed.
 
     With a = s/tr: dw/da = w (1 - 2 sigmoid(a)), so dw/ds = w (1 - 2 sigmoid(a)) / tr.
     """
     sig = torch.sigmoid(sdf / truncation)
-    w = sig * (1.0 - sig) * first_surface_mask(sdf, t, ray_index, num_rays, truncation)
+    w = sig * (1.0 - sig) * first_surface_mask(sdf, t, ray_index, num_rays, truncation, mask_in_front)
     return w, w * (1.0 - 2.0 * sig) / truncation
 
 
@@ -466,13 +472,16 @@ def accumulate_along_rays(weights: torch.Tensor, values: torch.Tensor, ray_index
 def render_rays(origins: torch.Tensor, dirs: torch.Tensor, view: MapView, decoder,
                 *, near: torch.Tensor, far: torch.Tensor, step: float, truncation: float,
                 max_hits: int, offsets: torch.Tensor | None = None,
-                color_weight_eps: float = 1e-5, traverse: bool = True) -> RenderOutput:
+                color_weight_eps: float = 1e-5, traverse: bool = True,
+                mask_in_front: bool = True) -> RenderOutput:
     """Render R rays of one map. origins, dirs (R, 3) map frame; near, far (R,) -> RenderOutput.
 
     The colour head only runs on samples whose weight exceeds ``color_weight_eps`` (the
     others add nothing to the normalised colour), which saves most of its cost.
     ``traverse=False`` finds the samples by ``sample_points_in_band`` (short [near, far]
-    ranges; no M_h cap, no ``offsets``).
+    ranges; no M_h cap, no ``offsets``). ``mask_in_front``: see ``first_surface_mask``
+    (``RenderConfig.mask_in_front``; the fused decoder kernels end before the weights, so
+    both kernel backends follow it).
     """
     num_rays = origins.shape[0]
     if not traverse:
@@ -485,7 +494,7 @@ def render_rays(origins: torch.Tensor, dirs: torch.Tensor, view: MapView, decode
     r = samples.ray_index
     points = origins[r] + samples.t[:, None] * dirs[r]
     sdf, hidden = decode_samples(points, samples.voxel_index, view, decoder)
-    w = sdf_weights(sdf, samples.t, r, num_rays, truncation)
+    w = sdf_weights(sdf, samples.t, r, num_rays, truncation, mask_in_front)
     wsum = torch.zeros(num_rays, device=w.device, dtype=w.dtype).index_add(0, r, w)
     norm = 1.0 / (wsum + 1e-8)
     depth = torch.zeros_like(wsum).index_add(0, r, w * samples.t) * norm

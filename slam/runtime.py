@@ -15,7 +15,9 @@ Several sequences (agents, collaborative mapping) are read round-robin, or as on
 ``AgentStream``; each agent has its own tracking state and active map, all maps live on the
 mapping side (``slam.mapping_process``). The tracker numbers new maps itself, so both
 sides agree on ids without a round trip. Poses are kept per frame in the frame of the map
-they were tracked against: when a loop moves maps, each frame moves with its map.
+they were tracked against: when a loop moves maps, each frame moves with its map. With
+``mapping.optimize_current_pose`` the mapper sends back the pose its window refined, in the
+frame of the map it integrated the frame into, and that replaces the tracked one.
 
 Outputs in ``out_dir`` (``slam.outputs``): ``trajectory.txt`` (agent 0; and
 ``trajectory_<k>.txt`` per agent when there are several), ``mesh.ply``, ``map.pt``
@@ -41,7 +43,7 @@ from .events import Event, FinishedEvent, PhaseEvent, PoseEvent, StatsEvent, Sub
 from .features import FeatureOdometry
 from .frames import prepare_frame
 from .mapping import MapSnapshot
-from .mapping_process import FrameMessage, InlineMapper, MapperFailed, MapperStats, ProcessMapper
+from .mapping_process import FrameMessage, FramePose, InlineMapper, MapperFailed, MapperStats, ProcessMapper
 from .mapping_process import set_threads as _set_threads
 from .outputs import FrameRecord, refine_with_keyframes, running_ate, write_outputs
 from .loop.keyframe_graph import frame_covariance
@@ -106,6 +108,8 @@ class AgentTrack:
     records: list[FrameRecord] = field(default_factory=list)
     good_poses: list[np.ndarray] = field(default_factory=list)
     """World poses of recent well-tracked frames (the motion model's history)."""
+    good_frames: list[int] = field(default_factory=list)
+    """The frame indices of ``good_poses``."""
     last_ok: bool = True
     failures_in_row: int = 0
     lost: bool = False
@@ -164,6 +168,25 @@ class _TrackingSide:
                 track.features.transform(delta)
         self.map_poses.update({k: np.asarray(v, np.float64) for k, v in poses.items()})
 
+    def refine_frame(self, pose: FramePose) -> None:
+        """The mapper's window optimised a frame's pose (``mapping.optimize_current_pose``): it
+        replaces the tracked pose in the frame's record (so in the trajectory), in the motion
+        history and, when it is the frame the feature odometry remembers, there too."""
+        track = self.agents.get(pose.agent)
+        if track is None:
+            return
+        i = next((i for i in range(len(track.records) - 1, -1, -1) if track.records[i].index == pose.frame_index), None)
+        if i is None:
+            return
+        rec = track.records[i]
+        T_map_cam = np.asarray(pose.T_map_cam, np.float64)
+        before = self.map_poses[rec.map_id] @ rec.T_map_cam
+        after = self.map_poses[pose.map_id] @ T_map_cam
+        track.records[i] = replace(rec, map_id=pose.map_id, T_map_cam=T_map_cam)
+        track.good_poses = [after if k == pose.frame_index else p for k, p in zip(track.good_frames, track.good_poses)]
+        if track.features is not None and i == len(track.records) - 1 and rec.tracked:
+            track.features.transform(after @ np.linalg.inv(before))
+
 
 def _pipeline_frame(frame: Frame, width: int | None) -> Frame:
     """Resize a reader frame to the pipeline width once (tracker and mapper share it)."""
@@ -192,6 +215,8 @@ def _handle_replies(replies: list[tuple[str, object]], side: _TrackingSide, emit
             side.frames_integrated = max(side.frames_integrated, snap.frames_integrated)
         elif kind == "map_poses":
             side.move_maps(payload)  # type: ignore[arg-type]
+        elif kind == "frame_pose":
+            side.refine_frame(payload)  # type: ignore[arg-type]
         elif kind == "event":
             if isinstance(payload, LoopEvent):
                 side.loops += 1
@@ -284,7 +309,7 @@ def _estimate_pose(side: _TrackingSide, track: AgentTrack, frame: Frame, raw: Fr
             T = track.good_poses[-1]
         map_id, T_wm, T_mc = _start_map(side, track, reason, T, first_ever=side.next_map_id == 0)
         track.lost, track.failures_in_row, track.last_ok = False, 0, True
-        track.good_poses = [T]
+        track.good_poses, track.good_frames = [T], [frame.index]
         if not use_gt_poses:
             track.features = track.features or FeatureOdometry.from_config(config)
             if track.features is not None:
@@ -331,6 +356,7 @@ def _estimate_pose(side: _TrackingSide, track: AgentTrack, frame: Frame, raw: Fr
     if result.ok:
         track.failures_in_row = 0
         track.good_poses = (track.good_poses + [T])[-3:]
+        track.good_frames = (track.good_frames + [frame.index])[-3:]
         T_active = np.linalg.inv(side.map_poses[track.active_map]) @ T
         offset = T_active[:3, 3] - side.map_centre[track.active_map]
         if mm.enabled and float(np.abs(offset).max()) > mm.region_size / 2:

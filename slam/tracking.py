@@ -220,7 +220,8 @@ class Tracker:
                              fmap.decoder, near=near, far=far,
                              step=r.step_ratio * fmap.view.voxel_size, truncation=r.truncation,
                              max_hits=r.max_hits, weights=self.weights, max_depth=r.max_distance,
-                             color_weight_eps=c.color_weight_eps, miss_cost=miss_cost)
+                             color_weight_eps=c.color_weight_eps, miss_cost=miss_cost,
+                             mask_in_front=r.mask_in_front)
 
         prior: MotionPrior | None = None
 
@@ -296,7 +297,7 @@ class Tracker:
             origins = T[:3, 3].expand(n, 3)
             out = render_rays(origins, dirs, fmap.view, fmap.decoder, near=near, far=far,
                               step=step, truncation=r.truncation, max_hits=r.max_hits,
-                              color_weight_eps=c.color_weight_eps)
+                              color_weight_eps=c.color_weight_eps, mask_in_front=r.mask_in_front)
             residual = (out.depth.detach() - batch.depth).abs()
             hit = out.hit & (out.weight_sum.detach() > 1e-3)
             hit_ratio = float(hit.float().mean())

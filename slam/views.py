@@ -169,7 +169,7 @@ def _render_submap_chunk(submap, T_map_cam: torch.Tensor, dirs_cam: torch.Tensor
     out = render_rays(origins, dirs, submap.optimised_view(1), decoder or submap.decoder, near=near, far=far,
                       step=step, truncation=render.truncation, max_hits=render.max_hits,
                       color_weight_eps=VIEW_COLOR_WEIGHT_EPS if with_color else float("inf"),
-                      traverse=traverse)
+                      traverse=traverse, mask_in_front=render.mask_in_front)
     # s is in units of tr: one step of depth is step / tr of s.
     surface = rays_near_surface(out.sdf, out.samples.ray_index, num_rays, step / render.truncation)
     return out.color, out.depth, surface

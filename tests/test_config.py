@@ -149,3 +149,23 @@ def test_unknown_tracking_optimizer_is_a_config_error():
     with pytest.raises(ConfigError, match="gauss_newton"):
         apply_overrides(preset("cpu"), {"tracking": {"optimizer": "sgd"}})
     assert apply_overrides(preset("cpu"), {"tracking": {"optimizer": "adam"}}).tracking.optimizer == "adam"
+
+
+def test_issue_21_switches_default_to_todays_behaviour_and_validate():
+    # Items 2-4 of issue 21: off / per-ray / masked in front in every preset unless set.
+    for name in ("test", "cpu", "paper"):
+        config = preset(name)
+        assert config.mapping.optimize_current_pose is False
+        assert config.loss.normalisation == "ray"
+        assert config.render.mask_in_front is True
+    changed = apply_overrides(preset("cpu"), {"mapping": {"optimize_current_pose": True},
+                                              "loss": {"normalisation": "slots"},
+                                              "render": {"mask_in_front": False}})
+    assert (changed.mapping.optimize_current_pose, changed.loss.normalisation, changed.render.mask_in_front) == \
+        (True, "slots", False)
+    with pytest.raises(ConfigError, match=r"loss\.normalisation must be one of 'ray', 'slots'"):
+        apply_overrides(preset("cpu"), {"loss": {"normalisation": "padded"}})
+    with pytest.raises(ConfigError, match=r"render\.mask_in_front must be bool"):
+        apply_overrides(preset("cpu"), {"render": {"mask_in_front": 1}})
+    with pytest.raises(ConfigError, match=r"mapping\.optimize_current_pose must be true or false"):
+        dataclasses.replace(preset("cpu").mapping, optimize_current_pose="yes")

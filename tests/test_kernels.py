@@ -249,3 +249,25 @@ def test_a_one_thread_process_never_starts_numbas_thread_pool():
     assert out.returncode == 0, out.stderr
     # Two threads do start it: the check above can see a started pool.
     assert out.stdout.strip() == "True"
+
+
+def test_both_backends_follow_the_first_surface_mask_switch(monkeypatch):
+    """render.mask_in_front (issue 21 item 4) acts after the fused field, on its SDF: numba
+    and torch render the same with the switch off, and differently from the switch on."""
+    vmap, decoder, origins, dirs, gen = random_scene(rays=128)
+    with torch.no_grad():  # this decoder's SDF is all about 0.1: centre it so that rays cross zero
+        decoder.sdf_head.bias[0] -= 0.1
+    view = MapView(vmap.voxel_codes, vmap.voxel_corners, vmap.embeddings.detach(), vmap.voxel_size)
+    depths = {}
+    for name in ("torch", "numba"):
+        backend(monkeypatch, name)
+        for in_front in (True, False):
+            with torch.no_grad():
+                out = render_rays(origins, dirs, view, decoder, near=torch.full((len(origins),), 0.05),
+                                  far=torch.full((len(origins),), 2.0), step=0.02, truncation=0.1, max_hits=12,
+                                  mask_in_front=in_front)
+            depths[name, in_front] = out.depth
+    assert_close(depths["torch", False], depths["numba", False], "depth without the front mask")
+    assert_close(depths["torch", True], depths["numba", True], "depth with the front mask")
+    changed = (depths["numba", False] - depths["numba", True]).abs() > 1e-4
+    assert int(changed.sum()) > 10, "rays with weight in front of their first surface render nearer without it"

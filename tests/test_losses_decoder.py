@@ -65,6 +65,72 @@ def test_each_loss_on_hand_worked_values():
     assert set(losses.as_floats()) == {"total", "rgb", "depth", "fs", "sdf"}
 
 
+def release_sdf_terms(out, depth_gt, tr, max_depth=10.0):
+    """The Vox-Fusion release's free-space and SDF terms (``criterion.py``, ``get_sdf_loss``)
+    as it computes them: (hit rays, most samples of any ray) tensors padded behind each ray
+    with z = 10 m (its MAX_DEPTH) and s = 1, means over every slot, scaled by the other
+    term's share of the front and band samples."""
+    rays = torch.nonzero(out.hit, as_tuple=True)[0]
+    r = out.samples.ray_index
+    width = int(torch.bincount(r)[rays].max())
+    z = torch.full((len(rays), width), 10.0, dtype=torch.float64)
+    s = torch.ones(len(rays), width, dtype=torch.float64)
+    for row, ray in enumerate(rays.tolist()):
+        sel = r == ray
+        z[row, : int(sel.sum())] = out.samples.t[sel]
+        s[row, : int(sel.sum())] = out.sdf.detach()[sel]
+    d = depth_gt[rays][:, None].expand_as(z)
+    front = (z < d - tr).double()
+    back = (z > d + tr).double()
+    sdf_mask = (1 - front) * (1 - back) * ((d > 0) & (d < max_depth)).double()
+    n_fs, n_sdf = front.sum(), sdf_mask.sum()
+    fs = ((s * front - front) ** 2).mean() * (1 - n_fs / (n_fs + n_sdf))
+    sdf = (((z + s * tr) * sdf_mask - d * sdf_mask) ** 2).mean() * (1 - n_sdf / (n_fs + n_sdf))
+    return float(fs), float(sdf)
+
+
+def test_slot_normalisation_is_the_releases_padded_mean():
+    # loss.normalisation = "slots" (issue 21 item 3). Hit rays 0, 1, 3 with 5, 2, 2 samples:
+    # 15 slots; front sums 0.04 + 0.36 + 0.16 over 3 samples, band 0 + 0.0004 + 0.0009 over 3.
+    out, rgb_gt, depth_gt = hand_made()
+    ray = compute_losses(out, rgb_gt, depth_gt, TR, WEIGHTS)
+    slots = compute_losses(out, rgb_gt, depth_gt, TR, WEIGHTS, normalisation="slots")
+    assert slots.fs.item() == pytest.approx(0.56 / 15 * 3 / 6)
+    assert slots.sdf.item() == pytest.approx(0.0013 / 15 * 3 / 6)
+    assert (slots.fs.item(), slots.sdf.item()) == pytest.approx(release_sdf_terms(out, depth_gt, TR))
+    assert slots.rgb.item() == ray.rgb.item() and slots.depth.item() == ray.depth.item()
+    # Rays with different sample counts: the two differ, and not by one common factor.
+    assert slots.fs.item() / ray.fs.item() != pytest.approx(slots.sdf.item() / ray.sdf.item(), rel=0.01)
+    assert slots.total.item() != pytest.approx(ray.total.item())
+    slots.total.backward()
+    assert bool((out.sdf.grad[[0, 1, 3, 7, 8]] != 0).all()) and out.sdf.grad[[4, 5, 6]].tolist() == [0.0] * 3
+
+
+def test_with_equal_counts_slot_means_are_per_ray_means_times_one_factor():
+    # Every ray with N samples, f of them in front and b in the band: per ray the means are
+    # sum / f and sum / b, per slot sum / N times b / (f + b) and f / (f + b), so both terms
+    # shrink by the same f b / (N (f + b)) and only their weight against colour and depth moves.
+    gen = torch.Generator().manual_seed(0)
+    rays, N, f, b = 6, 8, 4, 2
+    depth_gt = 1.0 + torch.rand(rays, generator=gen, dtype=torch.float64)
+    offsets = torch.tensor([-0.5, -0.4, -0.3, -0.2, -0.05, 0.05, 0.15, 0.3], dtype=torch.float64)
+    t = (depth_gt[:, None] + offsets[None]).reshape(-1)
+    ray_index = torch.arange(rays).repeat_interleave(N)
+    sdf = torch.rand(rays * N, generator=gen, dtype=torch.float64) * 2 - 1
+    out = RenderOutput(color=torch.zeros(rays, 3, dtype=torch.float64), depth=depth_gt.clone(),
+                       weight_sum=torch.ones(rays, dtype=torch.float64), hit=torch.ones(rays, dtype=torch.bool),
+                       depth_var=torch.zeros(rays, dtype=torch.float64),
+                       samples=RaySamples(ray_index, t, torch.zeros_like(ray_index)), sdf=sdf)
+    rgb_gt = torch.zeros(rays, 3, dtype=torch.float64)
+    ray = compute_losses(out, rgb_gt, depth_gt, TR, WEIGHTS)
+    slots = compute_losses(out, rgb_gt, depth_gt, TR, WEIGHTS, normalisation="slots")
+    factor = f * b / (N * (f + b))
+    assert slots.fs.item() == pytest.approx(ray.fs.item() * factor)
+    assert slots.sdf.item() == pytest.approx(ray.sdf.item() * factor)
+    with pytest.raises(ValueError, match="normalisation"):
+        compute_losses(out, rgb_gt, depth_gt, TR, WEIGHTS, normalisation="padded")
+
+
 def test_samples_outside_the_terms_get_no_gradient():
     out, rgb_gt, depth_gt = hand_made()
     losses = compute_losses(out, rgb_gt, depth_gt, TR, LossWeights(rgb=0.0, depth=0.0, sdf=1.0, fs=1.0))

@@ -255,6 +255,32 @@ def test_final_budget_caps_iterations_by_keyframes_and_time_by_the_run():
     assert final_budget(plain, 4, 60.0).iterations == 500 and final_budget(plain, 4, 60.0).seconds is None
 
 
+@pytest.mark.parametrize("on", [True, False], ids=["optimised", "held"])
+def test_the_current_frame_pose_is_optimised_in_the_window_only_when_asked(frames, on):
+    # mapping.optimize_current_pose (issue 21 item 2): the newest non-keyframe frame joins the
+    # window with a free pose, the mapper reports its refined pose; the first keyframe stays.
+    m = replace(BASE.mapping, optimize_current_pose=on, keyframe_ratio=2.0, lr_pose=1e-2, iterations=20,
+                first_frame_iterations=60)
+    mapper = Mapper(replace(BASE, mapping=m), CPU, seed=0)
+    mapper.process(TrackedFrame(frames[0], gt_pose(frames[0])))
+    first = mapper.current.keyframes[0].T_map_cam.clone()
+    tracked = gt_pose(frames[1]) @ se3_exp(torch.tensor([0.03, -0.02, 0.0, 0.0, 0.0, 0.0]))
+    step = mapper.process(TrackedFrame(frames[1], tracked))
+    assert not step.is_keyframe and torch.equal(mapper.current.keyframes[0].T_map_cam, first)
+    if not on:
+        assert step.T_map_cam is None and mapper.last_current_pose is None
+        return
+    refined = step.T_map_cam
+    assert refined is not None and float((refined - tracked).abs().max()) > 1e-3
+    assert torch.allclose(refined[:3, :3] @ refined[:3, :3].T, torch.eye(3), atol=1e-5), "rigid"
+    truth = gt_pose(frames[1])[:3, 3]
+    assert float((refined[:3, 3] - truth).norm()) < float((tracked[:3, 3] - truth).norm()), "towards the truth"
+    # With given poses (optimize_poses off) nothing moves, whatever the switch says.
+    held = Mapper(replace(BASE, mapping=replace(m, optimize_poses=False)), CPU, seed=0)
+    held.process(TrackedFrame(frames[0], gt_pose(frames[0])))
+    assert held.process(TrackedFrame(frames[1], tracked)).T_map_cam is None
+
+
 def test_without_pose_optimisation_no_keyframe_moves(frames):
     mapper = _ba_mapper(frames, optimize_poses=False)
     submap = mapper.current
@@ -414,10 +440,13 @@ def _linearisation_inputs(trained, frames, n=128):
     return fmap, batch, kwargs, LossWeights(c.rgb_weight, c.depth_weight, c.sdf_weight, c.fs_weight)
 
 
-def test_linearisation_cost_and_gradient_match_autograd_through_render_rays(trained, frames):
+@pytest.mark.parametrize("mask_in_front", [True, False])
+def test_linearisation_cost_and_gradient_match_autograd_through_render_rays(trained, frames, mask_in_front):
     """The closed-form model against the reference: the paper's losses on render_rays, and
-    their autograd gradient with respect to the twist (IRLS makes g half of it)."""
+    their autograd gradient with respect to the twist (IRLS makes g half of it), with either
+    first-surface mask (``render.mask_in_front``)."""
     fmap, batch, kwargs, weights = _linearisation_inputs(trained, frames)
+    kwargs["mask_in_front"] = mask_in_front
     T0 = gt_pose(frames[0]) @ se3_exp(torch.tensor([0.01, -0.01, 0.005, 0.01, 0.0, -0.01]))
     lin = linearise(T0, batch.dirs_cam, batch.rgb, batch.depth, None, fmap.view, fmap.decoder, weights=weights,
                     eps_depth=1e-12, eps_color=1e-12, **kwargs)
@@ -432,6 +461,9 @@ def test_linearisation_cost_and_gradient_match_autograd_through_render_rays(trai
     assert cos > 0.99 and float((2 * lin.g).norm() / xi.grad.norm()) == pytest.approx(1.0, abs=0.1), (lin.g, xi.grad)
     assert torch.allclose(lin.H, lin.H.T, atol=1e-3 * float(lin.H.abs().max()))
     assert float(torch.linalg.eigvalsh(lin.H.double()).min()) > 0
+    other = linearise(T0, batch.dirs_cam, batch.rgb, batch.depth, None, fmap.view, fmap.decoder, weights=weights,
+                      eps_depth=1e-12, eps_color=1e-12, **{**kwargs, "mask_in_front": not mask_in_front})
+    assert other.cost != lin.cost, "the switch reaches the closed-form model"
 
 
 def test_a_ray_that_leaves_the_map_costs_miss_cost(trained, frames):

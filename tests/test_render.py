@@ -363,6 +363,28 @@ def test_sdf_weights_formula_and_mask_around_the_first_surface():
     assert not bool(w[~keep].any())
 
 
+def test_without_mask_in_front_samples_in_front_of_the_surface_keep_their_weight():
+    # render.mask_in_front = False (issue 21 item 4, the paper): only samples more than tr
+    # behind the first crossing are masked; the default also masks those more than tr in front.
+    tr = 0.27
+    t = torch.arange(1, 11, dtype=torch.float64) * 0.1
+    sdf = torch.tensor([0.9, 0.6, 0.3, 0.1, -0.1, -0.3, -0.5, 0.2, 0.4, 0.6], dtype=torch.float64)
+    ray = torch.zeros(10, dtype=torch.int64)
+    formula = torch.sigmoid(sdf / tr) * torch.sigmoid(-sdf / tr)
+    ours = sdf_weights(sdf, t, ray, 1, tr)
+    paper = sdf_weights(sdf, t, ray, 1, tr, mask_in_front=False)
+    keep = t < 0.45 + tr  # the crossing is at 0.45
+    assert keep.tolist() == [True] * 7 + [False] * 3
+    assert torch.allclose(paper[keep], formula[keep]) and not bool(paper[~keep].any())
+    assert float(ours[0]) == 0.0 < float(paper[0]), "the sample at 0.1, 0.35 in front, counts only without the mask"
+    assert torch.equal(ours[1:], paper[1:])
+    # The Gauss-Newton tracker's closed-form weights follow the same switch.
+    s = sdf.clone().requires_grad_(True)
+    (g,) = torch.autograd.grad(sdf_weights(s, t, ray, 1, tr, mask_in_front=False).sum(), s)
+    w, slope = sdf_weights_and_slope(sdf, t, ray, 1, tr, mask_in_front=False)
+    assert torch.allclose(w, paper) and torch.allclose(slope, g) and float(slope[0]) != 0.0
+
+
 def test_sdf_weights_rays_are_independent_and_no_surface_keeps_everything():
     tr = 0.1
     t = torch.tensor([0.1, 0.2, 0.3, 0.4, 0.1, 0.2, 0.3, 0.4, 0.5])

@@ -276,6 +276,96 @@ def test_the_tracker_waits_for_a_map_with_every_frame_sent(frames, tmp_path, mon
     assert done.info["map_waits"] <= NUM_FRAMES - 1 and "tracking_waited_for_map" in done.info["timings_s"]
 
 
+@pytest.mark.parametrize("processes", [True, False], ids=["processes", "single-process"])
+def test_the_window_refined_pose_replaces_the_tracked_one(frames, tmp_path, monkeypatch, processes):
+    # mapping.optimize_current_pose (issue 21 item 2): the mapper optimises each mapped
+    # non-keyframe frame's pose in its window and sends it back; the trajectory carries it,
+    # and (single-process, where it comes back before the next frame) the next frame starts
+    # from it. One keyframe (frame 0, fixed), no final BA, no loops: the trajectory is the
+    # frames' records composed with map 0's pose, the identity.
+    from slam.mapping_process import FrameMessage
+
+    sent: dict[int, np.ndarray] = {}
+    replies: list = []
+    starts: list[np.ndarray] = []
+    channel = runtime.ProcessMapper if processes else runtime.InlineMapper
+    submit, poll, finish, track = channel.submit, channel.poll, channel.finish, runtime.Tracker.track
+
+    def spy_submit(self, msg):
+        if isinstance(msg, FrameMessage):
+            sent[msg.frame.index] = np.asarray(msg.T_map_cam, np.float64)
+        return submit(self, msg)
+
+    def spy_poll(self, block=False):
+        out = poll(self, block)
+        replies.extend(out)
+        return out
+
+    def spy_finish(self, refine=True):
+        out = finish(self, refine)
+        replies.extend(out)
+        return out
+
+    def spy_track(self, frame, fmap, T_init, matches=None):
+        starts.append(T_init.detach().cpu().numpy().astype(np.float64))
+        return track(self, frame, fmap, T_init, matches)
+
+    monkeypatch.setattr(channel, "submit", spy_submit)
+    monkeypatch.setattr(channel, "poll", spy_poll)
+    monkeypatch.setattr(channel, "finish", spy_finish)
+    monkeypatch.setattr(runtime.Tracker, "track", spy_track)
+    cfg = replace(FAST, mapping=replace(FAST.mapping, optimize_current_pose=True, keyframe_ratio=2.0,
+                                        lr_pose=1e-2, iterations=3, final_iterations=0),
+                  loop=replace(FAST.loop, enabled=False))
+    done = do_run([frames], config(processes, cfg), tmp_path)
+    assert done.result.status == "finished", done.result.error
+    assert done.info["keyframes"] == 1
+    refined = {p.frame_index: p for kind, p in replies if kind == "frame_pose"}
+    assert refined and set(refined) <= set(range(1, NUM_FRAMES))
+    if not processes:
+        assert set(refined) == set(range(1, NUM_FRAMES)), "every frame is mapped on its own"
+    traj = read_tum(tmp_path / "trajectory.txt")
+    for index, pose in refined.items():
+        assert pose.agent == 0 and pose.map_id == 0
+        assert float(np.abs(pose.T_map_cam - sent[index]).max()) > 1e-5, "the window moved it"
+        np.testing.assert_allclose(traj.poses[index], pose.T_map_cam, atol=1e-6)
+        if not processes and index + 1 < NUM_FRAMES:
+            np.testing.assert_allclose(starts[index], pose.T_map_cam, atol=1e-6)  # starts[0] is frame 1's
+
+
+def test_a_refined_pose_moves_the_record_history_and_features_of_its_frame():
+    # The reply is in the frame of the map the frame was integrated into, which may not be the
+    # one it was tracked against (a new region map not yet published to the tracker).
+    from slam.mapping_process import FramePose
+    from slam.outputs import FrameRecord
+
+    class Features:
+        delta = None
+
+        def transform(self, delta):
+            self.delta = delta
+
+    def pose(x):
+        T = np.eye(4)
+        T[:3, 3] = [x, 0.0, 0.0]
+        return T
+
+    side = runtime._TrackingSide(FAST, torch.device("cpu"), tracker=None)
+    side.map_poses = {0: np.eye(4), 1: pose(1.0)}
+    track = side.agents.setdefault(0, runtime.AgentTrack(0))
+    track.records = [FrameRecord(i, 0.1 * i, 0, pose(0.1 * i), True, None) for i in range(3)]
+    track.good_poses, track.good_frames = [pose(0.1), pose(0.2)], [1, 2]
+    track.features = Features()
+    runtime._handle_replies([("frame_pose", FramePose(0, 2, 1, pose(-0.75)))], side, lambda event: None)
+    assert track.records[2].map_id == 1 and np.allclose(track.records[2].T_map_cam, pose(-0.75))
+    assert np.allclose(track.good_poses[1], pose(0.25)) and np.allclose(track.good_poses[0], pose(0.1))
+    assert np.allclose(track.features.delta @ pose(0.2), pose(0.25)), "the remembered frame moves too"
+    track.features.delta = None
+    runtime._handle_replies([("frame_pose", FramePose(0, 1, 0, pose(0.12)))], side, lambda event: None)
+    assert np.allclose(track.good_poses[0], pose(0.12)) and track.features.delta is None, "not the last frame"
+    assert [r.index for r in track.records] == [0, 1, 2]
+
+
 def raising_source(frames, good: int):
     for f in frames[:good]:
         yield f

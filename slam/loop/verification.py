@@ -112,7 +112,8 @@ def geometry_check(frame: TensorFrame, T_map_cam: torch.Tensor, view: MapView, d
         hit_ratio = float((lookup_sorted(view.voxel_codes, codes) >= 0).float().mean())
         out = render_rays(origins, dirs, view, decoder, near=torch.full((n,), 0.05, device=dirs.device),
                           far=training_far(batch.depth, r.truncation, r.max_distance),
-                          step=r.step_ratio * view.voxel_size, truncation=r.truncation, max_hits=r.max_hits)
+                          step=r.step_ratio * view.voxel_size, truncation=r.truncation, max_hits=r.max_hits,
+                          mask_in_front=r.mask_in_front)
     rendered = out.hit & (out.weight_sum > 1e-3)
     error = (out.depth - batch.depth).abs()
     agree = rendered & (error <= lc.depth_tolerance)
