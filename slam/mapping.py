@@ -145,11 +145,6 @@ class Mapper:
         self.timer = _Timer()
         self.last_iterations = 0
         """Iterations the last joint optimisation ran (fewer than asked when its deadline passed)."""
-        self.last_current_pose: torch.Tensor | None = None
-        """T_map_cam (4, 4) of the last ``optimize``'s ``current`` frame after it, when its pose
-        was optimised (``mapping.optimize_current_pose``); None otherwise."""
-        self._frame_poses: list[torch.Tensor] = []
-        """T_map_cam of the last joint optimisation's non-keyframe frames after it."""
         self.active: dict[int, SubMap] = {}
         """agent -> the map it is mapping into."""
         self._rng = random.Random(seed)
@@ -281,10 +276,12 @@ class Mapper:
                 iters = m.keyframe_iterations
             self._keyframe_pending[agent] = False
             current = None if is_kf or not tracked.tracking_ok else (tracked.frame, T_map_cam)
-            losses = self.optimize(submap, iters, current)
+            losses, T_current = self._optimize_window(submap, iters, current)
+        else:
+            T_current = None
         self.version += 1
         return MappingStep(tracked.frame.index, is_kf, ratio, new_voxels, losses, time.perf_counter() - t0,
-                           submap.map_id, started, self.last_current_pose if optimize else None)
+                           submap.map_id, started, T_current)
 
     def _keyframe_coverage(self, submap: SubMap, points: torch.Tensor) -> tuple[int, int, torch.Tensor]:
         """(N_o, N_c, codes): voxels the frame observes, how many of them no keyframe has
@@ -308,19 +305,25 @@ class Mapper:
                  current: tuple[TensorFrame, torch.Tensor] | None = None,
                  interrupted: Callable[[], bool] | None = None) -> dict[str, float]:
         """Joint optimisation over the window; ``current`` adds the newest non-keyframe, with a
-        fixed pose unless ``mapping.optimize_current_pose`` (then ``last_current_pose`` holds
-        its optimised pose); ``interrupted`` is asked before each iteration whether to stop
-        (new work arrived). Returns the last iteration's losses."""
+        fixed pose unless ``mapping.optimize_current_pose``; ``interrupted`` is asked before
+        each iteration whether to stop (new work arrived). Returns the last iteration's losses."""
+        return self._optimize_window(submap, iterations, current, interrupted)[0]
+
+    def _optimize_window(self, submap: SubMap, iterations: int,
+                         current: tuple[TensorFrame, torch.Tensor] | None = None,
+                         interrupted: Callable[[], bool] | None = None,
+                         ) -> tuple[dict[str, float], torch.Tensor | None]:
+        """``optimize``, also returning ``current``'s optimised T_map_cam (4, 4) when its pose
+        was free (``mapping.optimize_current_pose``), else None."""
         m = self.config.mapping
         window = self._window(submap)
         if current is not None:
             window = window[-(m.window_size - 1):] if m.window_size > 1 else []
         frames = [] if current is None else [current]
         free_frames = current is not None and m.optimize_poses and m.optimize_current_pose
-        losses = self._joint_optimisation(submap, window, frames, iterations, m.num_rays, interrupted=interrupted,
-                                          free_frames=free_frames)
-        self.last_current_pose = self._frame_poses[0] if free_frames else None
-        return losses
+        losses, frame_poses = self._joint_optimisation(submap, window, frames, iterations, m.num_rays,
+                                                       interrupted=interrupted, free_frames=free_frames)
+        return losses, (frame_poses[0] if free_frames else None)
 
     def global_bundle_adjustment(self, submap: SubMap, iterations: int, num_rays: int,
                                  deadline: float | None = None) -> dict[str, float]:
@@ -337,18 +340,19 @@ class Mapper:
         # At least a few rays per keyframe: long sequences cost a little more per iteration
         # rather than leaving keyframes out.
         per_frame = max(num_rays // len(kfs), 4)
-        return self._joint_optimisation(submap, list(kfs), [], iterations, per_frame, deadline)
+        return self._joint_optimisation(submap, list(kfs), [], iterations, per_frame, deadline)[0]
 
     def _joint_optimisation(self, submap: SubMap, keyframes: list[Keyframe],
                             fixed: list[tuple[TensorFrame, torch.Tensor]], iterations: int,
                             rays_per_frame: int, deadline: float | None = None,
                             interrupted: Callable[[], bool] | None = None,
-                            free_frames: bool = False) -> dict[str, float]:
+                            free_frames: bool = False) -> tuple[dict[str, float], list[torch.Tensor]]:
         """Adam on embeddings and decoder (and, with ``optimize_poses``, a twist per keyframe
         but the submap's first) over ``rays_per_frame`` rays of every keyframe and of every
         ``fixed`` (frame, T_map_cam). Keyframe poses take their twists at the end; with
-        ``free_frames`` the ``fixed`` frames' poses get twists too, and ``_frame_poses`` holds
-        their optimised T_map_cam afterwards."""
+        ``free_frames`` the ``fixed`` frames' poses get twists too. Returns the last
+        iteration's losses and the ``fixed`` frames' T_map_cam (4, 4) after it (moved only
+        with ``free_frames``)."""
         m, r = self.config.mapping, self.config.render
         optimizer = self._ensure_optimizer(submap)
         sources = [kf.frame for kf in keyframes] + [frame for frame, _ in fixed]
@@ -400,7 +404,7 @@ class Mapper:
                 pose_opt.step()
             self.timer.add("render", tb - tq)
             self.timer.add("backward", time.perf_counter() - tb)
-        self._frame_poses = [T for _, T in fixed]
+        frame_poses = [T for _, T in fixed]
         if free:
             with torch.no_grad():
                 moved = T_start[free_rows] @ se3_exp(twists.detach())
@@ -408,8 +412,8 @@ class Mapper:
                     if i < len(keyframes):
                         keyframes[i].T_map_cam = T_new
                     else:
-                        self._frame_poses[i - len(keyframes)] = T_new
-        return {} if losses is None else {k: float(v) for k, v in losses.as_floats().items()}
+                        frame_poses[i - len(keyframes)] = T_new
+        return ({} if losses is None else {k: float(v) for k, v in losses.as_floats().items()}), frame_poses
 
     def _sample(self, sources: list[TensorFrame], stack: FrameStack | None, num: int) -> PixelBatch:
         """``num`` pixels of each source frame, frame by frame."""

@@ -268,7 +268,7 @@ def test_the_current_frame_pose_is_optimised_in_the_window_only_when_asked(frame
     step = mapper.process(TrackedFrame(frames[1], tracked))
     assert not step.is_keyframe and torch.equal(mapper.current.keyframes[0].T_map_cam, first)
     if not on:
-        assert step.T_map_cam is None and mapper.last_current_pose is None
+        assert step.T_map_cam is None
         return
     refined = step.T_map_cam
     assert refined is not None and float((refined - tracked).abs().max()) > 1e-3
@@ -563,7 +563,8 @@ def test_keyframes_get_keyframe_iterations_also_when_batched(frames, monkeypatch
                                            first_frame_iterations=3, keyframe_max_interval=1000))
     mapper = Mapper(config, CPU)
     calls: list[int] = []
-    monkeypatch.setattr(mapper, "optimize", lambda submap, iterations, current=None: calls.append(iterations) or {})
+    monkeypatch.setattr(mapper, "_optimize_window",
+                        lambda submap, iterations, current=None: (calls.append(iterations) or {}, None))
     f, T = frames[0], gt_pose(frames[0])
     moved = T.clone()
     moved[:3, 3] += torch.tensor([1.5, 0.0, 0.0])
