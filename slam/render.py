@@ -245,7 +245,8 @@ def sample_points_from_hits(hits: VoxelHits, step: float, offsets: torch.Tensor)
 def sample_points_in_band(origins: torch.Tensor, dirs: torch.Tensor, near: torch.Tensor, far: torch.Tensor,
                           step: float, view: MapView, offset: float = 0.5) -> RaySamples:
     """Samples at ``t = (k + offset) * step`` in [near, far) that lie in allocated voxels,
-    without the traversal: each grid point finds its voxel by lookup.
+    without the traversal: each grid point finds its voxel by lookup (in one numba pass where
+    ``slam.kernels`` selects it; ``sample_points_in_band_reference`` is the plain twin).
 
     The same samples as ``ray_voxel_intersections`` then ``sample_points_from_hits`` with a
     constant offset (but no M_h cap), at a cost that grows with the range instead of with
@@ -254,6 +255,26 @@ def sample_points_in_band(origins: torch.Tensor, dirs: torch.Tensor, near: torch
     """
     k0 = torch.ceil(near / step - offset)
     counts = (torch.ceil(far / step - offset) - k0).clamp(min=0).long()
+    if kernels.use_numba(origins, dirs, k0):
+        from .kernels.fused import band_samples
+
+        with torch.no_grad():
+            return RaySamples(*band_samples(origins.detach(), dirs.detach(), k0.detach(), counts, step, offset,
+                                            view.voxel_size, view.voxel_codes))
+    return _band_samples_torch(origins, dirs, k0, counts, step, view, offset)
+
+
+def sample_points_in_band_reference(origins: torch.Tensor, dirs: torch.Tensor, near: torch.Tensor,
+                                    far: torch.Tensor, step: float, view: MapView,
+                                    offset: float = 0.5) -> RaySamples:
+    """``sample_points_in_band`` in plain torch operators, whatever ``VOXFUSION_KERNELS`` says."""
+    k0 = torch.ceil(near / step - offset)
+    counts = (torch.ceil(far / step - offset) - k0).clamp(min=0).long()
+    return _band_samples_torch(origins, dirs, k0, counts, step, view, offset)
+
+
+def _band_samples_torch(origins: torch.Tensor, dirs: torch.Tensor, k0: torch.Tensor, counts: torch.Tensor,
+                        step: float, view: MapView, offset: float) -> RaySamples:
     total = int(counts.sum())
     ray = torch.repeat_interleave(torch.arange(counts.numel(), device=counts.device), counts)
     first = torch.cumsum(counts, 0) - counts
@@ -344,8 +365,15 @@ def interpolate_embeddings(points: torch.Tensor, voxel_index: torch.Tensor, view
     Differentiable with respect to both the embeddings and the points (tracking needs the
     latter). The fused path of ``_WeightedCornerSum``, which gathers rows inside
     ``embedding_bag`` and so needs no per-segment gather; ``interpolate_embeddings_reference``
-    is the plain one it is tested against.
+    is the plain one it is tested against. Where nothing needs its gradient (views) and
+    ``slam.kernels`` selects numba, one numba pass computes it.
     """
+    differentiable = torch.is_grad_enabled() and (points.requires_grad or view.embeddings.requires_grad)
+    if not differentiable and kernels.use_numba(points, view.embeddings):
+        from .kernels.fused import interpolate
+
+        return interpolate(points, voxel_index, view.voxel_coords, view.voxel_corners, view.voxel_size,
+                           view.embeddings.detach())
     ijk = view.voxel_coords[voxel_index].to(points.dtype)
     local = (points / view.voxel_size - ijk).clamp(0.0, 1.0)
     return _WeightedCornerSum.apply(view.embeddings, view.voxel_corners[voxel_index], trilinear_weights(local))
@@ -412,6 +440,24 @@ def color_of_hidden(decoder, hidden: torch.Tensor) -> torch.Tensor:
 
 
 # ------------------------------------------------------------------ weights
+def first_zero_crossing(sdf: torch.Tensor, t: torch.Tensor, ray_index: torch.Tensor, num_rays: int) -> torch.Tensor:
+    """(R,) ``t`` of each ray's first sign change of the SDF, inf where it has none.
+
+    sdf, t, ray_index (S,) sorted by ray, then t. The crossing is interpolated linearly
+    between the two samples around it, so it does not depend on where the samples fall.
+    Example: sdf [0.5, -0.5 | 1], t [1.0, 1.2 | 1.0], rays [0, 0 | 1] -> [1.1, inf].
+    """
+    same_ray = ray_index[1:] == ray_index[:-1]
+    change = (sdf[1:] * sdf[:-1] < 0) & same_ray
+    first = torch.full((num_rays,), float("inf"), dtype=t.dtype, device=t.device)
+    if bool(change.any()):
+        s0, s1 = sdf[:-1][change], sdf[1:][change]
+        t0, t1 = t[:-1][change], t[1:][change]
+        t_zero = t0 + (t1 - t0) * s0 / (s0 - s1)
+        first = first.scatter_reduce(0, ray_index[:-1][change], t_zero, "amin")
+    return first
+
+
 def first_surface_mask(sdf: torch.Tensor, t: torch.Tensor, ray_index: torch.Tensor, num_rays: int,
                        truncation: float, mask_in_front: bool = True) -> torch.Tensor:
     """(S,) bool: the sample lies within tr of its ray's first zero crossing.
@@ -425,17 +471,7 @@ def first_surface_mask(sdf: torch.Tensor, t: torch.Tensor, ray_index: torch.Tens
     keep all their samples.
     """
     with torch.no_grad():
-        same_ray = ray_index[1:] == ray_index[:-1]
-        change = (sdf[1:] * sdf[:-1] < 0) & same_ray
-        first = torch.full((num_rays,), float("inf"), dtype=t.dtype, device=t.device)
-        if bool(change.any()):
-            # Zero crossing by linear interpolation between the two samples, so the kept
-            # band is centred on the surface rather than on the sample before it.
-            s0, s1 = sdf[:-1][change], sdf[1:][change]
-            t0, t1 = t[:-1][change], t[1:][change]
-            t_zero = t0 + (t1 - t0) * s0 / (s0 - s1)
-            first = first.scatter_reduce(0, ray_index[:-1][change], t_zero, "amin")
-        crossing = first[ray_index]
+        crossing = first_zero_crossing(sdf, t, ray_index, num_rays)[ray_index]
         behind_ok = t < crossing + truncation
         if not mask_in_front:
             return behind_ok

@@ -31,8 +31,10 @@ neighbours (the 4 x 4 coarse cells around it) saw a surface stays empty: only a 
 narrower than about ``coarse_stride`` pixels, or one hidden behind the first surface at
 every neighbour, can differ more.
 
-Views need no gradients, so on a CPU that multiplies bfloat16 natively the decoder runs in
-bfloat16 (``precision="auto"``, ``Bfloat16Decoder``): 20 % off a banded view, 0.01 dB.
+Views need no gradients, so on a CPU that multiplies bfloat16 natively (AVX512-BF16 or AMX)
+the decoder runs in bfloat16 (``precision="auto"``, ``Bfloat16Decoder``): 20 % off a banded
+view, 0.01 dB. Elsewhere it runs in float32, where the numba kernels of ``slam.kernels``
+sample the bands and interpolate the embeddings in one pass each.
 """
 
 from __future__ import annotations
@@ -64,13 +66,29 @@ DEFAULT_COARSE_STRIDE = 4
 BAND_WEIGHT_WIDTHS = 4.0
 
 
+def _cpu_flags() -> set[str] | None:
+    """The CPU's feature flags from /proc/cpuinfo (Linux), or None where it cannot be read."""
+    try:
+        with open("/proc/cpuinfo", encoding="ascii", errors="replace") as info:
+            for line in info:
+                if line.startswith("flags"):
+                    return set(line.partition(":")[2].split())
+    except OSError:
+        pass
+    return None
+
+
 def bf16_matmul_is_native() -> bool:
     """Whether this CPU multiplies bfloat16 natively (oneDNN with AVX512-BF16 or AMX); elsewhere
-    torch emulates it, slower than float32."""
+    torch emulates it, slower than float32. oneDNN's own check also says yes on AVX-512 CPUs
+    without BF16 instructions (an Ice Lake Xeon: a 100k x 64 x 64 product took 16.9 ms in
+    bfloat16 against 9.2 ms in float32), so where Linux lists the CPU's flags they decide."""
     try:
-        return bool(torch.backends.mkldnn.is_available() and torch.ops.mkldnn._is_mkldnn_bf16_supported())
+        supported = bool(torch.backends.mkldnn.is_available() and torch.ops.mkldnn._is_mkldnn_bf16_supported())
     except (AttributeError, RuntimeError):
         return False
+    flags = _cpu_flags()
+    return supported and (flags is None or bool(flags & {"avx512_bf16", "amx_bf16"}))
 
 
 class Bfloat16Decoder:
@@ -150,23 +168,29 @@ def rays_near_surface(sdf: torch.Tensor, ray_index: torch.Tensor, num_rays: int,
     return found
 
 
+def rendered_voxels(submap):
+    """The MapView views render: the voxels the mapper has optimised. A voxel it never
+    optimised holds random embeddings, which render nothing."""
+    return submap.optimised_view(1)
+
+
 @torch.no_grad()
 def _render_submap_chunk(submap, T_map_cam: torch.Tensor, dirs_cam: torch.Tensor, config,
                          near: torch.Tensor, far: torch.Tensor, *, with_color: bool = True,
-                         traverse: bool = True, decoder=None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+                         traverse: bool = True, decoder=None, view=None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Render (R, 3) camera-frame directions in one submap between ``near`` and ``far`` (R,).
 
     -> colour (R, 3) (zero without ``with_color``: the coarse pass needs depth only), depth
     (R,), surface (R,) bool, all on the submap's device. ``traverse=False`` for short
     ranges: samples by lookup instead of the voxel traversal (``render_rays``). ``decoder``
-    defaults to the submap's (``view_decoder`` gives a faster one for views).
+    defaults to the submap's (``view_decoder`` gives a faster one for views); ``view`` to its
+    optimised voxels (``rendered_voxels``: pass it to build it once per image, not per chunk).
     """
     render = config.render
     step = render.step_ratio * submap.voxels.voxel_size
     origins, dirs = rays_in_map(T_map_cam, dirs_cam)
     num_rays = dirs.shape[0]
-    # Voxels the mapper never optimised hold random embeddings: they render nothing.
-    out = render_rays(origins, dirs, submap.optimised_view(1), decoder or submap.decoder, near=near, far=far,
+    out = render_rays(origins, dirs, view or rendered_voxels(submap), decoder or submap.decoder, near=near, far=far,
                       step=step, truncation=render.truncation, max_hits=render.max_hits,
                       color_weight_eps=VIEW_COLOR_WEIGHT_EPS if with_color else float("inf"),
                       traverse=traverse, mask_in_front=render.mask_in_front)
@@ -176,7 +200,7 @@ def _render_submap_chunk(submap, T_map_cam: torch.Tensor, dirs_cam: torch.Tensor
 
 
 def _render_submap_full(submap, T_map_cam: torch.Tensor, dirs_cam: torch.Tensor, config,
-                        near: float, chunk: int, *, with_color: bool = True, decoder=None
+                        near: float, chunk: int, *, with_color: bool = True, decoder=None, view=None
                         ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Every ray of (N, 3) ``dirs_cam`` from ``near`` to D_max, in chunks -> colour, depth, surface."""
     far = config.render.max_distance
@@ -185,7 +209,7 @@ def _render_submap_full(submap, T_map_cam: torch.Tensor, dirs_cam: torch.Tensor,
         d = dirs_cam[start:start + chunk]
         parts.append(_render_submap_chunk(submap, T_map_cam, d, config, torch.full_like(d[:, 0], near),
                                           torch.full_like(d[:, 0], far), with_color=with_color,
-                                          decoder=decoder))
+                                          decoder=decoder, view=view))
     if not parts:
         empty = dirs_cam.new_zeros(0)
         return dirs_cam.new_zeros(0, 3), empty, empty.bool()
@@ -239,15 +263,15 @@ def depth_bands(coarse_depth: torch.Tensor, coarse_surface: torch.Tensor, cu: to
 
 
 def _render_submap_banded(submap, T_map_cam: torch.Tensor, dirs_cam: torch.Tensor, config,
-                          near: float, chunk: int, width: int, height: int, stride: int, decoder=None
-                          ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+                          near: float, chunk: int, width: int, height: int, stride: int, decoder=None,
+                          view=None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The ``banded`` method for one submap: (H * W, 3) directions -> colour, depth, surface."""
     device = dirs_cam.device
     cu, cv = coarse_grid(width, stride).to(device), coarse_grid(height, stride).to(device)
     coarse_index = (cv[:, None] * width + cu[None, :]).reshape(-1)
     _, coarse_depth, coarse_surface = _render_submap_full(submap, T_map_cam, dirs_cam[coarse_index],
                                                           config, near, chunk, with_color=False,
-                                                          decoder=decoder)
+                                                          decoder=decoder, view=view)
     lo, hi = depth_bands(coarse_depth.reshape(len(cv), len(cu)), coarse_surface.reshape(len(cv), len(cu)),
                          cu, cv, width, height)
     # At least two steps, so that a coarse preset's band still holds the two samples that
@@ -264,7 +288,7 @@ def _render_submap_banded(submap, T_map_cam: torch.Tensor, dirs_cam: torch.Tenso
         band_near = (lo[idx] - margin).clamp(min=near)
         band_far = (hi[idx] + margin).clamp(max=config.render.max_distance)
         c, d, s = _render_submap_chunk(submap, T_map_cam, dirs_cam[idx], config, band_near, band_far,
-                                       traverse=False, decoder=decoder)
+                                       traverse=False, decoder=decoder, view=view)
         rgb[idx], depth[idx], surface[idx] = c, d, s
     return rgb, depth, surface
 
@@ -313,12 +337,14 @@ def render_view(mapset, T_world_cam, K, width: int, height: int, *, chunk_rays: 
         T_world_map = _as_tensor(submap.T_world_map, "T_world_map", (4, 4))
         T_map_cam = (torch.linalg.inv(T_world_map) @ T_world_cam).to(device, torch.float32)
         decoder = view_decoder(submap.decoder, device, precision)
+        voxels = rendered_voxels(submap)
         if method == "full" or coarse_stride == 1:
             color, depth, surface = _render_submap_full(submap, T_map_cam, dirs_cam, config, near, chunk,
-                                                        decoder=decoder)
+                                                        decoder=decoder, view=voxels)
         else:
             color, depth, surface = _render_submap_banded(submap, T_map_cam, dirs_cam, config, near, chunk,
-                                                          width, height, int(coarse_stride), decoder=decoder)
+                                                          width, height, int(coarse_stride), decoder=decoder,
+                                                          view=voxels)
         nearer = surface & (depth < best_depth)
         best_depth = torch.where(nearer, depth, best_depth)
         rgb = torch.where(nearer[:, None], color.clamp(0.0, 1.0), rgb)

@@ -24,6 +24,8 @@ from slam.render import (
     ray_voxel_intersections,
     render_rays,
     sample_points_from_hits,
+    sample_points_in_band,
+    sample_points_in_band_reference,
 )
 from slam.voxels import SparseVoxelMap
 
@@ -196,6 +198,45 @@ def test_interpolate_with_gradient_matches_plain_torch(monkeypatch, threads):
     assert_close(ref[0], got[0], "features", rtol=1e-5)
     assert_close(ref[1], got[1], "d features / d point", rtol=1e-5)
     assert_close(interpolate_embeddings(points, samples.voxel_index, view).detach(), got[0], "features", rtol=1e-5)
+
+
+def test_interpolation_without_gradients_matches_plain_torch(monkeypatch, threads):
+    """Views interpolate under no_grad: one numba pass, the numbers of the plain path."""
+    vmap, _, origins, dirs, gen = random_scene()
+    samples = samples_of(vmap, origins, dirs, gen)
+    points = origins[samples.ray_index] + samples.t[:, None] * dirs[samples.ray_index]
+    view = MapView.of(vmap)
+    backend(monkeypatch, "torch")
+    ref = interpolate_embeddings(points, samples.voxel_index, view).detach()
+    backend(monkeypatch, "numba")
+    with torch.no_grad():
+        got = interpolate_embeddings(points, samples.voxel_index, view)
+    assert got.shape == ref.shape and not got.requires_grad
+    assert_close(ref, got, "features", rtol=1e-5)
+
+
+def test_band_sampling_matches_plain_torch(monkeypatch, threads):
+    """The views' band sampling (``sample_points_in_band``): the same samples, in the same
+    order, in the same voxels, also for rays along a voxel face (x = 0 exactly, where a
+    fused multiply-add would round differently) and for empty or inverted bands."""
+    vmap, _, origins, dirs, gen = random_scene(rays=200)
+    dirs[:20, 0] = 0.0  # these rays run in the plane x = 0, a face between voxels
+    near = 0.5 + torch.rand(200, generator=gen)
+    far = near + torch.rand(200, generator=gen) * 0.4
+    far[:5] = near[:5] - 0.1  # inverted: no samples
+    view = MapView.of(vmap)
+    step = 0.02
+    backend(monkeypatch, "numba")
+    got = sample_points_in_band(origins, dirs, near, far, step, view)
+    ref = sample_points_in_band_reference(origins, dirs, near, far, step, view)
+    assert got.t.numel() > 1000 and got.segments is None
+    assert torch.equal(got.ray_index, ref.ray_index) and torch.equal(got.voxel_index, ref.voxel_index)
+    assert torch.equal(got.t, ref.t)
+    backend(monkeypatch, "torch")
+    assert torch.equal(sample_points_in_band(origins, dirs, near, far, step, view).t, ref.t)
+    backend(monkeypatch, "numba")
+    none = sample_points_in_band(origins[5:8], dirs[5:8], far[5:8], near[5:8], step, view)  # far < near
+    assert none.t.numel() == 0 and none.ray_index.dtype == torch.int64
 
 
 def test_no_gradients_and_no_samples(monkeypatch):

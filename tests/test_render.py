@@ -18,6 +18,7 @@ from slam.render import (
     VoxelHits,
     accumulate_along_rays,
     camera_rays,
+    first_zero_crossing,
     interpolate_embeddings,
     interpolate_embeddings_reference,
     interpolate_with_gradient,
@@ -361,6 +362,18 @@ def test_sdf_weights_formula_and_mask_around_the_first_surface():
     assert torch.allclose(w[keep], formula[keep])
     assert keep.tolist() == [False] + [True] * 6 + [False] * 3
     assert not bool(w[~keep].any())
+
+
+def test_first_zero_crossing_is_interpolated_per_ray():
+    # Ray 0 crosses twice (the first counts), ray 1 never, ray 2 on its last pair; the sign
+    # change between ray 1's last sample and ray 2's first is none; ray 3 has no samples.
+    sdf = torch.tensor([0.5, -0.5, 0.5, -0.5, 1.0, 0.8, -0.9, 0.6, -0.2])
+    t = torch.tensor([1.0, 1.2, 1.4, 1.6, 1.0, 1.1, 2.0, 2.2, 2.4])
+    ray = torch.tensor([0, 0, 0, 0, 1, 1, 2, 2, 2])
+    got = first_zero_crossing(sdf, t, ray, 4)
+    assert got[0].item() == pytest.approx(1.1)
+    assert got[2].item() == pytest.approx(2.0 + 0.2 * 0.9 / 1.5)
+    assert torch.isinf(got[1]) and torch.isinf(got[3])
 
 
 def test_without_mask_in_front_samples_in_front_of_the_surface_keep_their_weight():

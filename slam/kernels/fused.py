@@ -125,6 +125,32 @@ def interpolate_with_slopes(points: torch.Tensor, voxel_index: torch.Tensor, vox
     return feats, dfeats
 
 
+def interpolate(points: torch.Tensor, voxel_index: torch.Tensor, voxel_coords: torch.Tensor,
+                voxel_corners: torch.Tensor, voxel_size: float, embeddings: torch.Tensor) -> torch.Tensor:
+    """Trilinear interpolation of the corner embeddings (S, D), forward only (views)."""
+    x = points.new_empty(points.shape[0], embeddings.shape[1])
+    numba_kernels().interpolate(_np(points), _np(voxel_index), _np(voxel_coords), _np(voxel_corners),
+                                _np(embeddings), np.float32(voxel_size), set_threads(), x.numpy())
+    return x
+
+
+def band_samples(origins: torch.Tensor, dirs: torch.Tensor, k0: torch.Tensor, counts: torch.Tensor,
+                 step: float, offset: float, voxel_size: float,
+                 voxel_codes: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Every grid sample of every ray and its voxel (``numba_cpu.band_samples``), misses
+    dropped: ray (S,) int64, t (S,) float32, voxel (S,) int64, sorted by ray, then t."""
+    first = torch.cumsum(counts, 0) - counts
+    total = int(counts.sum())
+    t = origins.new_empty(total)
+    voxel = torch.empty(total, dtype=torch.int64)
+    numba_kernels().band_samples(_np(origins), _np(dirs), _np(k0), _np(counts), _np(first), float(step),
+                                 float(offset), np.float32(voxel_size), _np(voxel_codes), set_threads(),
+                                 t.numpy(), voxel.numpy())
+    keep = torch.nonzero(voxel >= 0, as_tuple=True)[0]
+    ray = torch.repeat_interleave(torch.arange(counts.numel()), counts)
+    return ray[keep], t[keep], voxel[keep]
+
+
 def warm_up_kernels() -> None:
     """Run every kernel once on a two-voxel map (compiles, or loads numba's disk cache), in
     its serial copy and, where torch has more than one thread, its parallel one."""
@@ -151,3 +177,6 @@ def _run_every_kernel() -> None:
     sdf, hidden = field_sdf_and_hidden(points, voxel_index, coords, corners, 1.0, embeddings, decoder)
     (sdf.sum() + hidden.sum()).backward()
     interpolate_with_slopes(points.detach(), voxel_index, coords, corners, 1.0, embeddings.detach())
+    interpolate(points.detach(), voxel_index, coords, corners, 1.0, embeddings.detach())
+    band_samples(torch.zeros(2, 3), torch.ones(2, 3), torch.zeros(2), torch.tensor([2, 3]), 0.5, 0.5, 1.0,
+                 torch.tensor([0, 1], dtype=torch.int64))

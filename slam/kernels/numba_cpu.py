@@ -27,6 +27,8 @@ import types
 import numpy as np
 from numba import njit, prange
 
+from ..voxels import _dilate as spread_bits
+
 # Reassociation lets LLVM vectorise the reductions; no nnan/ninf, so a NaN still propagates
 # as it does in torch; no arcp, so points / voxel_size rounds as torch's division does (a
 # sample on a voxel face must land on the same side of the clamp).
@@ -90,12 +92,12 @@ class _TwoWays:
     one, where ``prange`` is a plain ``range`` and no thread pool is involved. The serial
     copy has its own qualified name, so numba's disk cache keeps the two apart."""
 
-    def __init__(self, fn):
+    def __init__(self, fn, fastmath=_FASTMATH):
         serial = types.FunctionType(fn.__code__, fn.__globals__, fn.__name__ + "_serial", fn.__defaults__,
                                     fn.__closure__)
         serial.__qualname__ = fn.__qualname__ + "_serial"
-        self.parallel = njit(parallel=True, cache=True, fastmath=_FASTMATH)(fn)
-        self.serial = njit(cache=True, fastmath=_FASTMATH)(serial)
+        self.parallel = njit(parallel=True, cache=True, fastmath=fastmath)(fn)
+        self.serial = njit(cache=True, fastmath=fastmath)(serial)
         self._chunks_at = list(inspect.signature(fn).parameters).index("chunks")
         functools.update_wrapper(self, fn)
 
@@ -237,3 +239,67 @@ def interpolate_with_slopes(points, voxel_index, coords, corners, embeddings, vo
                 dfeats[i, 0, d] = acc[1, d]
                 dfeats[i, 1, d] = acc[2, d]
                 dfeats[i, 2, d] = acc[3, d]
+
+
+# ------------------------------------------------------------ band sampling (views)
+_MORTON_OFFSET = 1 << 20
+_COORD_LIMIT = (1 << 20) - 1
+
+
+# ``slam.voxels._dilate`` uses only integer operators, so numba compiles the same function
+# for one int64 at a time.
+_dilate = njit(cache=True, inline="always")(spread_bits)
+
+
+@njit(cache=True, inline="always")
+def _voxel_coordinate(x, voxel_size):
+    """floor(x / voxel_size) clamped to the Morton range, as ``sample_points_in_band``."""
+    i = np.int64(np.floor(x / voxel_size))
+    return min(max(i, -_MORTON_OFFSET), _COORD_LIMIT) + _MORTON_OFFSET
+
+
+@njit(cache=True, inline="always")
+def _find(sorted_codes, code):
+    """Index of ``code`` in ``sorted_codes`` or -1 (``slam.voxels.lookup_sorted``)."""
+    lo, hi = 0, sorted_codes.shape[0]
+    while lo < hi:
+        mid = (lo + hi) >> 1
+        if sorted_codes[mid] < code:
+            lo = mid + 1
+        else:
+            hi = mid
+    if lo < sorted_codes.shape[0] and sorted_codes[lo] == code:
+        return lo
+    return -1
+
+
+def band_samples(origins, dirs, k0, counts, first, step, offset, voxel_size, voxel_codes, chunks,
+                 t_out, voxel_out):
+    """Every grid point ``t = (k0 + j + offset) * step``, j < counts, of every ray, and the
+    voxel it lies in: ``slam.render.sample_points_in_band`` before it drops the misses.
+
+    origins, dirs (R, 3) float32; k0 (R,) float32; counts, first (R,) int64 (first: where a
+    ray's samples start in the outputs); voxel_codes (Nv,) sorted int64 -> t_out (S,)
+    float32, voxel_out (S,) int64 (-1: no voxel). Compiled without fastmath, so every
+    product and sum rounds as torch's separate operations do (no fused multiply-add): a
+    sample on a voxel face lands in the same voxel.
+    """
+    R = origins.shape[0]
+    step32, offset32 = np.float32(step), np.float32(offset)
+    for th in prange(chunks):
+        lo, hi = _chunk(R, chunks, th)
+        for r in range(lo, hi):
+            base = first[r]
+            for j in range(counts[r]):
+                t = (k0[r] + np.float32(j) + offset32) * step32
+                x = origins[r, 0] + t * dirs[r, 0]
+                y = origins[r, 1] + t * dirs[r, 1]
+                z = origins[r, 2] + t * dirs[r, 2]
+                code = (_dilate(_voxel_coordinate(x, voxel_size))
+                        | (_dilate(_voxel_coordinate(y, voxel_size)) << 1)
+                        | (_dilate(_voxel_coordinate(z, voxel_size)) << 2))
+                t_out[base + j] = t
+                voxel_out[base + j] = _find(voxel_codes, code)
+
+
+band_samples = _TwoWays(band_samples, fastmath=False)
