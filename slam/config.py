@@ -156,7 +156,8 @@ class TrackingConfig:
     outlier_factor: float = 10.0
     """Rays whose depth error exceeds this times the median are dropped."""
     convergence_tol: float = 1e-5
-    """Stop early when the pose update (rad + m) falls below this."""
+    """Stop early when the next pose update (the twist's norm, m and rad together) falls
+    below this: Gauss-Newton stops before rendering it, Adam after taking it."""
     min_valid_ratio: float = 0.3
     """Tracking fails when fewer than this share of sampled rays hit the map."""
     max_depth_residual: float = 0.2

@@ -118,14 +118,44 @@ def linearise(T_map_cam: torch.Tensor, dirs_cam: torch.Tensor, rgb_gt: torch.Ten
     ``mask_in_front``) with no autograd.
     """
     with torch.no_grad():
-        return _linearise(T_map_cam, dirs_cam, rgb_gt, depth_gt, ray_weight, view, decoder,
-                          near, far, step, truncation, max_hits, weights, max_depth,
-                          color_weight_eps, eps_depth, eps_color, miss_cost, mask_in_front)
+        rendered = render_with_jacobians(T_map_cam, dirs_cam, view, decoder, near=near, far=far, step=step,
+                                         truncation=truncation, max_hits=max_hits,
+                                         color_weight_eps=color_weight_eps, mask_in_front=mask_in_front)
+        return linearise_rendered(rendered, rgb_gt, depth_gt, ray_weight, weights=weights, max_depth=max_depth,
+                                  eps_depth=eps_depth, eps_color=eps_color, miss_cost=miss_cost)
 
 
-def _linearise(T, dirs_cam, rgb_gt, depth_gt, ray_weight, view, decoder, near, far, step, tr,
-               max_hits, lw: LossWeights, max_depth, color_eps, eps_depth, eps_color, miss_cost,
-               mask_in_front=True):
+@dataclass(frozen=True)
+class RenderedJacobians:
+    """What ``linearise`` computes at one pose before it looks at the observations or the
+    ray weights, so that one render serves several ray weightings (the tracker's first
+    linearisation, without and then with its outliers dropped).
+
+    Per ray (R,): depth, W (weight sum), color (R, 3), hit, J_depth (R, 6), J_color (R, 3, 6).
+    Per sample (S,): ray r, t, sdf s, J_s (S, 6) (the SDF's twist rows). truncation: tr."""
+
+    T: torch.Tensor
+    depth: torch.Tensor
+    W: torch.Tensor
+    color: torch.Tensor
+    hit: torch.Tensor
+    J_depth: torch.Tensor
+    J_color: torch.Tensor
+    r: torch.Tensor
+    t: torch.Tensor
+    s: torch.Tensor
+    J_s: torch.Tensor
+    truncation: float
+
+
+@torch.no_grad()
+def render_with_jacobians(T: torch.Tensor, dirs_cam: torch.Tensor, view: MapView, decoder, *,
+                          near: torch.Tensor, far: torch.Tensor, step: float, truncation: float,
+                          max_hits: int, color_weight_eps: float = 1e-5,
+                          mask_in_front: bool = True) -> RenderedJacobians:
+    """Render R rays (``dirs_cam`` (R, 3), z = 1) at pose T (4, 4) with the twist Jacobians of
+    their depth and colour and of every sample's SDF (no autograd; see ``linearise``)."""
+    tr = truncation
     R_, o = T[:3, :3], T[:3, 3]
     num_rays = dirs_cam.shape[0]
     dirs = dirs_cam @ R_.T
@@ -140,7 +170,7 @@ def _linearise(T, dirs_cam, rgb_gt, depth_gt, ray_weight, view, decoder, near, f
     s = field.sdf
     w, dw_ds = sdf_weights_and_slope(s, t, r, num_rays, tr, mask_in_front)
     # The colour head only where a sample has weight, as in render_rays.
-    active = torch.nonzero(w > color_eps, as_tuple=True)[0]
+    active = torch.nonzero(w > color_weight_eps, as_tuple=True)[0]
     rgb, grad_rgb = color_with_gradients(field, decoder, active)
 
     W = torch.zeros(num_rays, dtype=t.dtype, device=t.device).index_add(0, r, w)
@@ -152,6 +182,34 @@ def _linearise(T, dirs_cam, rgb_gt, depth_gt, ray_weight, view, decoder, near, f
     hit = torch.zeros(num_rays, dtype=torch.bool, device=t.device)
     hit[r] = True
 
+    # d(ray depth)/d(sample point) = (t - D)/W * dw/ds * grad s; colour adds w/W * grad c.
+    J_s = twist_rows(field.grad_sdf, x_cam, R_)  # (S, 6)
+    a = (t - depth[r]) * inv_W[r] * dw_ds
+    J_depth = torch.zeros(num_rays, 6, dtype=t.dtype, device=t.device).index_add(0, r, a[:, None] * J_s)
+    J_rgb_c = twist_rows(grad_rgb, x_cam[active][:, None, :], R_)  # (A, 3, 6)
+    b = (rgb - color[ra]) * (inv_W[ra] * dw_ds[active])[:, None]  # (A, 3)
+    per_sample = b[..., None] * J_s[active][:, None, :] + (w[active] * inv_W[ra])[:, None, None] * J_rgb_c
+    J_color = torch.zeros(num_rays, 3, 6, dtype=t.dtype, device=t.device).index_add(0, ra, per_sample)
+    return RenderedJacobians(T, depth, W, color, hit, J_depth, J_color, r, t, s, J_s, tr)
+
+
+def linearise_rendered(rendered: RenderedJacobians, rgb_gt: torch.Tensor, depth_gt: torch.Tensor,
+                       ray_weight: torch.Tensor | None, *, weights: LossWeights, max_depth: float = 10.0,
+                       eps_depth: float = 5e-3, eps_color: float = 1e-2,
+                       miss_cost: float | None = None) -> Linearisation:
+    """``linearise`` from a render at its pose: the loss against rgb_gt (R, 3), depth_gt (R,)
+    over the rays ray_weight (R,) keeps (None: all), and its Gauss-Newton model."""
+    with torch.no_grad():
+        return _assemble(rendered, rgb_gt, depth_gt, ray_weight, weights, max_depth, eps_depth, eps_color, miss_cost)
+
+
+def _assemble(rendered: RenderedJacobians, rgb_gt, depth_gt, ray_weight, lw: LossWeights, max_depth,
+              eps_depth, eps_color, miss_cost) -> Linearisation:
+    T, depth, W, color, hit = rendered.T, rendered.depth, rendered.W, rendered.color, rendered.hit
+    J_depth, J_color, r, t, s, J_s = (rendered.J_depth, rendered.J_color, rendered.r, rendered.t,
+                                      rendered.s, rendered.J_s)
+    tr = rendered.truncation
+    num_rays = depth.shape[0]
     use = hit if ray_weight is None else hit & (ray_weight > 0)
     valid = use & (depth_gt > 0.01) & (depth_gt < max_depth)
     n_use, n_valid = int(use.sum()), int(valid.sum())
@@ -165,15 +223,6 @@ def _linearise(T, dirs_cam, rgb_gt, depth_gt, ray_weight, view, decoder, near, f
         den_use = max(int(in_set.sum()), 1)
         den_valid = max(int((in_set & (depth_gt > 0.01) & (depth_gt < max_depth)).sum()), 1)
         cost += miss_cost * int((in_set & ~hit).sum()) / den_use
-
-    # d(ray depth)/d(sample point) = (t - D)/W * dw/ds * grad s; colour adds w/W * grad c.
-    J_s = twist_rows(field.grad_sdf, x_cam, R_)  # (S, 6)
-    a = (t - depth[r]) * inv_W[r] * dw_ds
-    J_depth = torch.zeros(num_rays, 6, dtype=t.dtype, device=t.device).index_add(0, r, a[:, None] * J_s)
-    J_rgb_c = twist_rows(grad_rgb, x_cam[active][:, None, :], R_)  # (A, 3, 6)
-    b = (rgb - color[ra]) * (inv_W[ra] * dw_ds[active])[:, None]  # (A, 3)
-    per_sample = b[..., None] * J_s[active][:, None, :] + (w[active] * inv_W[ra])[:, None, None] * J_rgb_c
-    J_color = torch.zeros(num_rays, 3, 6, dtype=t.dtype, device=t.device).index_add(0, ra, per_sample)
 
     H = T.new_zeros(6, 6)
     g = T.new_zeros(6)

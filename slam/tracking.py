@@ -34,7 +34,8 @@ from .config import SLAMConfig, TrackingConfig
 from .decoder import Decoder
 from .features import Correspondences, reprojection_cost, reprojection_terms
 from .frames import TensorFrame, sample_pixels
-from .gauss_newton import Linearisation, MotionPrior, damped_step, limit_step, linearise
+from .gauss_newton import (Linearisation, MotionPrior, RenderedJacobians, damped_step, limit_step,
+                           linearise_rendered, render_with_jacobians)
 from .geometry import se3_exp, se3_inverse, se3_log
 from .losses import LossWeights, compute_losses
 from .mapping import MapSnapshot, training_far
@@ -215,27 +216,32 @@ class Tracker:
         # A ray that leaves the map costs as much as one off by the truncation in depth and SDF.
         miss_cost = self.weights.depth * r.truncation + self.weights.sdf * r.truncation ** 2
 
-        def dense_at(T: torch.Tensor, ray_weight: torch.Tensor | None) -> Linearisation:
-            return linearise(T, batch.dirs_cam, batch.rgb, batch.depth, ray_weight, fmap.view,
-                             fmap.decoder, near=near, far=far,
-                             step=r.step_ratio * fmap.view.voxel_size, truncation=r.truncation,
-                             max_hits=r.max_hits, weights=self.weights, max_depth=r.max_distance,
-                             color_weight_eps=c.color_weight_eps, miss_cost=miss_cost,
-                             mask_in_front=r.mask_in_front)
+        def render_at(T: torch.Tensor) -> RenderedJacobians:
+            return render_with_jacobians(T, batch.dirs_cam, fmap.view, fmap.decoder, near=near, far=far,
+                                         step=r.step_ratio * fmap.view.voxel_size, truncation=r.truncation,
+                                         max_hits=r.max_hits, color_weight_eps=c.color_weight_eps,
+                                         mask_in_front=r.mask_in_front)
+
+        def dense_of(rendered: RenderedJacobians, ray_weight: torch.Tensor | None) -> Linearisation:
+            return linearise_rendered(rendered, batch.rgb, batch.depth, ray_weight, weights=self.weights,
+                                      max_depth=r.max_distance, miss_cost=miss_cost)
 
         prior: MotionPrior | None = None
 
-        def linearise_at(T: torch.Tensor, ray_weight: torch.Tensor | None) -> Linearisation:
-            lin = dense_at(T, ray_weight)
+        def linearise_at(T: torch.Tensor, ray_weight: torch.Tensor | None,
+                         rendered: RenderedJacobians | None = None) -> Linearisation:
+            lin = dense_of(rendered if rendered is not None else render_at(T), ray_weight)
             if sparse is not None:
                 lin = sparse.added_to(lin, T)
             return lin if prior is None else prior.added_to(lin, se3_log(se3_inverse(T0_map) @ T))
 
-        first = dense_at(T0_map, None)
+        rendered0 = render_at(T0_map)
+        first = dense_of(rendered0, None)
         if sparse is not None and T_guess_map is not None and c.feature_dense_check:
-            at_guess = dense_at(T_guess_map, None)
+            at_guess_rendered = render_at(T_guess_map)
+            at_guess = dense_of(at_guess_rendered, None)
             if at_guess.cost < first.cost:
-                sparse, T0_map, first = None, T_guess_map, at_guess
+                sparse, T0_map, first, rendered0 = None, T_guess_map, at_guess, at_guess_rendered
         if not bool(first.hit.any()):
             return 0, float("inf"), T0_map, 0.0, float("inf"), T0_map, None
         med = first.residual[first.hit].median()
@@ -245,7 +251,8 @@ class Tracker:
             if int(inner.sum()) >= c.min_valid_ratio * inlier.numel():
                 inlier = inner
         inlier = inlier.float()
-        start = linearise_at(T0_map, inlier)
+        # The same render as ``first``, weighed again without the outliers.
+        start = linearise_at(T0_map, inlier, rendered0)
         if c.motion_prior > 0:
             prior = MotionPrior.scaled_to(start, c.motion_prior)
             start = prior.added_to(start, torch.zeros(6, dtype=T0_map.dtype))
@@ -256,13 +263,16 @@ class Tracker:
             delta = limit_step(damped_step(best, damping), c.max_step_m, c.max_step_rad)
             if not bool(torch.isfinite(delta).all()):
                 break
+            if float(delta.norm()) < c.convergence_tol:
+                # Converged: a step this small would change the pose by less than the
+                # tolerance whether it is accepted or not, so it is not worth a render (on
+                # fr1/rpy the third step is 1e-7-1e-5 and changes the loss by < 1e-5).
+                break
             T_new = T @ se3_exp(delta)
             cand = linearise_at(T_new, inlier)
             if cand.cost < best.cost:
                 T, best = T_new, cand
                 damping = max(damping / 3.0, 1e-7)
-                if float(delta.norm()) < c.convergence_tol:
-                    break
             else:
                 damping *= 10.0
                 if damping > 1e3:

@@ -23,7 +23,7 @@ from slam.losses import LossWeights, compute_losses
 from slam.mapping import Mapper, MapSnapshot, TrackedFrame
 from slam.maps import SubMap
 from slam.render import render_rays
-from slam.gauss_newton import limit_step, linearise
+from slam.gauss_newton import limit_step, linearise, linearise_rendered, render_with_jacobians
 from slam.geometry import se3_exp
 from slam.render import MapView
 from slam.tracking import FrozenMap, Tracker, constant_velocity_guess, interior_rays, tracking_bounds
@@ -357,6 +357,27 @@ def assert_recovers_2cm(config, trained, frames) -> None:
     assert result.ok and pose_error(result.T_world_cam, T_gt)[0] < 0.7 * 0.02
 
 
+def test_gauss_newton_renders_no_step_below_the_convergence_tolerance(trained, frames, monkeypatch):
+    """Once the next step is below ``convergence_tol`` the tracker stops without rendering it,
+    and the first pose is rendered once for both of its weightings."""
+    import slam.tracking as tracking
+
+    renders: list[torch.Tensor] = []
+    real = tracking.render_with_jacobians
+    monkeypatch.setattr(tracking, "render_with_jacobians", lambda T, *a, **k: renders.append(T) or real(T, *a, **k))
+    gn = replace(CONFIG.tracking, optimizer="gauss_newton", iterations=20, convergence_tol=1e-4, motion_prior=0.0)
+    config = replace(CONFIG, tracking=gn)
+    fmap = FrozenMap(trained.mapper.snapshot(), config, CPU)
+    T_gt = gt_pose(frames[0])
+    delta = torch.eye(4)
+    delta[:3, 3] = torch.tensor([0.01, 0.0, 0.0])
+    result = Tracker(config, CPU).track(frames[0], fmap, T_gt @ delta)
+    assert result.ok and pose_error(result.T_world_cam, T_gt)[0] < 0.01, "closer than it started"
+    assert result.iterations < gn.iterations, "stopped by the tolerance, not the iteration cap"
+    # The start pose once, then one render per step taken: the last, tiny step is not rendered.
+    assert len(renders) == result.iterations
+
+
 @pytest.mark.parametrize("keep_best", [True, False])
 def test_adam_returns_the_best_iterate_or_the_last_one_as_the_release(trained, frames, keep_best):
     # One evaluated iterate: the best is the start itself; the last is the pose after Adam's
@@ -464,6 +485,23 @@ def test_linearisation_cost_and_gradient_match_autograd_through_render_rays(trai
     other = linearise(T0, batch.dirs_cam, batch.rgb, batch.depth, None, fmap.view, fmap.decoder, weights=weights,
                       eps_depth=1e-12, eps_color=1e-12, **{**kwargs, "mask_in_front": not mask_in_front})
     assert other.cost != lin.cost, "the switch reaches the closed-form model"
+
+
+def test_one_render_serves_several_ray_weightings(trained, frames):
+    """The tracker renders its first pose once and weighs it twice (all rays, then without
+    the outliers): the same model as linearising from scratch each time."""
+    fmap, batch, kwargs, weights = _linearisation_inputs(trained, frames)
+    T0 = gt_pose(frames[0]) @ se3_exp(torch.tensor([0.01, -0.01, 0.005, 0.01, 0.0, -0.01]))
+    rendered = render_with_jacobians(T0, batch.dirs_cam, fmap.view, fmap.decoder, **kwargs)
+    keep = (torch.arange(batch.depth.shape[0]) % 3 != 0).float()
+    for ray_weight in (None, keep):
+        plain = linearise(T0, batch.dirs_cam, batch.rgb, batch.depth, ray_weight, fmap.view, fmap.decoder,
+                          weights=weights, miss_cost=0.5, **kwargs)
+        reused = linearise_rendered(rendered, batch.rgb, batch.depth, ray_weight, weights=weights, miss_cost=0.5)
+        assert reused.cost == pytest.approx(plain.cost, rel=1e-6)
+        assert torch.allclose(reused.H, plain.H, rtol=1e-5, atol=1e-6 * float(plain.H.abs().max()))
+        assert torch.allclose(reused.g, plain.g, rtol=1e-5, atol=1e-6 * float(plain.g.abs().max()))
+        assert torch.equal(reused.hit, plain.hit)
 
 
 def test_a_ray_that_leaves_the_map_costs_miss_cost(trained, frames):
