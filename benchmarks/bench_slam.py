@@ -3,16 +3,18 @@
 For each sequence, each system runs in its own child process (so that its peak memory, the
 RSS summed over its process tree, is its own): voxfusion through ``slam.runtime.run_slam``
 with the ``cpu`` preset (every frame tracked, tracking and mapping in separate processes),
-the peer through ``peer_open3d.run_open3d_slam``. The parent then computes ATE RMSE
+the peer through ``peer_open3d.run_open3d_slam`` at its default voxels (``open3d``) and at
+1 cm (``open3d-1cm``). The parent then computes ATE RMSE
 (``slam.eval.ate``, rigid alignment) against the ground truth and, where a GT mesh exists,
 mesh metrics with the GT culled to what the cameras saw (occlusion-aware).
 
 Sequences: ``synthetic:walk?frames=200`` at 320x240 (rendered once into a frame cache so the
 ray caster is not timed as part of either system) and TUM fr1/rpy, first 150 frames at
-640x480. frames/s = frames / wall time of the whole SLAM call, final mesh included.
+640x480. frames/s = frames / wall time of the whole SLAM call, final mesh included; the
+ratio of voxfusion's to each peer's is a figure (issue 18: >= 0.6x the default peer's).
 
-    python benchmarks/bench_slam.py [--quick] [--systems voxfusion,open3d] [--json FILE]
-    python benchmarks/bench_slam.py --worker voxfusion|open3d --source S --out DIR   (internal)
+    python benchmarks/bench_slam.py [--quick] [--systems voxfusion,open3d,open3d-1cm] [--json FILE]
+    python benchmarks/bench_slam.py --worker voxfusion|open3d|open3d-1cm --source S --out DIR   (internal)
 """
 
 from __future__ import annotations
@@ -43,7 +45,10 @@ from common import (
     write_json,
 )
 
-SYSTEMS = ("voxfusion", "open3d")
+SYSTEMS = ("voxfusion", "open3d", "open3d-1cm")
+"""``open3d`` is the peer at its default voxels (3 m / 512, 5.86 mm); ``open3d-1cm`` the same
+at 1 cm voxels, a map closer to ours in detail and cheaper to integrate and ray-cast."""
+PEER_VOXEL_SIZE = {"open3d": 3.0 / 512, "open3d-1cm": 0.01}
 
 
 @dataclass(frozen=True)
@@ -92,7 +97,7 @@ def worker_voxfusion(source: Path, max_frames: int, out: Path, preset_name: str,
             "timings_s": info["timings_s"]}
 
 
-def worker_open3d(source: Path, max_frames: int, out: Path, depth_max: float) -> dict:
+def worker_open3d(source: Path, max_frames: int, out: Path, depth_max: float, voxel_size: float) -> dict:
     import trimesh
     from peer_open3d import Open3DParams, run_open3d_slam
 
@@ -100,7 +105,7 @@ def worker_open3d(source: Path, max_frames: int, out: Path, depth_max: float) ->
 
     sequence = open_source(source, max_frames)
     t0 = time.perf_counter()
-    result = run_open3d_slam(sequence, Open3DParams(depth_max=depth_max))
+    result = run_open3d_slam(sequence, Open3DParams(voxel_size=voxel_size, depth_max=depth_max))
     write_tum(out / "trajectory.txt", Trajectory(result.timestamps, result.poses))
     mesh = trimesh.Trimesh(result.vertices, result.faces, vertex_colors=result.colors, process=False)
     mesh.export(out / "mesh.ply")
@@ -117,7 +122,7 @@ def worker_main(args) -> int:
     if args.worker == "voxfusion":
         info = worker_voxfusion(args.source, args.max_frames, args.out, args.preset, args.quick)
     else:
-        info = worker_open3d(args.source, args.max_frames, args.out, args.depth_max)
+        info = worker_open3d(args.source, args.max_frames, args.out, args.depth_max, PEER_VOXEL_SIZE[args.worker])
     (args.out / "result.json").write_text(json.dumps(info, indent=2))
     return 0
 
@@ -176,7 +181,7 @@ def run_system(system: str, seq: BenchSequence, work: Path, preset_name: str, po
             str(seq.max_frames), "--out", str(out), "--depth-max", str(seq.peer_depth_max), "--preset", preset_name]
     args += ["--quick"] if quick else []
     load_before = load_line()
-    if system == "open3d" and importlib.util.find_spec("open3d") is None:
+    if system.startswith("open3d") and importlib.util.find_spec("open3d") is None:
         from peer_open3d import INSTALL_HINT
 
         return {"system": system, "sequence": seq.name, "child_seconds": 0.0, "load_after": load_before,
@@ -232,6 +237,13 @@ def target_figures(rows: list[dict], seqs: list[BenchSequence]) -> list[Figure]:
                                       f"<= {seq.accuracy_target_cm}", err))
             if seq.synthetic_spec is None:
                 figures.append(Figure(f"{seq.name}: frames/s, every frame tracked", r.get("fps"), "fps", ">= 1", err))
+            for peer in ("open3d", "open3d-1cm"):
+                other = next((o for o in rows if o["system"] == peer and o["sequence"] == seq.name), None)
+                if other is None or "error" in other or "error" in r:
+                    continue
+                target = ">= 0.6" if seq.synthetic_spec is None and peer == "open3d" else ""
+                figures.append(Figure(f"{seq.name}: frames/s against {peer} (same run)", r["fps"] / other["fps"],
+                                      "x", target, f"{r['fps']:.2f} against {other['fps']:.2f} frames/s"))
     return figures
 
 
