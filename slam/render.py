@@ -509,11 +509,13 @@ def render_rays(origins: torch.Tensor, dirs: torch.Tensor, view: MapView, decode
                 *, near: torch.Tensor, far: torch.Tensor, step: float, truncation: float,
                 max_hits: int, offsets: torch.Tensor | None = None,
                 color_weight_eps: float = 1e-5, traverse: bool = True,
-                mask_in_front: bool = True) -> RenderOutput:
+                mask_in_front: bool = True, renormalise_color: bool = False) -> RenderOutput:
     """Render R rays of one map. origins, dirs (R, 3) map frame; near, far (R,) -> RenderOutput.
 
     The colour head only runs on samples whose weight exceeds ``color_weight_eps`` (the
-    others add nothing to the normalised colour), which saves most of its cost.
+    others add nothing to the normalised colour), which saves most of its cost. With
+    ``renormalise_color`` a ray's colour is normalised by the weights of those samples
+    instead of all of them, so a large ``color_weight_eps`` does not darken it (views).
     ``traverse=False`` finds the samples by ``sample_points_in_band`` (short [near, far]
     ranges; no M_h cap, no ``offsets``). ``mask_in_front``: see ``first_surface_mask``
     (``RenderConfig.mask_in_front``; the fused decoder kernels end before the weights, so
@@ -537,7 +539,11 @@ def render_rays(origins: torch.Tensor, dirs: torch.Tensor, view: MapView, decode
     depth_var = torch.zeros_like(wsum).index_add(0, r, w * (samples.t - depth.detach()[r]) ** 2) * norm
     active = torch.nonzero(w.detach() > color_weight_eps, as_tuple=True)[0]
     rgb_active = color_of_hidden(decoder, hidden[active])
-    color = accumulate_along_rays(w[active], rgb_active, r[active], num_rays) * norm[:, None]
+    if renormalise_color:
+        w_active = torch.zeros_like(wsum).index_add(0, r[active], w[active])
+        color = accumulate_along_rays(w[active], rgb_active, r[active], num_rays) / (w_active + 1e-8)[:, None]
+    else:
+        color = accumulate_along_rays(w[active], rgb_active, r[active], num_rays) * norm[:, None]
     hit = torch.zeros(num_rays, dtype=torch.bool, device=origins.device)
     hit[r] = True
     return RenderOutput(color, depth, wsum, hit, depth_var, samples, sdf)

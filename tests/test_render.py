@@ -509,6 +509,41 @@ def test_render_caps_samples_at_far_and_misses_report_no_hit():
     assert out.depth[1] == 0 and out.weight_sum[1] == 0 and not bool(out.color[1].any())
 
 
+def test_renormalised_colour_is_the_weighted_mean_over_the_coloured_samples():
+    """``renormalise_color`` (views): with every sample coloured it changes nothing; with a
+    high threshold the colour is the mean over the kept samples, not darkened by the others."""
+    torch.manual_seed(0)
+    cfg = preset("test")
+    vmap = SparseVoxelMap(0.2, embed_dim=cfg.voxel.embed_dim, init_std=0.3, seed=0)
+    vmap.allocate(torch.rand(2000, 3) * torch.tensor([1.0, 1.0, 0.6]) + torch.tensor([-0.5, -0.5, 0.6]))
+    decoder = Decoder(cfg.decoder, cfg.voxel.embed_dim)
+    n = 32
+    origins = torch.zeros(n, 3)
+    dirs = torch.cat([torch.rand(n, 2) * 0.4 - 0.2, torch.ones(n, 1)], 1)
+    kw = dict(near=torch.full((n,), 0.05), far=torch.full((n,), 2.0), step=0.04, truncation=0.1, max_hits=8)
+    with torch.no_grad():
+        plain = render_rays(origins, dirs, MapView.of(vmap), decoder, color_weight_eps=0.0, **kw)
+        same = render_rays(origins, dirs, MapView.of(vmap), decoder, color_weight_eps=0.0, renormalise_color=True, **kw)
+        assert torch.allclose(plain.color, same.color, atol=1e-5)
+        eps = 0.1
+        high = render_rays(origins, dirs, MapView.of(vmap), decoder, color_weight_eps=eps, renormalise_color=True, **kw)
+        samples = plain.samples
+        points = origins[samples.ray_index] + samples.t[:, None] * dirs[samples.ray_index]
+        from slam.render import color_of_hidden, decode_samples, sdf_weights
+        sdf, hidden = decode_samples(points, samples.voxel_index, MapView.of(vmap), decoder)
+        w = sdf_weights(sdf, samples.t, samples.ray_index, n, 0.1)
+        kept = w > eps
+        rgb = color_of_hidden(decoder, hidden)
+        for ray in range(n):
+            mine = kept & (samples.ray_index == ray)
+            if bool(mine.any()):
+                expected = (w[mine, None] * rgb[mine]).sum(0) / w[mine].sum()
+                assert torch.allclose(high.color[ray], expected, atol=1e-5), ray
+            else:
+                assert not bool(high.color[ray].any())
+    assert bool((kept.sum() > 0)) and bool((~kept & (w > 0)).any()), "the threshold keeps some samples, drops others"
+
+
 def test_gradients_reach_embeddings_decoder_and_ray_geometry():
     torch.manual_seed(0)
     cfg = preset("test")
