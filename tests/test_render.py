@@ -509,17 +509,23 @@ def test_render_caps_samples_at_far_and_misses_report_no_hit():
     assert out.depth[1] == 0 and out.weight_sum[1] == 0 and not bool(out.color[1].any())
 
 
-def test_renormalised_colour_is_the_weighted_mean_over_the_coloured_samples():
-    """``renormalise_color`` (views): with every sample coloured it changes nothing; with a
-    high threshold the colour is the mean over the kept samples, not darkened by the others."""
+def random_field_and_rays(n: int):
+    """A map of random voxels in front of the origin, the test preset's decoder and n rays
+    into it: (SparseVoxelMap, Decoder, origins (n, 3), dirs (n, 3))."""
     torch.manual_seed(0)
     cfg = preset("test")
     vmap = SparseVoxelMap(0.2, embed_dim=cfg.voxel.embed_dim, init_std=0.3, seed=0)
     vmap.allocate(torch.rand(2000, 3) * torch.tensor([1.0, 1.0, 0.6]) + torch.tensor([-0.5, -0.5, 0.6]))
     decoder = Decoder(cfg.decoder, cfg.voxel.embed_dim)
-    n = 32
-    origins = torch.zeros(n, 3)
     dirs = torch.cat([torch.rand(n, 2) * 0.4 - 0.2, torch.ones(n, 1)], 1)
+    return vmap, decoder, torch.zeros(n, 3), dirs
+
+
+def test_renormalised_colour_is_the_weighted_mean_over_the_coloured_samples():
+    """``renormalise_color`` (views): with every sample coloured it changes nothing; with a
+    high threshold the colour is the mean over the kept samples, not darkened by the others."""
+    vmap, decoder, origins, dirs = random_field_and_rays(32)
+    n = 32
     kw = dict(near=torch.full((n,), 0.05), far=torch.full((n,), 2.0), step=0.04, truncation=0.1, max_hits=8)
     with torch.no_grad():
         plain = render_rays(origins, dirs, MapView.of(vmap), decoder, color_weight_eps=0.0, **kw)
@@ -545,14 +551,9 @@ def test_renormalised_colour_is_the_weighted_mean_over_the_coloured_samples():
 
 
 def test_gradients_reach_embeddings_decoder_and_ray_geometry():
-    torch.manual_seed(0)
-    cfg = preset("test")
-    vmap = SparseVoxelMap(0.2, embed_dim=cfg.voxel.embed_dim, init_std=0.3, seed=0)
-    vmap.allocate(torch.rand(2000, 3) * torch.tensor([1.0, 1.0, 0.6]) + torch.tensor([-0.5, -0.5, 0.6]))
-    decoder = Decoder(cfg.decoder, cfg.voxel.embed_dim)
+    vmap, decoder, origins, dirs = random_field_and_rays(16)
     n = 16
-    origins = torch.zeros(n, 3, requires_grad=True)
-    dirs = torch.cat([torch.rand(n, 2) * 0.4 - 0.2, torch.ones(n, 1)], 1).requires_grad_(True)
+    origins, dirs = origins.requires_grad_(True), dirs.requires_grad_(True)
     out = render_rays(origins, dirs, MapView.of(vmap), decoder, near=torch.full((n,), 0.05),
                       far=torch.full((n,), 2.0), step=0.04, truncation=0.1, max_hits=8,
                       color_weight_eps=0.0)
