@@ -193,7 +193,7 @@ def _render_submap_chunk(submap, T_map_cam: torch.Tensor, dirs_cam: torch.Tensor
     step = render.step_ratio * submap.voxels.voxel_size
     origins, dirs = rays_in_map(T_map_cam, dirs_cam)
     num_rays = dirs.shape[0]
-    out = render_rays(origins, dirs, view or rendered_voxels(submap), decoder or submap.decoder, near=near, far=far,
+    out = render_rays(origins, dirs, rendered_voxels(submap) if view is None else view, decoder or submap.decoder, near=near, far=far,
                       step=step, truncation=render.truncation, max_hits=render.max_hits,
                       color_weight_eps=VIEW_COLOR_WEIGHT_EPS if with_color else float("inf"),
                       traverse=traverse, mask_in_front=render.mask_in_front, renormalise_color=True)

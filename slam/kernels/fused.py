@@ -141,13 +141,13 @@ def band_samples(origins: torch.Tensor, dirs: torch.Tensor, k0: torch.Tensor, co
     dropped: ray (S,) int64, t (S,) float32, voxel (S,) int64, sorted by ray, then t."""
     first = torch.cumsum(counts, 0) - counts
     total = int(counts.sum())
+    ray = torch.empty(total, dtype=torch.int64)
     t = origins.new_empty(total)
     voxel = torch.empty(total, dtype=torch.int64)
     numba_kernels().band_samples(_np(origins), _np(dirs), _np(k0), _np(counts), _np(first), float(step),
                                  float(offset), np.float32(voxel_size), _np(voxel_codes), set_threads(),
-                                 t.numpy(), voxel.numpy())
+                                 ray.numpy(), t.numpy(), voxel.numpy())
     keep = torch.nonzero(voxel >= 0, as_tuple=True)[0]
-    ray = torch.repeat_interleave(torch.arange(counts.numel()), counts)
     return ray[keep], t[keep], voxel[keep]
 
 

@@ -274,13 +274,13 @@ def _find(sorted_codes, code):
 
 
 def band_samples(origins, dirs, k0, counts, first, step, offset, voxel_size, voxel_codes, chunks,
-                 t_out, voxel_out):
+                 ray_out, t_out, voxel_out):
     """Every grid point ``t = (k0 + j + offset) * step``, j < counts, of every ray, and the
     voxel it lies in: ``slam.render.sample_points_in_band`` before it drops the misses.
 
     origins, dirs (R, 3) float32; k0 (R,) float32; counts, first (R,) int64 (first: where a
-    ray's samples start in the outputs); voxel_codes (Nv,) sorted int64 -> t_out (S,)
-    float32, voxel_out (S,) int64 (-1: no voxel). Compiled without fastmath, so every
+    ray's samples start in the outputs); voxel_codes (Nv,) sorted int64 -> ray_out (S,)
+    int64, t_out (S,) float32, voxel_out (S,) int64 (-1: no voxel). Compiled without fastmath, so every
     product and sum rounds as torch's separate operations do (no fused multiply-add): a
     sample on a voxel face lands in the same voxel.
     """
@@ -298,6 +298,7 @@ def band_samples(origins, dirs, k0, counts, first, step, offset, voxel_size, vox
                 code = (_dilate(_voxel_coordinate(x, voxel_size))
                         | (_dilate(_voxel_coordinate(y, voxel_size)) << 1)
                         | (_dilate(_voxel_coordinate(z, voxel_size)) << 2))
+                ray_out[base + j] = r
                 t_out[base + j] = t
                 voxel_out[base + j] = _find(voxel_codes, code)
 
