@@ -17,10 +17,13 @@ with torch's default.
 where it imports). With numba's fused kernels the interpolation runs inside the SDF decoder's
 stage. ``--ab ROUNDS`` adds a same-run comparison: rounds that alternate the two backends on
 the end-to-end rows, medians of wall and of thread CPU time (the machine is shared, so CPU
-time is the steadier of the two), and their ratios.
+time is the steadier of the two), and their ratios. ``--ab-step ROUNDS`` alternates the same
+way between the mapping step with every sample decoded and coloured and the preset's
+(``mapping.thin_samples``, ``mapping.color_weight_eps``). Every row follows the preset's
+mapping step (thinning, colour threshold, loss normalisation), as ``Mapper`` runs it.
 
     python benchmarks/bench_iteration.py [--quick] [--rays 1024] [--iterations 20] [--json FILE]
-        [--kernels torch|numba] [--ab 8] [--threads 1,2]
+        [--kernels torch|numba] [--ab 8] [--ab-step 8] [--threads 1,2]
 """
 
 from __future__ import annotations
@@ -32,6 +35,7 @@ import sys
 import time
 from dataclasses import replace
 from pathlib import Path
+from typing import Callable
 
 import torch
 
@@ -60,9 +64,11 @@ from slam.render import (
     decode_samples,
     interpolate_embeddings,
     ray_voxel_intersections,
+    TrainingThinning,
     render_rays,
     sample_points_from_hits,
     sdf_weights,
+    thin_training_samples,
 )
 from slam.voxels import SparseVoxelMap
 
@@ -103,13 +109,16 @@ def draw_rays(frames, num_rays: int, generator: torch.Generator):
 
 
 def staged_render(o, d, view, decoder, *, near, far, step, truncation, max_hits, offsets,
-                  timer: StageTimer, color_weight_eps: float = 1e-5) -> RenderOutput:
+                  timer: StageTimer, color_weight_eps: float = 1e-5, renormalise_color: bool = False,
+                  thinning: TrainingThinning | None = None) -> RenderOutput:
     """``slam.render.render_rays`` stage by stage, each under ``timer``."""
     num_rays = o.shape[0]
     with timer("ray-voxel intersection"):
         hits = ray_voxel_intersections(o, d, near, far, view.voxel_codes, view.voxel_size, max_hits)
     with timer("point sampling"):
         samples = sample_points_from_hits(hits, step, offsets)
+        if thinning is not None:
+            samples = thin_training_samples(samples, thinning)
         r = samples.ray_index
         points = o[r] + samples.t[:, None] * d[r]
     if kernels.use_numba(points, view.embeddings):
@@ -130,7 +139,11 @@ def staged_render(o, d, view, decoder, *, near, far, step, truncation, max_hits,
     with timer("decoder (colour)"):
         rgb_active = color_of_hidden(decoder, hidden[active])
     with timer("weights + accumulation"):
-        color = accumulate_along_rays(w[active], rgb_active, r[active], num_rays) * norm[:, None]
+        color = accumulate_along_rays(w[active], rgb_active, r[active], num_rays)
+        if renormalise_color:
+            color = color / (torch.zeros_like(wsum).index_add(0, r[active], w[active]) + 1e-8)[:, None]
+        else:
+            color = color * norm[:, None]
         hit = torch.zeros(num_rays, dtype=torch.bool)
         hit[r] = True
     return RenderOutput(color, depth, wsum, hit, depth_var, samples, sdf)
@@ -155,12 +168,27 @@ class IterationBench:
         c = self.config.loss
         self.weights = LossWeights(c.rgb_weight, c.depth_weight, c.sdf_weight, c.fs_weight)
 
+    def use_config(self, config) -> None:
+        """Time iterations with ``config``'s mapping step (the A/B of ``--ab-step``)."""
+        self.config = self.mapper.config = config
+
     def _render_args(self, d_gt):
-        r = self.config.render
+        """The mapper's render arguments (``Mapper._joint_optimisation``) for rays of depth d_gt."""
+        r, m = self.config.render, self.config.mapping
         n = d_gt.shape[0]
+        thinning = None
+        if m.thin_samples:
+            thinning = TrainingThinning(d_gt, r.truncation, r.max_distance, m.free_space_stride,
+                                        torch.randint(m.free_space_stride, (n,), generator=self.generator))
         return {"near": torch.full((n,), 0.05), "far": training_far(d_gt, r.truncation, r.max_distance),
                 "step": r.step_ratio * self.submap.voxels.voxel_size, "truncation": r.truncation,
-                "max_hits": r.max_hits, "offsets": torch.rand(n, generator=self.generator)}
+                "max_hits": r.max_hits, "offsets": torch.rand(n, generator=self.generator),
+                "color_weight_eps": m.color_weight_eps, "renormalise_color": True, "thinning": thinning}
+
+    def _losses(self, out, rgb, depth):
+        r = self.config.render
+        return compute_losses(out, rgb, depth, r.truncation, self.weights, max_depth=r.max_distance,
+                              normalisation=self.config.loss.normalisation)
 
     def staged_iteration(self) -> dict[str, float]:
         timer = StageTimer()
@@ -168,8 +196,7 @@ class IterationBench:
             o, d, rgb, depth = draw_rays(self.frames, self.num_rays, self.generator)
         out = staged_render(o, d, self.submap.view(), self.submap.decoder, timer=timer, **self._render_args(depth))
         with timer("losses"):
-            losses = compute_losses(out, rgb, depth, self.config.render.truncation, self.weights,
-                                    max_depth=self.config.render.max_distance)
+            losses = self._losses(out, rgb, depth)
         with timer("back-propagation"):
             self.optimizer.zero_grad(set_to_none=True)
             losses.total.backward()
@@ -186,8 +213,7 @@ class IterationBench:
         t0 = time.perf_counter()
         o, d, rgb, depth = draw_rays(self.frames, self.num_rays, self.generator)
         out = render_rays(o, d, self.submap.view(), self.submap.decoder, **self._render_args(depth))
-        losses = compute_losses(out, rgb, depth, self.config.render.truncation, self.weights,
-                                max_depth=self.config.render.max_distance)
+        losses = self._losses(out, rgb, depth)
         self.optimizer.zero_grad(set_to_none=True)
         losses.total.backward()
         self.optimizer.step()
@@ -261,67 +287,88 @@ def run(bench: IterationBench, threads: int, warmup: int, iterations: int) -> di
     return result
 
 
-def ab_rounds(bench: IterationBench, threads: int, rounds: int, per_round: int) -> dict[str, dict[str, list[float]]]:
-    """Rounds alternating ``VOXFUSION_KERNELS=torch`` and ``numba`` (which goes first
-    alternates too); per round and backend the median wall and CPU seconds of each
-    end-to-end row. -> {row: {"torch wall": [...], "numba cpu": [...], ...}}."""
+def kernel_variants() -> dict[str, Callable[[], None]]:
+    """``--ab``: the field's kernels, ``VOXFUSION_KERNELS=torch`` against ``numba``."""
+    def use(backend: str) -> Callable[[], None]:
+        return lambda: os.environ.__setitem__("VOXFUSION_KERNELS", backend)
+    return {"torch": use("torch"), "numba": use("numba")}
+
+
+def step_variants(bench: IterationBench, config) -> dict[str, Callable[[], None]]:
+    """``--ab-step``: every sample decoded and coloured (before issue 18's thinning) against the
+    preset's mapping step (``mapping.thin_samples``, ``mapping.color_weight_eps``)."""
+    plain = replace(config, mapping=replace(config.mapping, thin_samples=False, color_weight_eps=1e-5))
+    return {"all samples": lambda: bench.use_config(plain), "preset": lambda: bench.use_config(config)}
+
+
+def ab_rounds(bench: IterationBench, threads: int, rounds: int, per_round: int,
+              variants: dict[str, Callable[[], None]]) -> dict[str, dict[str, list[float]]]:
+    """Rounds alternating two ``variants`` (label -> a call that switches to it; which goes
+    first alternates too); per round and variant the median wall and CPU seconds of each
+    end-to-end row and the staged iterations. -> {row: {"<label> wall": [...], ...}, "stages":
+    {label: [...]}}."""
     torch.set_num_threads(threads)
     rows = {"render_rays + losses + backward + step": bench.timed_render_rays_iteration,
             "Mapper.optimize, 1 iteration": bench.timed_mapper_iteration}
     out: dict[str, dict[str, list[float]]] = {row: {} for row in rows}
-    before = os.environ.get("VOXFUSION_KERNELS")
+    labels = list(variants)
+    before_env, before_config = os.environ.get("VOXFUSION_KERNELS"), bench.config
     try:
         for k in range(rounds):
-            for backend in ("torch", "numba") if k % 2 == 0 else ("numba", "torch"):
-                os.environ["VOXFUSION_KERNELS"] = backend
+            for label in labels if k % 2 == 0 else labels[::-1]:
+                variants[label]()
                 for row, fn in rows.items():
-                    fn()  # one untimed: the other backend ran last
+                    fn()  # one untimed: the other variant ran last
                     walls, cpus = zip(*[fn() for _ in range(per_round)])
-                    out[row].setdefault(f"{backend} wall", []).append(statistics.median(walls))
-                    out[row].setdefault(f"{backend} cpu", []).append(statistics.median(cpus))
+                    out[row].setdefault(f"{label} wall", []).append(statistics.median(walls))
+                    out[row].setdefault(f"{label} cpu", []).append(statistics.median(cpus))
                 staged = [bench.staged_iteration() for _ in range(per_round)]
-                out.setdefault("stages", {}).setdefault(backend, []).extend(staged)
+                out.setdefault("stages", {}).setdefault(label, []).extend(staged)
     finally:
-        if before is None:
+        bench.use_config(before_config)
+        if before_env is None:
             os.environ.pop("VOXFUSION_KERNELS", None)
         else:
-            os.environ["VOXFUSION_KERNELS"] = before
+            os.environ["VOXFUSION_KERNELS"] = before_env
     return out
 
 
 def ab_stage_table(results: dict[int, dict]) -> str:
     """Markdown: the paper-style stages (median ms over the A/B rounds' staged iterations),
-    torch and numba side by side per thread count."""
+    the two variants side by side per thread count."""
     headers, columns = ["stage (median ms)"], []
     for threads, per_row in results.items():
-        for backend in ("torch", "numba"):
-            staged = per_row["stages"][backend]
+        for label, staged in per_row["stages"].items():
             result = {name: median_ms([x.get(name, 0.0) for x in staged]) for name in STAGES}
             result["staged total"] = median_ms([sum(x.get(n, 0.0) for n in STAGES) for x in staged])
             columns.append(dict(paper_rows({**result, "voxel allocation (one frame, empty map)": float("nan"),
                                             "render_rays + losses + backward + step": float("nan"),
                                             "Mapper.optimize, one iteration": float("nan")})))
-            headers.append(f"{backend}, {threads} thread{'s' if threads > 1 else ''}")
+            columns[-1]["samples per iteration"] = statistics.median(x["samples"] for x in staged)
+            headers.append(f"{label}, {threads} thread{'s' if threads > 1 else ''}")
     names = [n for n in columns[0] if columns[0][n] == columns[0][n]]  # the staged rows (not NaN)
     return markdown_table(headers, [[n] + [f"{c[n]:.1f}" for c in columns] for n in names])
 
 
 def ab_table(results: dict[int, dict]) -> str:
-    """Markdown: per thread count and row, torch and numba medians (ms) and torch / numba."""
-    rows = []
+    """Markdown: per thread count and row, both variants' medians (ms) and first / second."""
+    rows, labels = [], []
     for threads, per_row in results.items():
+        labels = list(per_row["stages"])
+        a, b = labels
         for row, series in per_row.items():
             if row == "stages":
                 continue
             cells = [f"{row}, {threads} thread{'s' if threads > 1 else ''}"]
             for kind in ("wall", "cpu"):
-                t, n = series[f"torch {kind}"], series[f"numba {kind}"]
-                ratios = [a / b for a, b in zip(t, n)]
+                t, n = series[f"{a} {kind}"], series[f"{b} {kind}"]
+                ratios = [x / y for x, y in zip(t, n)]
                 cells += [f"{median_ms(t):.1f}", f"{median_ms(n):.1f}",
                           f"{statistics.median(ratios):.2f}x ({min(ratios):.2f}-{max(ratios):.2f})"]
             rows.append(cells)
-    return markdown_table(["row (median ms over rounds)", "torch wall", "numba wall", "wall ratio (range)",
-                           "torch CPU", "numba CPU", "CPU ratio (range)"], rows)
+    a, b = labels
+    return markdown_table([f"row (median ms over rounds)", f"{a} wall", f"{b} wall", "wall ratio (range)",
+                           f"{a} CPU", f"{b} CPU", "CPU ratio (range)"], rows)
 
 
 def profile_table(bench: IterationBench, iterations: int, rows: int = 15) -> str:
@@ -366,6 +413,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--threads", default=None, help="comma-separated torch thread counts (default: 1 and torch's)")
     parser.add_argument("--ab", type=int, default=0, metavar="ROUNDS",
                         help="also alternate torch and numba kernels for ROUNDS rounds (same run, medians, ratios)")
+    parser.add_argument("--ab-step", type=int, default=0, metavar="ROUNDS",
+                        help="also alternate the mapping step with every sample decoded and coloured and the "
+                             "preset's (thinned samples, colour threshold) for ROUNDS rounds")
     args = parser.parse_args(argv)
     if args.kernels:
         os.environ["VOXFUSION_KERNELS"] = args.kernels
@@ -397,11 +447,13 @@ def main(argv: list[str] | None = None) -> int:
     for threads in thread_counts:
         results[threads] = run(bench, threads, 1 if args.quick else 3, iterations)
         print(f"threads {threads}: done, {load_line()}", flush=True)
-    ab = {}
-    if args.ab:
-        for threads in thread_counts:
-            ab[threads] = ab_rounds(bench, threads, args.ab, 3 if args.quick else 6)
-            print(f"A/B threads {threads}: done, {load_line()}", flush=True)
+    comparisons: dict[str, dict[int, dict]] = {}
+    per_round = 3 if args.quick else 6
+    for name, rounds, variants in (("kernels", args.ab, kernel_variants()),
+                                   ("mapping step", args.ab_step, step_variants(bench, config))):
+        if rounds:
+            comparisons[name] = {t: ab_rounds(bench, t, rounds, per_round, variants) for t in thread_counts}
+            print(f"A/B {name}: done, {load_line()}", flush=True)
     if args.profile:
         torch.set_num_threads(1)
         print(profile_table(bench, iterations=5))
@@ -416,10 +468,11 @@ def main(argv: list[str] | None = None) -> int:
                       "ms", f"<= {TARGET_MS:.0f}", f"staged sum {r['staged total']:.0f} ms; Mapper.optimize "
                       f"({config.mapping.window_size}x{config.mapping.num_rays} rays) {r['Mapper.optimize, one iteration']:.0f} ms")
                for t, r in results.items()]
-    if ab:
-        print(f"\nSame-run A/B, {args.ab} alternating rounds of 1 + {3 if args.quick else 6} iterations per backend:\n")
+    for name, ab in comparisons.items():
+        rounds = args.ab if name == "kernels" else args.ab_step
+        print(f"\nSame-run A/B of the {name}, {rounds} alternating rounds of 1 + {per_round} iterations each:\n")
         print(ab_table(ab))
-        print(f"\nStages in the same rounds ({args.ab} x {3 if args.quick else 6} staged iterations per backend):\n")
+        print(f"\nStages in the same rounds ({rounds} x {per_round} staged iterations each):\n")
         print(ab_stage_table(ab))
     print()
     print(figures_table(figures))
@@ -427,9 +480,11 @@ def main(argv: list[str] | None = None) -> int:
     write_json(args.json, figures_payload("One mapping iteration (issue 3)", figures, {
         "map": label, "rays": args.rays, "breakdown_ms": {str(t): r for t, r in results.items()},
         "table": markdown_table(headers, rows), "staged_mismatch": mismatch,
-        "kernels_ab_ms": {str(t): {row: {k: [v * 1000 for v in vs] for k, vs in series.items()}
-                                   for row, series in r.items() if row != "stages"} for t, r in ab.items()},
-        "kernels_ab_stages": {str(t): ab_stage_table({t: r}) for t, r in ab.items()}}))
+        "ab_ms": {name: {str(t): {row: {k: [v * 1000 for v in vs] for k, vs in series.items()}
+                                      for row, series in r.items() if row != "stages"} for t, r in ab.items()}
+                  for name, ab in comparisons.items()},
+        "ab_stages": {name: {str(t): ab_stage_table({t: r}) for t, r in ab.items()}
+                      for name, ab in comparisons.items()}}))
     return 0
 
 

@@ -244,8 +244,20 @@ class MappingConfig:
     most of its run refining (a 9-frame upload spent 106 of 114 s there)."""
     final_min_seconds: float = 10.0
     """The least wall time the time cap leaves the final bundle adjustment."""
+    thin_samples: bool = False
+    """Mapping iterations decode a thinned sample set (``slam.render.thin_training_samples``):
+    none behind the observed surface's truncation band, every ``free_space_stride``-th in
+    free space, weighted so the losses keep their expectation."""
+    free_space_stride: int = 2
+    """With ``thin_samples``: keep one free-space sample in this many (1: all)."""
+    color_weight_eps: float = 1e-5
+    """The colour head runs on the samples whose weight exceeds this (of at most 0.25), and a
+    ray's colour is their weighted mean (``render_rays``' ``renormalise_color``)."""
 
     def __post_init__(self) -> None:
+        if isinstance(self.free_space_stride, bool) or not isinstance(self.free_space_stride, int) \
+                or self.free_space_stride < 1:
+            raise ConfigError(f"mapping.free_space_stride must be an integer >= 1, got {self.free_space_stride!r}")
         if not isinstance(self.optimize_current_pose, bool):
             raise ConfigError("mapping.optimize_current_pose must be true or false, "
                               f"got {self.optimize_current_pose!r}")
@@ -481,9 +493,15 @@ def _cpu() -> SLAMConfig:
         # walk 200 frames 0.71 -> 0.57 cm ATE over 3 seeds in one process; with slots, fr1/rpy
         # process mode as above, synthetic laps 5.67 / 7.85 cm against 7.01 (within that
         # scenario's run-to-run spread).
+        # A mapping iteration decodes a thinned sample set (none behind the observed surface's
+        # band, every 2nd in free space) and colours only samples above a fifth of the peak
+        # weight: office0 map, 1024 rays, 1 thread, 79.7 -> 53.1 ms; fr1/rpy 150 frames,
+        # process mode, two runs each, alternating: 1.14 / 1.15 -> 1.45 / 1.74 frames/s,
+        # ATE 3.02 / 4.57 -> 3.07 / 4.02 cm (benchmarks/README.md, issue 18).
         mapping=MappingConfig(num_rays=192, iterations=12, window_size=4, first_frame_iterations=100,
                               final_iterations=500, final_rays=512, final_iterations_per_keyframe=50,
-                              final_time_share=1.0, optimize_current_pose=True),
+                              final_time_share=1.0, optimize_current_pose=True, thin_samples=True,
+                              free_space_stride=2, color_weight_eps=5e-2),
         mesh=MeshConfig(resolution=6),
         # Maps of a 3 m region: a lap around a room then comes back into other maps than the
         # ones it left, and loops between maps can correct the drift (synthetic laps hall, 780

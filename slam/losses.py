@@ -38,9 +38,10 @@ class Losses:
 
 
 def _per_ray_mean(values: torch.Tensor, mask: torch.Tensor, ray_index: torch.Tensor,
-                  num_rays: int) -> torch.Tensor:
-    """Mean over rays (that have any masked sample) of the mean of ``values[mask]`` per ray."""
-    m = mask.to(values.dtype)
+                  num_rays: int, stands_for: torch.Tensor | None = None) -> torch.Tensor:
+    """Mean over rays (that have any masked sample) of the mean of ``values[mask]`` per ray,
+    each sample counted ``stands_for`` (S,) times (None: once)."""
+    m = mask.to(values.dtype) if stands_for is None else mask.to(values.dtype) * stands_for
     sums = values.new_zeros(num_rays).index_add(0, ray_index, values * m)
     counts = values.new_zeros(num_rays).index_add(0, ray_index, m)
     has = counts > 0
@@ -50,23 +51,28 @@ def _per_ray_mean(values: torch.Tensor, mask: torch.Tensor, ray_index: torch.Ten
 
 
 def _slot_means(fs_values: torch.Tensor, front: torch.Tensor, sdf_values: torch.Tensor, band: torch.Tensor,
-                ray_index: torch.Tensor, use: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+                ray_index: torch.Tensor, use: torch.Tensor, stands_for: torch.Tensor | None = None,
+                grid_counts: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """The release's free-space and SDF terms (``criterion.py``, ``get_sdf_loss``) on flat samples.
 
     The release holds samples in a (rays, most samples of any ray) tensor padded behind each
     ray, and takes the mean of the masked squares over every slot of it, padding included;
     then it scales the free-space mean by the share of SDF-band samples among the front and
     band samples, and the SDF mean by the share of front samples. Rays: those in ``use``.
+    Thinned samples (``slam.render.thin_training_samples``) count ``stands_for`` (S,) times
+    and the width is that of the rays' ``grid_counts`` (R,) before thinning, so the terms
+    keep their expectation.
     """
     zero = fs_values.sum() * 0.0
-    counts = torch.bincount(ray_index, minlength=use.shape[0])
+    counts = torch.bincount(ray_index, minlength=use.shape[0]) if grid_counts is None else grid_counts
     rays = int(use.sum())
     width = int(counts[use].max()) if rays else 0
-    n_front, n_band = float(front.sum()), float(band.sum())
+    front_count = front.to(fs_values.dtype) if stands_for is None else front * stands_for
+    n_front, n_band = float(front_count.sum()), float(band.sum())
     if width == 0 or n_front + n_band == 0:
         return zero, zero
     slots = float(rays * width)
-    fs = (fs_values * front).sum() / slots * (n_band / (n_front + n_band))
+    fs = (fs_values * front_count).sum() / slots * (n_band / (n_front + n_band))
     sdf = (sdf_values * band).sum() / slots * (n_front / (n_front + n_band))
     return fs, sdf
 
@@ -95,10 +101,11 @@ def compute_losses(out: RenderOutput, rgb_gt: torch.Tensor, depth_gt: torch.Tens
     band = ok & ((t - d).abs() <= truncation)
     fs_values, sdf_values = (out.sdf - 1.0) ** 2, (t + out.sdf * truncation - d) ** 2
     if normalisation == "ray":
-        fs = _per_ray_mean(fs_values, front, r, num_rays)
+        fs = _per_ray_mean(fs_values, front, r, num_rays, out.samples.stands_for)
         sdf = _per_ray_mean(sdf_values, band, r, num_rays)
     elif normalisation == "slots":
-        fs, sdf = _slot_means(fs_values, front, sdf_values, band, r, use)
+        fs, sdf = _slot_means(fs_values, front, sdf_values, band, r, use, out.samples.stands_for,
+                              out.samples.grid_counts)
     else:
         raise ValueError(f"unknown loss normalisation {normalisation!r}: 'ray' or 'slots'")
     total = weights.rgb * rgb + weights.depth * depth + weights.fs * fs + weights.sdf * sdf

@@ -43,7 +43,7 @@ from .frames import (
 from .geometry import se3_exp, se3_inverse
 from .losses import LossWeights, Losses, compute_losses
 from .maps import Keyframe, MapSet, SubMap
-from .render import render_rays
+from .render import TrainingThinning, render_rays
 from .voxels import grow_adam_state, lookup_sorted, morton_encode, voxel_coords_of
 
 
@@ -385,12 +385,17 @@ class Mapper:
             o = T[:, None, :3, 3].expand(-1, rays_per_frame, 3).reshape(-1, 3)
             c_gt, d_gt = batch.rgb, batch.depth
             n = o.shape[0]
+            thinning = None
+            if m.thin_samples:
+                phase = torch.randint(m.free_space_stride, (n,), generator=self._gen).to(self.device)
+                thinning = TrainingThinning(d_gt, r.truncation, r.max_distance, m.free_space_stride, phase)
             out = render_rays(o, d, submap.view(), submap.decoder,
                               near=torch.full((n,), 0.05, device=self.device),
                               far=training_far(d_gt, r.truncation, r.max_distance),
                               step=r.step_ratio * submap.voxels.voxel_size, truncation=r.truncation,
                               max_hits=r.max_hits, offsets=torch.rand(n, generator=self._gen).to(self.device),
-                              mask_in_front=r.mask_in_front)
+                              mask_in_front=r.mask_in_front, thinning=thinning,
+                              color_weight_eps=m.color_weight_eps, renormalise_color=True)
             losses = compute_losses(out, c_gt, d_gt, r.truncation, weights, max_depth=r.max_distance,
                                     normalisation=self.config.loss.normalisation)
             tb = time.perf_counter()

@@ -75,6 +75,12 @@ class RaySamples:
     t: torch.Tensor
     voxel_index: torch.Tensor
     segments: Segments | None = None
+    stands_for: torch.Tensor | None = None
+    """After ``thin_training_samples``: (S,) float, how many samples of the full grid each one
+    stands for in the losses' sums (1 or the free-space stride); None: 1 each."""
+    grid_counts: torch.Tensor | None = None
+    """After ``thin_training_samples``: (R,) int64, each ray's sample count before thinning
+    (the ``slots`` normalisation's padded width)."""
 
 
 @dataclass(frozen=True)
@@ -285,6 +291,49 @@ def _band_samples_torch(origins: torch.Tensor, dirs: torch.Tensor, k0: torch.Ten
     voxel = lookup_sorted(view.voxel_codes, morton_encode(ijk))
     keep = voxel >= 0
     return RaySamples(ray[keep], t[keep], voxel[keep])
+
+
+@dataclass(frozen=True)
+class TrainingThinning:
+    """What ``thin_training_samples`` needs: the rays' observed depth (R,) (invalid outside
+    (0.01, max_depth)), the truncation, the free-space stride and a phase per ray (R,) int64
+    in [0, stride), drawn anew every iteration."""
+
+    depth: torch.Tensor
+    truncation: float
+    max_depth: float
+    free_space_stride: int
+    phase: torch.Tensor
+
+
+def thin_training_samples(samples: RaySamples, thinning: TrainingThinning) -> RaySamples:
+    """A cheaper unbiased sample set for the mapping losses (``MappingConfig.free_space_stride``).
+
+    Of a ray with valid depth ``d``, the losses read the free-space samples (``t < d - tr``)
+    through a sum and the SDF-band ones (``|t - d| <= tr``) one by one; samples behind the
+    band feed neither and, once the map has its surface near ``d``, fall outside the first
+    surface's window, so they are dropped. Of the free-space samples every ``stride``-th
+    (from the ray's random phase) is kept and stands for ``stride`` (``stands_for``): the
+    free-space sum keeps its expectation at a fraction of the decoder's work. Rays without
+    valid depth keep every sample. Sorted by ray, then t, as the input.
+    """
+    r, t = samples.ray_index, samples.t
+    num_rays = thinning.depth.shape[0]
+    d = thinning.depth[r]
+    valid = (d > 0.01) & (d < thinning.max_depth)
+    front = valid & (t < d - thinning.truncation)
+    behind = valid & (t > d + thinning.truncation)
+    stride = thinning.free_space_stride
+    # Free-space samples are a prefix of their ray, so their rank in the ray is their rank
+    # in the free space.
+    picked = (_rank_within_groups(r) + thinning.phase[r]) % stride == 0
+    keep = ~behind & (~front | picked)
+    stands_for = torch.where(front, float(stride), 1.0)[keep]
+    segments = samples.segments
+    if segments is not None:
+        segments = Segments(segments.sample_segment[keep], segments.segment_voxel)
+    return RaySamples(r[keep], t[keep], samples.voxel_index[keep], segments, stands_for,
+                      torch.bincount(r, minlength=num_rays))
 
 
 # ------------------------------------------------------------- interpolation
@@ -509,7 +558,8 @@ def render_rays(origins: torch.Tensor, dirs: torch.Tensor, view: MapView, decode
                 *, near: torch.Tensor, far: torch.Tensor, step: float, truncation: float,
                 max_hits: int, offsets: torch.Tensor | None = None,
                 color_weight_eps: float = 1e-5, traverse: bool = True,
-                mask_in_front: bool = True, renormalise_color: bool = False) -> RenderOutput:
+                mask_in_front: bool = True, renormalise_color: bool = False,
+                thinning: TrainingThinning | None = None) -> RenderOutput:
     """Render R rays of one map. origins, dirs (R, 3) map frame; near, far (R,) -> RenderOutput.
 
     The colour head only runs on samples whose weight exceeds ``color_weight_eps`` (the
@@ -519,7 +569,8 @@ def render_rays(origins: torch.Tensor, dirs: torch.Tensor, view: MapView, decode
     ``traverse=False`` finds the samples by ``sample_points_in_band`` (short [near, far]
     ranges; no M_h cap, no ``offsets``). ``mask_in_front``: see ``first_surface_mask``
     (``RenderConfig.mask_in_front``; the fused decoder kernels end before the weights, so
-    both kernel backends follow it).
+    both kernel backends follow it). ``thinning``: mapping's cheaper sample set
+    (``thin_training_samples``).
     """
     num_rays = origins.shape[0]
     if not traverse:
@@ -529,6 +580,8 @@ def render_rays(origins: torch.Tensor, dirs: torch.Tensor, view: MapView, decode
             offsets = torch.full((num_rays,), 0.5, device=origins.device)
         hits = ray_voxel_intersections(origins, dirs, near, far, view.voxel_codes, view.voxel_size, max_hits)
         samples = sample_points_from_hits(hits, step, offsets)
+    if thinning is not None:
+        samples = thin_training_samples(samples, thinning)
     r = samples.ray_index
     points = origins[r] + samples.t[:, None] * dirs[r]
     sdf, hidden = decode_samples(points, samples.voxel_index, view, decoder)

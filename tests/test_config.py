@@ -103,6 +103,7 @@ def test_json_file_overrides_field_by_field(tmp_path):
     ({"render": {"truncation": "0.1"}}, "render.truncation must be float"),
     ({"runtime": {"device": 0}}, "runtime.device must be str"),
     ({"runtime": {"max_map_lag": -2}}, "runtime.max_map_lag must be -1"),
+    ({"mapping": {"free_space_stride": 0}}, "mapping.free_space_stride must be an integer >= 1"),
 ])
 def test_bad_overrides_raise_config_error_naming_them(tmp_path, payload, message):
     with pytest.raises(ConfigError, match=message.replace(".", r"\.")):
@@ -149,6 +150,16 @@ def test_unknown_tracking_optimizer_is_a_config_error():
     with pytest.raises(ConfigError, match="gauss_newton"):
         apply_overrides(preset("cpu"), {"tracking": {"optimizer": "sgd"}})
     assert apply_overrides(preset("cpu"), {"tracking": {"optimizer": "adam"}}).tracking.optimizer == "adam"
+
+
+def test_the_thinned_mapping_step_is_the_cpu_presets_only():
+    # Issue 18: cpu trades the paper's every-sample step for speed (benchmarks/README.md);
+    # paper stays faithful and test keeps what its tests were tuned on.
+    assert (preset("cpu").mapping.thin_samples, preset("cpu").mapping.free_space_stride) == (True, 2)
+    assert preset("cpu").mapping.color_weight_eps == pytest.approx(0.05)
+    for name in ("paper", "test"):
+        assert preset(name).mapping.thin_samples is False
+        assert preset(name).mapping.color_weight_eps == pytest.approx(1e-5)
 
 
 def test_issue_21_switches_take_the_measured_winners_and_validate():

@@ -10,7 +10,7 @@ import torch
 from slam.config import DecoderConfig, preset
 from slam.decoder import Decoder
 from slam.losses import LossWeights, compute_losses
-from slam.render import RaySamples, RenderOutput
+from slam.render import RaySamples, RenderOutput, TrainingThinning, thin_training_samples
 
 TR = 0.1
 
@@ -129,6 +129,49 @@ def test_with_equal_counts_slot_means_are_per_ray_means_times_one_factor():
     assert slots.sdf.item() == pytest.approx(ray.sdf.item() * factor)
     with pytest.raises(ValueError, match="normalisation"):
         compute_losses(out, rgb_gt, depth_gt, TR, WEIGHTS, normalisation="padded")
+
+
+@pytest.mark.parametrize("normalisation", ["ray", "slots"])
+def test_thinned_samples_give_the_full_losses_on_average_over_the_phases(normalisation):
+    """``thin_training_samples`` (mapping.thin_samples) keeps each free-space sample in one
+    phase of the stride and weights it by the stride; with free-space counts that are
+    multiples of the stride, the mean over the phases is the full free-space term, and the
+    band's term (every sample kept, the width from the counts before thinning) is exact."""
+    tr, stride = 0.1, 3
+    gen = torch.Generator().manual_seed(0)
+    depth_gt = torch.tensor([1.0, 2.0, 0.0, 1.5], dtype=torch.float64)
+    # ray 0: 6 free, 3 band, 2 behind; ray 1: 9 free, 5 band; ray 2: invalid; ray 3: 3 free, 4 band, 1 behind
+    per_ray = [(torch.linspace(0.2, 0.85, 6), torch.tensor([0.92, 1.0, 1.08]), torch.tensor([1.2, 1.3])),
+               (torch.linspace(0.3, 1.85, 9), torch.tensor([1.91, 1.95, 2.0, 2.05, 2.09]), torch.tensor([])),
+               (torch.tensor([0.5, 0.7]), torch.tensor([]), torch.tensor([])),
+               (torch.tensor([0.4, 0.8, 1.2]), torch.tensor([1.45, 1.5, 1.55, 1.58]), torch.tensor([1.7]))]
+    t = torch.cat([torch.cat(parts) for parts in per_ray]).to(torch.float64)
+    ray = torch.cat([torch.full((sum(len(p) for p in parts),), i) for i, parts in enumerate(per_ray)])
+    sdf = torch.rand(t.numel(), generator=gen, dtype=torch.float64) * 2 - 1
+    rgb_gt = torch.rand(4, 3, generator=gen, dtype=torch.float64)
+
+    def losses(samples, sdf_values):
+        out = RenderOutput(color=rgb_gt * 0.9, depth=depth_gt + 0.01, weight_sum=torch.ones(4, dtype=torch.float64),
+                           hit=torch.ones(4, dtype=torch.bool), depth_var=torch.zeros(4, dtype=torch.float64),
+                           samples=samples, sdf=sdf_values)
+        return compute_losses(out, rgb_gt, depth_gt, tr, WEIGHTS, normalisation=normalisation)
+
+    full = losses(RaySamples(ray, t, torch.zeros_like(ray)), sdf)
+    value_of = {(r, round(v, 9)): s for r, v, s in zip(ray.tolist(), t.tolist(), sdf.tolist())}
+    fs, sdf_terms = [], []
+    for phase in range(stride):
+        th = thin_training_samples(RaySamples(ray, t, torch.zeros_like(ray)),
+                                   TrainingThinning(depth_gt, tr, 10.0, stride, torch.full((4,), phase)))
+        assert th.t.numel() == t.numel() - 3 - 2 * (18 // 3)
+        kept_sdf = torch.tensor([value_of[(r, round(v, 9))] for r, v in zip(th.ray_index.tolist(), th.t.tolist())],
+                                dtype=torch.float64)
+        thinned = losses(th, kept_sdf)
+        fs.append(thinned.fs.item())
+        sdf_terms.append(thinned.sdf.item())
+        assert thinned.rgb.item() == full.rgb.item() and thinned.depth.item() == full.depth.item()
+    assert sum(fs) / stride == pytest.approx(full.fs.item(), rel=1e-12)
+    assert sdf_terms == pytest.approx([full.sdf.item()] * stride, rel=1e-12)
+    assert max(fs) - min(fs) > 1e-3 * full.fs.item()  # each phase alone is a different estimate
 
 
 def test_samples_outside_the_terms_get_no_gradient():

@@ -15,6 +15,9 @@ from slam.config import preset
 from slam.decoder import Decoder
 from slam.render import (
     MapView,
+    RaySamples,
+    Segments,
+    TrainingThinning,
     VoxelHits,
     accumulate_along_rays,
     camera_rays,
@@ -29,6 +32,7 @@ from slam.render import (
     sample_points_in_band,
     sdf_weights,
     sdf_weights_and_slope,
+    thin_training_samples,
     trilinear_weights,
 )
 from slam.voxels import CORNER_OFFSETS, SparseVoxelMap, morton_decode, morton_encode
@@ -507,6 +511,62 @@ def test_render_caps_samples_at_far_and_misses_report_no_hit():
     assert out.hit.tolist() == [True, False]
     assert float(out.samples.t.max()) < 1.0
     assert out.depth[1] == 0 and out.weight_sum[1] == 0 and not bool(out.color[1].any())
+
+
+def test_thinning_keeps_the_band_every_kth_free_sample_and_nothing_behind():
+    # tr = 0.1. Ray 0: depth 1.0, free space t < 0.9 (0.1 ... 0.8: 8 samples), band 0.9-1.1,
+    # behind > 1.1. Ray 1: invalid depth, keeps all. Ray 2: depth 0.55, phase 1.
+    t0 = torch.arange(1, 14, dtype=torch.float64) / 10  # 0.1 ... 1.3
+    t1 = torch.tensor([0.2, 0.4], dtype=torch.float64)
+    t2 = torch.tensor([0.1, 0.2, 0.3, 0.4, 0.5, 0.6], dtype=torch.float64)
+    t = torch.cat([t0, t1, t2])
+    ray = torch.tensor([0] * 13 + [1] * 2 + [2] * 6)
+    segment = torch.arange(t.numel()) // 2  # a made-up segment per pair of samples
+    segment_voxel = torch.arange(int(segment.max()) + 1) * 7
+    samples = RaySamples(ray, t, segment_voxel[segment], Segments(segment, segment_voxel))
+    depth = torch.tensor([1.0, 0.0, 0.55], dtype=torch.float64)
+    thinned = thin_training_samples(samples, TrainingThinning(depth, 0.1, 10.0, 3, torch.tensor([0, 2, 1])))
+    kept = list(zip(thinned.ray_index.tolist(), [round(v, 6) for v in thinned.t.tolist()]))
+    # Ray 0, phase 0: free ranks 0, 3, 6 (t 0.1, 0.4, 0.7) stand for 3; the band 0.9-1.1 stays
+    # (1.1 sits on its edge); 1.2 and 1.3 go. Ray 2, phase 1: free ranks 2 (t 0.3), band 0.5, 0.6.
+    assert kept == [(0, 0.1), (0, 0.4), (0, 0.7), (0, 0.9), (0, 1.0), (0, 1.1), (1, 0.2), (1, 0.4),
+                    (2, 0.3), (2, 0.5), (2, 0.6)]
+    assert thinned.stands_for.tolist() == [3.0, 3.0, 3.0, 1.0, 1.0, 1.0, 1.0, 1.0, 3.0, 1.0, 1.0]
+    assert thinned.grid_counts.tolist() == [13, 2, 6]
+    assert torch.equal(thinned.segments.segment_voxel[thinned.segments.sample_segment], thinned.voxel_index)
+    # Over the stride's phases every free-space sample is kept exactly once.
+    seen = torch.zeros(t.numel())
+    for phase in range(3):
+        th = thin_training_samples(samples, TrainingThinning(depth, 0.1, 10.0, 3, torch.full((3,), phase)))
+        index = {(r, round(v, 6)): i for i, (r, v) in enumerate(zip(ray.tolist(), t.tolist()))}
+        for r, v in zip(th.ray_index.tolist(), th.t.tolist()):
+            seen[index[(r, round(v, 6))]] += 1
+    free = torch.tensor([v < 0.9 for v in t0.tolist()] + [False] * 2 + [v < 0.45 for v in t2.tolist()])
+    assert seen[free].tolist() == [1.0] * int(free.sum())
+
+
+@pytest.mark.parametrize("z_plane", [0.83, 1.234])
+def test_thinned_render_of_a_plane_at_the_observed_depth_is_the_full_render(z_plane):
+    """Where the map's surface is at the observed depth, the samples thinning drops lie outside
+    the first surface's window, so depth and colour do not change."""
+    view = slab_view()
+    tr, step, n = 0.1, 0.02, 32
+    decoder = PlaneSDF(z_plane, tr)
+    gen = torch.Generator().manual_seed(1)
+    origins = torch.cat([torch.rand(n, 2, generator=gen, dtype=torch.float64) * 0.4 - 0.2,
+                         torch.full((n, 1), 0.05, dtype=torch.float64)], 1)
+    dirs = torch.cat([torch.rand(n, 2, generator=gen, dtype=torch.float64) * 0.2 - 0.1,
+                      torch.ones(n, 1, dtype=torch.float64)], 1)
+    observed = (z_plane - origins[:, 2]) / dirs[:, 2]
+    kw = dict(near=torch.zeros(n, dtype=torch.float64), far=observed + 2 * tr, step=step, truncation=tr,
+              max_hits=40, offsets=torch.rand(n, generator=gen, dtype=torch.float64))
+    full = render_rays(origins, dirs, view, decoder, **kw)
+    thinning = TrainingThinning(observed, tr, 10.0, 2, torch.randint(2, (n,), generator=gen))
+    thinned = render_rays(origins, dirs, view, decoder, thinning=thinning, **kw)
+    assert thinned.samples.t.numel() < 0.8 * full.samples.t.numel()
+    assert torch.allclose(thinned.depth, full.depth, atol=1e-12)
+    assert torch.allclose(thinned.color, full.color, atol=1e-12)
+    assert torch.equal(thinned.hit, full.hit)
 
 
 def random_field_and_rays(n: int):
