@@ -6,9 +6,9 @@ gradient says; Gauss-Newton uses the curvature and converges in a handful of ste
 one Jacobian of every residual with respect to the 6-D twist, which we build without autograd:
 
 * every sample's SDF and colour depend only on its own point ``p_i``, so their spatial
-  gradients come from one batched evaluation of the field at ``p_i`` and at ``p_i + h e_k``
-  (k = x, y, z; the shift points into the sample's own voxel so the trilinear lookup stays
-  valid);
+  gradients are per sample: the trilinear features' derivative is exact, the SDF's goes
+  back through the decoder in one reverse pass, and the colour's is differenced in feature
+  space along the three axes (only where a sample has weight);
 * the renderer's per-ray sums (``D = sum w t / sum w``, ``C = sum w c / sum w`` with
   ``w = sigmoid(s/tr) sigmoid(-s/tr)``) are differentiated by hand;
 * a sample at camera-frame point ``x`` moves with the right-perturbed pose ``T exp(xi)`` as
@@ -59,11 +59,14 @@ class Linearisation:
 @dataclass(frozen=True)
 class FieldValues:
     """sdf (S,) in units of tr and grad_sdf (S, 3) per metre (map frame), plus what the
-    colour pass needs: hidden (4S, H) of the features and their three shifts."""
+    colour pass needs: hidden (S, H) trunk outputs, the features (S, D) and their spatial
+    derivative (S, 3, D), and the finite-difference step in feature space."""
 
     sdf: torch.Tensor
     grad_sdf: torch.Tensor
     hidden: torch.Tensor
+    feats: torch.Tensor
+    dfeats: torch.Tensor
     step: float
 
 
@@ -72,24 +75,32 @@ def field_with_gradients(points: torch.Tensor, voxel_index: torch.Tensor, view: 
     """SDF at points (S, 3) and its spatial gradient.
 
     The trilinear features and their spatial derivative are exact
-    (``interpolate_with_gradient``); the decoder is differenced forward in feature space,
-    ``(f(e + h de/dx) - f(e)) / h``, with its four inputs in one batch. The decoder is
-    piecewise linear (ReLU), so this is exact unless a step crosses a kink.
+    (``interpolate_with_gradient``); the SDF's derivative in feature space comes from one
+    reverse pass through the trunk (the SDF is one number per sample, so reverse mode costs
+    a third of differencing the three axes forward), and the chain rule gives its spatial
+    gradient.
     """
-    S = points.shape[0]
     feats, dfeats = interpolate_with_gradient(points, voxel_index, view, segments)
-    batch = torch.cat([feats[None], feats[None] + step * dfeats.transpose(0, 1)]).reshape(4 * S, feats.shape[1])
-    sdf_all, hidden = decoder.sdf_and_hidden(batch)
-    sdf_all = sdf_all.reshape(4, S)
-    grad_sdf = (sdf_all[1:] - sdf_all[:1]).T / step
-    return FieldValues(sdf_all[0], grad_sdf, hidden, step)
+    with torch.enable_grad():
+        f = feats.detach().requires_grad_(True)
+        sdf, hidden = decoder.sdf_and_hidden(f)
+        (d_sdf,) = torch.autograd.grad(sdf.sum(), f)
+    grad_sdf = (dfeats @ d_sdf[:, :, None])[..., 0]
+    return FieldValues(sdf.detach(), grad_sdf, hidden.detach(), feats, dfeats, step)
 
 
 def color_with_gradients(field: FieldValues, decoder, active: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Colour (A, 3) at the ``active`` samples (A,) and its gradient (A, 3, 3) (channel, axis)."""
-    S = field.sdf.shape[0]
-    rows = torch.cat([active + k * S for k in range(4)])
-    rgb_all = decoder.color(decoder.feature_from_hidden(field.hidden[rows])).reshape(4, -1, 3)
+    """Colour (A, 3) at the ``active`` samples (A,) and its gradient (A, 3, 3) (channel, axis).
+
+    The decoder is differenced forward in feature space, ``(f(e + h de/dx) - f(e)) / h``, for
+    the three axes in one batch (three colour channels make reverse mode no cheaper). It is
+    piecewise linear up to the sigmoid, so this is exact to O(h) unless a step crosses a kink.
+    """
+    A = active.shape[0]
+    feats, dfeats = field.feats[active], field.dfeats[active]
+    shifted = (feats[None] + field.step * dfeats.transpose(0, 1)).reshape(3 * A, feats.shape[1])
+    hidden = torch.cat([field.hidden[active], decoder.sdf_and_hidden(shifted)[1]])
+    rgb_all = decoder.color_from_hidden(hidden).reshape(4, A, 3)
     grad = (rgb_all[1:] - rgb_all[:1]).permute(1, 2, 0) / field.step
     return rgb_all[0], grad
 
