@@ -32,6 +32,8 @@ from .render import (
     MapView,
     RaySamples,
     Segments,
+    color_of_hidden,
+    decode_samples,
     interpolate_with_gradient,
     ray_voxel_intersections,
     sample_points_from_hits,
@@ -100,7 +102,7 @@ def color_with_gradients(field: FieldValues, decoder, active: torch.Tensor) -> t
     feats, dfeats = field.feats[active], field.dfeats[active]
     shifted = (feats[None] + field.step * dfeats.transpose(0, 1)).reshape(3 * A, feats.shape[1])
     hidden = torch.cat([field.hidden[active], decoder.sdf_and_hidden(shifted)[1]])
-    rgb_all = decoder.color_from_hidden(hidden).reshape(4, A, 3)
+    rgb_all = color_of_hidden(decoder, hidden).reshape(4, A, 3)
     grad = (rgb_all[1:] - rgb_all[:1]).permute(1, 2, 0) / field.step
     return rgb_all[0], grad
 
@@ -163,9 +165,12 @@ class RenderedJacobians:
 def render_with_jacobians(T: torch.Tensor, dirs_cam: torch.Tensor, view: MapView, decoder, *,
                           near: torch.Tensor, far: torch.Tensor, step: float, truncation: float,
                           max_hits: int, color_weight_eps: float = 1e-5,
-                          mask_in_front: bool = True) -> RenderedJacobians:
+                          mask_in_front: bool = True, jacobians: bool = True) -> RenderedJacobians:
     """Render R rays (``dirs_cam`` (R, 3), z = 1) at pose T (4, 4) with the twist Jacobians of
-    their depth and colour and of every sample's SDF (no autograd; see ``linearise``)."""
+    their depth and colour and of every sample's SDF (no autograd; see ``linearise``).
+
+    ``jacobians=False`` renders the values only and leaves the Jacobians zero, at about half
+    the cost: enough for the loss at a pose whose model may never be needed."""
     tr = truncation
     R_, o = T[:3, :3], T[:3, 3]
     num_rays = dirs_cam.shape[0]
@@ -177,12 +182,18 @@ def render_with_jacobians(T: torch.Tensor, dirs_cam: torch.Tensor, view: MapView
     x_cam = t[:, None] * dirs_cam[r]
     points = origins[r] + t[:, None] * dirs[r]
 
-    field = field_with_gradients(points, samples.voxel_index, view, decoder, segments=samples.segments)
-    s = field.sdf
+    if jacobians:
+        field = field_with_gradients(points, samples.voxel_index, view, decoder, segments=samples.segments)
+        s, hidden = field.sdf, field.hidden
+    else:
+        s, hidden = decode_samples(points, samples.voxel_index, view, decoder)
     w, dw_ds = sdf_weights_and_slope(s, t, r, num_rays, tr, mask_in_front)
     # The colour head only where a sample has weight, as in render_rays.
     active = torch.nonzero(w > color_weight_eps, as_tuple=True)[0]
-    rgb, grad_rgb = color_with_gradients(field, decoder, active)
+    if jacobians:
+        rgb, grad_rgb = color_with_gradients(field, decoder, active)
+    else:
+        rgb = color_of_hidden(decoder, hidden[active])
 
     W = torch.zeros(num_rays, dtype=t.dtype, device=t.device).index_add(0, r, w)
     inv_W = 1.0 / (W + 1e-8)
@@ -192,6 +203,9 @@ def render_with_jacobians(T: torch.Tensor, dirs_cam: torch.Tensor, view: MapView
         0, ra, w[active, None] * rgb) * inv_W[:, None]
     hit = torch.zeros(num_rays, dtype=torch.bool, device=t.device)
     hit[r] = True
+    if not jacobians:
+        return RenderedJacobians(T, depth, W, color, hit, W.new_zeros(num_rays, 6), W.new_zeros(num_rays, 3, 6),
+                                 r, t, s, t.new_zeros(t.shape[0], 6), tr)
 
     # d(ray depth)/d(sample point) = (t - D)/W * dw/ds * grad s; colour adds w/W * grad c.
     J_s = twist_rows(field.grad_sdf, x_cam, R_)  # (S, 6)

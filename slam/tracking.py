@@ -216,11 +216,11 @@ class Tracker:
         # A ray that leaves the map costs as much as one off by the truncation in depth and SDF.
         miss_cost = self.weights.depth * r.truncation + self.weights.sdf * r.truncation ** 2
 
-        def render_at(T: torch.Tensor) -> RenderedJacobians:
+        def render_at(T: torch.Tensor, jacobians: bool = True) -> RenderedJacobians:
             return render_with_jacobians(T, batch.dirs_cam, fmap.view, fmap.decoder, near=near, far=far,
                                          step=r.step_ratio * fmap.view.voxel_size, truncation=r.truncation,
                                          max_hits=r.max_hits, color_weight_eps=c.color_weight_eps,
-                                         mask_in_front=r.mask_in_front)
+                                         mask_in_front=r.mask_in_front, jacobians=jacobians)
 
         def dense_of(rendered: RenderedJacobians, ray_weight: torch.Tensor | None) -> Linearisation:
             return linearise_rendered(rendered, batch.rgb, batch.depth, ray_weight, weights=self.weights,
@@ -238,10 +238,10 @@ class Tracker:
         rendered0 = render_at(T0_map)
         first = dense_of(rendered0, None)
         if sparse is not None and T_guess_map is not None and c.feature_dense_check:
-            at_guess_rendered = render_at(T_guess_map)
-            at_guess = dense_of(at_guess_rendered, None)
-            if at_guess.cost < first.cost:
-                sparse, T0_map, first, rendered0 = None, T_guess_map, at_guess, at_guess_rendered
+            # Only the loss decides; the guess's model is rendered only if the guess wins.
+            if dense_of(render_at(T_guess_map, jacobians=False), None).cost < first.cost:
+                rendered0 = render_at(T_guess_map)
+                sparse, T0_map, first = None, T_guess_map, dense_of(rendered0, None)
         if not bool(first.hit.any()):
             return 0, float("inf"), T0_map, 0.0, float("inf"), T0_map, None
         med = first.residual[first.hit].median()

@@ -504,6 +504,22 @@ def test_one_render_serves_several_ray_weightings(trained, frames):
         assert torch.equal(reused.hit, plain.hit)
 
 
+def test_a_render_without_jacobians_has_the_same_values_and_loss(trained, frames):
+    """The tracker's feature check compares losses only: ``jacobians=False`` renders the same
+    depth, colour and SDF (through the decoder's fast path) and so the same cost."""
+    fmap, batch, kwargs, weights = _linearisation_inputs(trained, frames)
+    T0 = gt_pose(frames[0]) @ se3_exp(torch.tensor([0.01, -0.01, 0.005, 0.01, 0.0, -0.01]))
+    full = render_with_jacobians(T0, batch.dirs_cam, fmap.view, fmap.decoder, **kwargs)
+    values = render_with_jacobians(T0, batch.dirs_cam, fmap.view, fmap.decoder, jacobians=False, **kwargs)
+    assert torch.equal(values.hit, full.hit) and torch.equal(values.t, full.t)
+    for name in ("depth", "W", "color", "s"):
+        assert torch.allclose(getattr(values, name), getattr(full, name), atol=1e-5), name
+    assert not bool(values.J_depth.any()) and not bool(values.J_s.any())
+    cost = linearise_rendered(values, batch.rgb, batch.depth, None, weights=weights, miss_cost=0.5).cost
+    assert cost == pytest.approx(linearise_rendered(full, batch.rgb, batch.depth, None, weights=weights,
+                                                    miss_cost=0.5).cost, rel=1e-5)
+
+
 def test_a_ray_that_leaves_the_map_costs_miss_cost(trained, frames):
     fmap, batch, kwargs, weights = _linearisation_inputs(trained, frames, n=64)
     T = gt_pose(frames[0])
