@@ -135,18 +135,26 @@ def rays_in_map(T_map_cam: torch.Tensor, dirs_cam: torch.Tensor) -> tuple[torch.
 
 
 # ---------------------------------------------------------- ray-voxel tests
-def _axis_crossings(o: torch.Tensor, d: torch.Tensor, near: torch.Tensor, far: torch.Tensor,
-                    voxel_size: float) -> torch.Tensor:
-    """t of every voxel-face plane of one axis crossed inside (near, far); inf-padded.
-
-    o, d, near, far: (R,) -> (R, n) with n the largest count over the rays.
-    """
+def _plane_range(o: torch.Tensor, d: torch.Tensor, near: torch.Tensor, far: torch.Tensor,
+                 voxel_size: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The voxel-face planes of one axis that rays cross inside (near, far): the first plane's
+    index k_lo (R,) float, their count (R,) int64, and whether the ray moves on the axis."""
     p0 = o + near * d
     p1 = o + far * d
     k_lo = torch.floor(torch.minimum(p0, p1) / voxel_size) + 1
     k_hi = torch.floor(torch.maximum(p0, p1) / voxel_size)
     moving = d.abs() > 1e-9
     count = torch.where(moving, (k_hi - k_lo + 1).clamp(min=0), torch.zeros_like(k_lo)).long()
+    return k_lo, count, moving
+
+
+def _axis_crossings(o: torch.Tensor, d: torch.Tensor, near: torch.Tensor, far: torch.Tensor,
+                    voxel_size: float) -> torch.Tensor:
+    """t of every voxel-face plane of one axis crossed inside (near, far); inf-padded.
+
+    o, d, near, far: (R,) -> (R, n) with n the largest count over the rays.
+    """
+    k_lo, count, moving = _plane_range(o, d, near, far, voxel_size)
     n = int(count.max()) if count.numel() else 0
     if n == 0:
         return o.new_full((o.shape[0], 0), float("inf"))
@@ -192,7 +200,25 @@ def ray_voxel_intersections(origins: torch.Tensor, dirs: torch.Tensor, near: tor
     origins, dirs (R, 3); near, far (R,) in units of t -> VoxelHits.
     Example: a ray from (0.1, 0.1, -1) along +z with voxels [0,0,0] and [0,0,2] allocated
     (size 1) and near=0, far=5 hits voxel 0 on t in [1, 2] and voxel 1 on [3, 4].
+    Float32 CPU rays take one numba pass per ray where ``slam.kernels`` selects it (the same
+    hits to the bit); ``ray_voxel_intersections_reference`` is the plain twin.
     """
+    if kernels.use_numba(origins, dirs, near, far):
+        from .kernels.fused import traverse
+
+        with torch.no_grad():
+            o, d = origins.detach(), dirs.detach()
+            near, far = clip_to_box(o, d, near, far, voxel_codes, voxel_size)
+            counts = torch.stack([_plane_range(o[:, a], d[:, a], near, far, voxel_size)[1] for a in range(3)], 1)
+            return VoxelHits(*traverse(o, d, near.contiguous(), far.contiguous(), counts, voxel_codes, voxel_size,
+                                       max_hits))
+    return ray_voxel_intersections_reference(origins, dirs, near, far, voxel_codes, voxel_size, max_hits)
+
+
+def ray_voxel_intersections_reference(origins: torch.Tensor, dirs: torch.Tensor, near: torch.Tensor,
+                                      far: torch.Tensor, voxel_codes: torch.Tensor, voxel_size: float,
+                                      max_hits: int) -> VoxelHits:
+    """``ray_voxel_intersections`` in plain torch operators, whatever ``VOXFUSION_KERNELS`` says."""
     with torch.no_grad():
         o, d = origins.detach(), dirs.detach()
         near, far = clip_to_box(o, d, near, far, voxel_codes, voxel_size)

@@ -22,6 +22,7 @@ from slam.render import (
     interpolate_embeddings,
     interpolate_with_gradient,
     ray_voxel_intersections,
+    ray_voxel_intersections_reference,
     render_rays,
     sample_points_from_hits,
     sample_points_in_band,
@@ -237,6 +238,36 @@ def test_band_sampling_matches_plain_torch(monkeypatch, threads):
     backend(monkeypatch, "numba")
     none = sample_points_in_band(origins[5:8], dirs[5:8], far[5:8], near[5:8], step, view)  # far < near
     assert none.t.numel() == 0 and none.ray_index.dtype == torch.int64
+
+
+@pytest.mark.parametrize("max_hits", [0, 3, 16])
+def test_traversal_matches_plain_torch(monkeypatch, threads, max_hits):
+    """``ray_voxel_intersections``' numba pass: the same hits, intervals and voxels to the bit,
+    in the same order, for rays from outside and inside the map, rays in a face plane
+    (x = 0) or parallel to an axis, rays that miss the map, a wild origin, empty ranges, the
+    M_h cap and an empty map."""
+    vmap, _, origins, dirs, gen = random_scene(rays=300)
+    dirs[:20, 0] = 0.0  # in the plane x = 0, a face between voxels
+    dirs[20:30] = torch.tensor([0.0, 0.0, 1.0])  # along z only
+    dirs[30:40] = torch.tensor([1.0, 0.0, 0.0])  # along x only, beside the map
+    origins[40:80] = torch.rand(40, 3, generator=gen) * 0.6 - 0.3 + torch.tensor([0.0, 0.0, 1.0])  # inside
+    dirs[40:80] = torch.randn(40, 3, generator=gen)
+    origins[80] = torch.tensor([1e5, -3e4, 7.0])  # far off the map
+    near = torch.rand(300, generator=gen) * 0.3
+    far = near + 0.5 + torch.rand(300, generator=gen) * 2.5
+    far[90:95] = near[90:95]  # empty ranges
+    backend(monkeypatch, "numba")
+    got = ray_voxel_intersections(origins, dirs, near, far, vmap.voxel_codes, vmap.voxel_size, max_hits)
+    ref = ray_voxel_intersections_reference(origins, dirs, near, far, vmap.voxel_codes, vmap.voxel_size, max_hits)
+    assert got.ray_index.numel() > 600
+    for name in ("ray_index", "voxel_index", "t_in", "t_out"):
+        assert torch.equal(getattr(got, name), getattr(ref, name)), name
+    if max_hits:
+        assert int(torch.bincount(got.ray_index).max()) <= max_hits
+    empty = ray_voxel_intersections(origins, dirs, near, far, vmap.voxel_codes[:0], vmap.voxel_size, max_hits)
+    assert empty.ray_index.numel() == 0 and empty.t_in.dtype == torch.float32
+    none = ray_voxel_intersections(origins[:0], dirs[:0], near[:0], far[:0], vmap.voxel_codes, vmap.voxel_size, 0)
+    assert none.ray_index.numel() == 0
 
 
 def test_no_gradients_and_no_samples(monkeypatch):

@@ -304,3 +304,79 @@ def band_samples(origins, dirs, k0, counts, first, step, offset, voxel_size, vox
 
 
 band_samples = _TwoWays(band_samples, fastmath=False)
+
+
+# ------------------------------------------------------------ ray-voxel traversal
+def traverse(origins, dirs, near, far, axis_counts, first, voxel_size, voxel_codes, max_hits, max_bounds,
+             chunks, ray_out, voxel_out, t_in_out, t_out_out):
+    """``slam.render.ray_voxel_intersections`` after its ``clip_to_box``, one ray at a time:
+    the face planes each axis crosses in (near, far), sorted with near and far, capped at far;
+    every interval longer than 1e-7 whose midpoint lies in an allocated voxel is a hit, the
+    first ``max_hits`` of them (0: all) kept.
+
+    origins, dirs (R, 3) float32; near, far (R,) float32; axis_counts (R, 3) int64: planes
+    crossed per axis (the torch side's count); first (R,) int64: where a ray's slots start in
+    the outputs; max_bounds: the most bounds of any ray -> hits written from ``first[r]`` on:
+    ray_out (H,) int64 (slots left at -1 are unused), voxel_out (H,) int64, t_in_out,
+    t_out_out (H,) float32. Compiled without fastmath so every operation rounds as torch's
+    separate operators do: the same intervals and voxels to the bit.
+    """
+    R = origins.shape[0]
+    eps, half, one = np.float32(1e-7), np.float32(0.5), np.float32(1.0)
+    for th in prange(chunks):
+        lo, hi = _chunk(R, chunks, th)
+        bounds = np.empty(max_bounds, np.float32)
+        for r in range(lo, hi):
+            n = 0
+            bounds[n] = near[r]
+            n += 1
+            for a in range(3):
+                count = axis_counts[r, a]
+                if count == 0:
+                    continue
+                o, d = origins[r, a], dirs[r, a]
+                p0 = o + near[r] * d
+                p1 = o + far[r] * d
+                k_lo = np.float32(np.floor(min(p0, p1) / voxel_size)) + one
+                for j in range(count):
+                    plane = (k_lo + np.float32(j)) * voxel_size
+                    bounds[n] = (plane - o) / d
+                    n += 1
+            bounds[n] = far[r]
+            n += 1
+            # Insertion sort: each axis's crossings are already monotonic, n is a few dozen.
+            for i in range(1, n):
+                v = bounds[i]
+                k = i - 1
+                while k >= 0 and bounds[k] > v:
+                    bounds[k + 1] = bounds[k]
+                    k -= 1
+                bounds[k + 1] = v
+            for i in range(n):
+                bounds[i] = min(bounds[i], far[r])
+            slot = first[r]
+            hits = 0
+            for i in range(n - 1):
+                if max_hits > 0 and hits == max_hits:
+                    break
+                t0, t1 = bounds[i], bounds[i + 1]
+                if not t1 > t0 + eps:
+                    continue
+                mid = half * (t0 + t1)
+                x = origins[r, 0] + mid * dirs[r, 0]
+                y = origins[r, 1] + mid * dirs[r, 1]
+                z = origins[r, 2] + mid * dirs[r, 2]
+                code = (_dilate(_voxel_coordinate(x, voxel_size))
+                        | (_dilate(_voxel_coordinate(y, voxel_size)) << 1)
+                        | (_dilate(_voxel_coordinate(z, voxel_size)) << 2))
+                v = _find(voxel_codes, code)
+                if v < 0:
+                    continue
+                ray_out[slot + hits] = r
+                voxel_out[slot + hits] = v
+                t_in_out[slot + hits] = t0
+                t_out_out[slot + hits] = t1
+                hits += 1
+
+
+traverse = _TwoWays(traverse, fastmath=False)
