@@ -273,6 +273,15 @@ def _find(sorted_codes, code):
     return -1
 
 
+@njit(cache=True, inline="always")
+def _voxel_at(x, y, z, voxel_size, voxel_codes):
+    """Index in ``voxel_codes`` of the voxel holding the point (x, y, z), or -1."""
+    code = (_dilate(_voxel_coordinate(x, voxel_size))
+            | (_dilate(_voxel_coordinate(y, voxel_size)) << 1)
+            | (_dilate(_voxel_coordinate(z, voxel_size)) << 2))
+    return _find(voxel_codes, code)
+
+
 def band_samples(origins, dirs, k0, counts, first, step, offset, voxel_size, voxel_codes, chunks,
                  ray_out, t_out, voxel_out):
     """Every grid point ``t = (k0 + j + offset) * step``, j < counts, of every ray, and the
@@ -295,12 +304,9 @@ def band_samples(origins, dirs, k0, counts, first, step, offset, voxel_size, vox
                 x = origins[r, 0] + t * dirs[r, 0]
                 y = origins[r, 1] + t * dirs[r, 1]
                 z = origins[r, 2] + t * dirs[r, 2]
-                code = (_dilate(_voxel_coordinate(x, voxel_size))
-                        | (_dilate(_voxel_coordinate(y, voxel_size)) << 1)
-                        | (_dilate(_voxel_coordinate(z, voxel_size)) << 2))
                 ray_out[base + j] = r
                 t_out[base + j] = t
-                voxel_out[base + j] = _find(voxel_codes, code)
+                voxel_out[base + j] = _voxel_at(x, y, z, voxel_size, voxel_codes)
 
 
 band_samples = _TwoWays(band_samples, fastmath=False)
@@ -366,10 +372,7 @@ def traverse(origins, dirs, near, far, axis_counts, first, voxel_size, voxel_cod
                 x = origins[r, 0] + mid * dirs[r, 0]
                 y = origins[r, 1] + mid * dirs[r, 1]
                 z = origins[r, 2] + mid * dirs[r, 2]
-                code = (_dilate(_voxel_coordinate(x, voxel_size))
-                        | (_dilate(_voxel_coordinate(y, voxel_size)) << 1)
-                        | (_dilate(_voxel_coordinate(z, voxel_size)) << 2))
-                v = _find(voxel_codes, code)
+                v = _voxel_at(x, y, z, voxel_size, voxel_codes)
                 if v < 0:
                     continue
                 ray_out[slot + hits] = r
