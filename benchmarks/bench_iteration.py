@@ -19,11 +19,12 @@ stage. ``--ab ROUNDS`` adds a same-run comparison: rounds that alternate the two
 the end-to-end rows, medians of wall and of thread CPU time (the machine is shared, so CPU
 time is the steadier of the two), and their ratios. ``--ab-step ROUNDS`` alternates the same
 way between the mapping step with every sample decoded and coloured and the preset's
-(``mapping.thin_samples``, ``mapping.color_weight_eps``). Every row follows the preset's
+(``mapping.thin_samples``, ``mapping.color_weight_eps``); ``--ab-total ROUNDS`` between the
+plain path (torch kernels, every sample) and the selected kernels with the preset's step. Every row follows the preset's
 mapping step (thinning, colour threshold, loss normalisation), as ``Mapper`` runs it.
 
     python benchmarks/bench_iteration.py [--quick] [--rays 1024] [--iterations 20] [--json FILE]
-        [--kernels torch|numba] [--ab 8] [--ab-step 8] [--threads 1,2]
+        [--kernels torch|numba] [--ab 8] [--ab-step 8] [--ab-total 8] [--threads 1,2]
 """
 
 from __future__ import annotations
@@ -301,6 +302,22 @@ def step_variants(bench: IterationBench, config) -> dict[str, Callable[[], None]
     return {"all samples": lambda: bench.use_config(plain), "preset": lambda: bench.use_config(config)}
 
 
+def total_variants(bench: IterationBench, config) -> dict[str, Callable[[], None]]:
+    """``--ab-total``: the plain path (torch kernels, every sample) against what runs now (the
+    selected kernels with the preset's mapping step): issue 18's 2x figure in one run."""
+    plain = replace(config, mapping=replace(config.mapping, thin_samples=False, color_weight_eps=1e-5))
+    chosen = os.environ.get("VOXFUSION_KERNELS", "auto")
+
+    def before() -> None:
+        os.environ["VOXFUSION_KERNELS"] = "torch"
+        bench.use_config(plain)
+
+    def now() -> None:
+        os.environ["VOXFUSION_KERNELS"] = chosen
+        bench.use_config(config)
+    return {"torch, every sample": before, "preset": now}
+
+
 def ab_rounds(bench: IterationBench, threads: int, rounds: int, per_round: int,
               variants: dict[str, Callable[[], None]]) -> dict[str, dict[str, list[float]]]:
     """Rounds alternating two ``variants`` (label -> a call that switches to it; which goes
@@ -416,6 +433,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--ab-step", type=int, default=0, metavar="ROUNDS",
                         help="also alternate the mapping step with every sample decoded and coloured and the "
                              "preset's (thinned samples, colour threshold) for ROUNDS rounds")
+    parser.add_argument("--ab-total", type=int, default=0, metavar="ROUNDS",
+                        help="also alternate the plain path (torch kernels, every sample) and the "
+                             "selected kernels with the preset's step for ROUNDS rounds")
     args = parser.parse_args(argv)
     if args.kernels:
         os.environ["VOXFUSION_KERNELS"] = args.kernels
@@ -450,7 +470,8 @@ def main(argv: list[str] | None = None) -> int:
     comparisons: dict[str, dict[int, dict]] = {}
     per_round = 3 if args.quick else 6
     for name, rounds, variants in (("kernels", args.ab, kernel_variants()),
-                                   ("mapping step", args.ab_step, step_variants(bench, config))):
+                                   ("mapping step", args.ab_step, step_variants(bench, config)),
+                                   ("whole iteration", args.ab_total, total_variants(bench, config))):
         if rounds:
             comparisons[name] = {t: ab_rounds(bench, t, rounds, per_round, variants) for t in thread_counts}
             print(f"A/B {name}: done, {load_line()}", flush=True)
@@ -469,7 +490,7 @@ def main(argv: list[str] | None = None) -> int:
                       f"({config.mapping.window_size}x{config.mapping.num_rays} rays) {r['Mapper.optimize, one iteration']:.0f} ms")
                for t, r in results.items()]
     for name, ab in comparisons.items():
-        rounds = args.ab if name == "kernels" else args.ab_step
+        rounds = {"kernels": args.ab, "mapping step": args.ab_step, "whole iteration": args.ab_total}[name]
         print(f"\nSame-run A/B of the {name}, {rounds} alternating rounds of 1 + {per_round} iterations each:\n")
         print(ab_table(ab))
         print(f"\nStages in the same rounds ({rounds} x {per_round} staged iterations each):\n")
