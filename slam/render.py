@@ -341,20 +341,28 @@ def thin_training_samples(samples: RaySamples, thinning: TrainingThinning) -> Ra
     surface's window, so they are dropped. Of the free-space samples every ``stride``-th
     (from the ray's random phase) is kept and stands for ``stride`` (``stands_for``): the
     free-space sum keeps its expectation at a fraction of the decoder's work. Rays without
-    valid depth keep every sample. Sorted by ray, then t, as the input.
+    valid depth keep every sample. Sorted by ray, then t, as the input. Float32 CPU samples
+    choose in one numba pass (``slam.kernels``), the same choice as the torch lines here.
     """
     r, t = samples.ray_index, samples.t
     num_rays = thinning.depth.shape[0]
-    d = thinning.depth[r]
-    valid = (d > 0.01) & (d < thinning.max_depth)
-    front = valid & (t < d - thinning.truncation)
-    behind = valid & (t > d + thinning.truncation)
     stride = thinning.free_space_stride
-    # Free-space samples are a prefix of their ray, so their rank in the ray is their rank
-    # in the free space.
-    picked = (_rank_within_groups(r) + thinning.phase[r]) % stride == 0
-    keep = ~behind & (~front | picked)
-    stands_for = torch.where(front, float(stride), 1.0)[keep]
+    if kernels.use_numba(t, thinning.depth):
+        from .kernels.fused import thin_mask
+
+        keep, stands_for = thin_mask(r, t, thinning.depth, thinning.phase, thinning.truncation,
+                                     thinning.max_depth, stride)
+        stands_for = stands_for[keep]
+    else:
+        d = thinning.depth[r]
+        valid = (d > 0.01) & (d < thinning.max_depth)
+        front = valid & (t < d - thinning.truncation)
+        behind = valid & (t > d + thinning.truncation)
+        # Free-space samples are a prefix of their ray, so their rank in the ray is their
+        # rank in the free space.
+        picked = (_rank_within_groups(r) + thinning.phase[r]) % stride == 0
+        keep = ~behind & (~front | picked)
+        stands_for = torch.where(front, float(stride), 1.0)[keep]
     segments = samples.segments
     if segments is not None:
         segments = Segments(segments.sample_segment[keep], segments.segment_voxel)

@@ -24,6 +24,8 @@ from slam.render import (
     ray_voxel_intersections,
     ray_voxel_intersections_reference,
     render_rays,
+    TrainingThinning,
+    thin_training_samples,
     sample_points_from_hits,
     sample_points_in_band,
     sample_points_in_band_reference,
@@ -268,6 +270,29 @@ def test_traversal_matches_plain_torch(monkeypatch, threads, max_hits):
     assert empty.ray_index.numel() == 0 and empty.t_in.dtype == torch.float32
     none = ray_voxel_intersections(origins[:0], dirs[:0], near[:0], far[:0], vmap.voxel_codes, vmap.voxel_size, 0)
     assert none.ray_index.numel() == 0
+
+
+@pytest.mark.parametrize("stride", [1, 2, 3])
+def test_thinning_matches_plain_torch(monkeypatch, stride):
+    """``thin_training_samples``' numba pass keeps the same samples with the same weights as
+    its torch lines, for rays with valid depth, no depth (0), depth beyond max_depth, and
+    samples on the band's edges."""
+    vmap, _, origins, dirs, gen = random_scene(rays=200)
+    samples = samples_of(vmap, origins, dirs, gen)
+    depth = 0.3 + torch.rand(200, generator=gen) * 1.5
+    depth[:10] = 0.0
+    depth[10:15] = 20.0
+    first = torch.searchsorted(samples.ray_index, torch.arange(20, 40))
+    depth[20:40] = samples.t[first + 4] + 0.1  # the 5th sample sits at d - tr on these rays
+    thinning = TrainingThinning(depth, 0.1, 10.0, stride, torch.randint(stride, (200,), generator=gen))
+    backend(monkeypatch, "numba")
+    got = thin_training_samples(samples, thinning)
+    backend(monkeypatch, "torch")
+    ref = thin_training_samples(samples, thinning)
+    assert 0 < got.t.numel() < samples.t.numel()
+    for name in ("ray_index", "t", "voxel_index", "stands_for", "grid_counts"):
+        assert torch.equal(getattr(got, name), getattr(ref, name)), name
+    assert torch.equal(got.segments.sample_segment, ref.segments.sample_segment)
 
 
 def test_no_gradients_and_no_samples(monkeypatch):

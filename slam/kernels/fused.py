@@ -172,6 +172,17 @@ def traverse(origins: torch.Tensor, dirs: torch.Tensor, near: torch.Tensor, far:
     return ray[keep], voxel[keep], t_in[keep], t_out[keep]
 
 
+def thin_mask(ray_index: torch.Tensor, t: torch.Tensor, depth: torch.Tensor, phase: torch.Tensor,
+              truncation: float, max_depth: float, stride: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Which samples ``slam.render.thin_training_samples`` keeps, (S,) bool, and what each
+    stands for, (S,) float32 (``numba_cpu.thin_mask``)."""
+    keep = torch.empty(t.shape[0], dtype=torch.bool)
+    stands_for = t.new_empty(t.shape[0])
+    numba_kernels().thin_mask(_np(ray_index), _np(t), _np(depth), _np(phase), np.float32(truncation),
+                              np.float32(max_depth), int(stride), keep.numpy(), stands_for.numpy())
+    return keep, stands_for
+
+
 def warm_up_kernels() -> None:
     """Run every kernel once on a two-voxel map (compiles, or loads numba's disk cache), in
     its serial copy and, where torch has more than one thread, its parallel one."""
@@ -203,3 +214,5 @@ def _run_every_kernel() -> None:
                  torch.tensor([0, 1], dtype=torch.int64))
     traverse(torch.zeros(2, 3), torch.ones(2, 3), torch.zeros(2), torch.full((2,), 2.0),
              torch.full((2, 3), 2, dtype=torch.int64), torch.tensor([0, 1], dtype=torch.int64), 1.0, 1)
+    thin_mask(torch.tensor([0, 0, 1]), torch.tensor([0.5, 1.0, 2.0]), torch.tensor([1.0, 3.0]),
+              torch.tensor([0, 1]), 0.1, 10.0, 2)

@@ -383,3 +383,27 @@ def traverse(origins, dirs, near, far, axis_counts, first, voxel_size, voxel_cod
 
 
 traverse = _TwoWays(traverse, fastmath=False)
+
+
+# ------------------------------------------------------------ thinned mapping samples
+@njit(cache=True)
+def thin_mask(ray_index, t, depth, phase, truncation, max_depth, stride, keep_out, stands_out):
+    """``slam.render.thin_training_samples``' choice, one pass over samples sorted by ray:
+    keep_out (S,) bool, stands_out (S,) float32 (the stride for kept free-space samples).
+
+    ray_index (S,) int64, t (S,) float32, depth (R,) float32, phase (R,) int64; truncation
+    and max_depth float32, so every comparison rounds as torch's float32 ones do.
+    """
+    low = np.float32(0.01)
+    prev, rank = -1, 0
+    for i in range(ray_index.shape[0]):
+        r = ray_index[i]
+        if r != prev:
+            prev, rank = r, 0
+        d = depth[r]
+        valid = d > low and d < max_depth
+        front = valid and t[i] < d - truncation
+        behind = valid and t[i] > d + truncation
+        keep_out[i] = not behind and (not front or (rank + phase[r]) % stride == 0)
+        stands_out[i] = np.float32(stride) if front else np.float32(1.0)
+        rank += 1
