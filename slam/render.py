@@ -209,9 +209,11 @@ def ray_voxel_intersections(origins: torch.Tensor, dirs: torch.Tensor, near: tor
         with torch.no_grad():
             o, d = origins.detach(), dirs.detach()
             near, far = clip_to_box(o, d, near, far, voxel_codes, voxel_size)
-            counts = torch.stack([_plane_range(o[:, a], d[:, a], near, far, voxel_size)[1] for a in range(3)], 1)
-            return VoxelHits(*traverse(o, d, near.contiguous(), far.contiguous(), counts, voxel_codes, voxel_size,
-                                       max_hits))
+            planes = [_plane_range(o[:, a], d[:, a], near, far, voxel_size) for a in range(3)]
+            k_lo = torch.stack([k for k, _, _ in planes], 1)
+            counts = torch.stack([n for _, n, _ in planes], 1)
+            return VoxelHits(*traverse(o, d, near.contiguous(), far.contiguous(), k_lo, counts, voxel_codes,
+                                       voxel_size, max_hits))
     return ray_voxel_intersections_reference(origins, dirs, near, far, voxel_codes, voxel_size, max_hits)
 
 

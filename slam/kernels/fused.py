@@ -152,11 +152,12 @@ def band_samples(origins: torch.Tensor, dirs: torch.Tensor, k0: torch.Tensor, co
 
 
 def traverse(origins: torch.Tensor, dirs: torch.Tensor, near: torch.Tensor, far: torch.Tensor,
-             axis_counts: torch.Tensor, voxel_codes: torch.Tensor, voxel_size: float,
+             k_lo: torch.Tensor, axis_counts: torch.Tensor, voxel_codes: torch.Tensor, voxel_size: float,
              max_hits: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Every ray's voxel hits (``numba_cpu.traverse``): ray (H,) int64, voxel (H,) int64,
     t_in, t_out (H,) float32, sorted by ray, then t. near, far (R,) already clipped to the
-    map's box; axis_counts (R, 3) int64 planes crossed per axis."""
+    map's box; k_lo (R, 3) float32, axis_counts (R, 3) int64: the first plane crossed per
+    axis and how many."""
     intervals = axis_counts.sum(1) + 1
     capacity = intervals.clamp(max=max_hits) if max_hits > 0 else intervals
     first = torch.cumsum(capacity, 0) - capacity
@@ -165,7 +166,7 @@ def traverse(origins: torch.Tensor, dirs: torch.Tensor, near: torch.Tensor, far:
     voxel = torch.empty(total, dtype=torch.int64)
     t_in, t_out = origins.new_empty(total), origins.new_empty(total)
     max_bounds = int(intervals.max()) + 1 if intervals.numel() else 1
-    numba_kernels().traverse(_np(origins), _np(dirs), _np(near), _np(far), _np(axis_counts), _np(first),
+    numba_kernels().traverse(_np(origins), _np(dirs), _np(near), _np(far), _np(k_lo), _np(axis_counts), _np(first),
                              np.float32(voxel_size), _np(voxel_codes), int(max_hits), max_bounds, set_threads(),
                              ray.numpy(), voxel.numpy(), t_in.numpy(), t_out.numpy())
     keep = torch.nonzero(ray >= 0, as_tuple=True)[0]
@@ -212,7 +213,7 @@ def _run_every_kernel() -> None:
     interpolate(points.detach(), voxel_index, coords, corners, 1.0, embeddings.detach())
     band_samples(torch.zeros(2, 3), torch.ones(2, 3), torch.zeros(2), torch.tensor([2, 3]), 0.5, 0.5, 1.0,
                  torch.tensor([0, 1], dtype=torch.int64))
-    traverse(torch.zeros(2, 3), torch.ones(2, 3), torch.zeros(2), torch.full((2,), 2.0),
+    traverse(torch.zeros(2, 3), torch.ones(2, 3), torch.zeros(2), torch.full((2,), 2.0), torch.ones(2, 3),
              torch.full((2, 3), 2, dtype=torch.int64), torch.tensor([0, 1], dtype=torch.int64), 1.0, 1)
     thin_mask(torch.tensor([0, 0, 1]), torch.tensor([0.5, 1.0, 2.0]), torch.tensor([1.0, 3.0]),
               torch.tensor([0, 1]), 0.1, 10.0, 2)

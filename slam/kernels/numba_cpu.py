@@ -313,22 +313,23 @@ band_samples = _TwoWays(band_samples, fastmath=False)
 
 
 # ------------------------------------------------------------ ray-voxel traversal
-def traverse(origins, dirs, near, far, axis_counts, first, voxel_size, voxel_codes, max_hits, max_bounds,
+def traverse(origins, dirs, near, far, k_lo, axis_counts, first, voxel_size, voxel_codes, max_hits, max_bounds,
              chunks, ray_out, voxel_out, t_in_out, t_out_out):
     """``slam.render.ray_voxel_intersections`` after its ``clip_to_box``, one ray at a time:
     the face planes each axis crosses in (near, far), sorted with near and far, capped at far;
     every interval longer than 1e-7 whose midpoint lies in an allocated voxel is a hit, the
     first ``max_hits`` of them (0: all) kept.
 
-    origins, dirs (R, 3) float32; near, far (R,) float32; axis_counts (R, 3) int64: planes
-    crossed per axis (the torch side's count); first (R,) int64: where a ray's slots start in
+    origins, dirs (R, 3) float32; near, far (R,) float32; k_lo (R, 3) float32 and axis_counts
+    (R, 3) int64: the index of the first plane crossed per axis and how many (the torch side's
+    ``_plane_range``); first (R,) int64: where a ray's slots start in
     the outputs; max_bounds: the most bounds of any ray -> hits written from ``first[r]`` on:
     ray_out (H,) int64 (slots left at -1 are unused), voxel_out (H,) int64, t_in_out,
     t_out_out (H,) float32. Compiled without fastmath so every operation rounds as torch's
     separate operators do: the same intervals and voxels to the bit.
     """
     R = origins.shape[0]
-    eps, half, one = np.float32(1e-7), np.float32(0.5), np.float32(1.0)
+    eps, half = np.float32(1e-7), np.float32(0.5)
     for th in prange(chunks):
         lo, hi = _chunk(R, chunks, th)
         bounds = np.empty(max_bounds, np.float32)
@@ -341,11 +342,8 @@ def traverse(origins, dirs, near, far, axis_counts, first, voxel_size, voxel_cod
                 if count == 0:
                     continue
                 o, d = origins[r, a], dirs[r, a]
-                p0 = o + near[r] * d
-                p1 = o + far[r] * d
-                k_lo = np.float32(np.floor(min(p0, p1) / voxel_size)) + one
                 for j in range(count):
-                    plane = (k_lo + np.float32(j)) * voxel_size
+                    plane = (k_lo[r, a] + np.float32(j)) * voxel_size
                     bounds[n] = (plane - o) / d
                     n += 1
             bounds[n] = far[r]
