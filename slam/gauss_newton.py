@@ -7,8 +7,8 @@ one Jacobian of every residual with respect to the 6-D twist, which we build wit
 
 * every sample's SDF and colour depend only on its own point ``p_i``, so their spatial
   gradients are per sample: the trilinear features' derivative is exact, the SDF's goes
-  back through the decoder in one reverse pass, and the colour's is differenced in feature
-  space along the three axes (only where a sample has weight);
+  back through the decoder in one reverse pass, and the colour's forward, one tangent per
+  axis (only where a sample has weight);
 * the renderer's per-ray sums (``D = sum w t / sum w``, ``C = sum w c / sum w`` with
   ``w = sigmoid(s/tr) sigmoid(-s/tr)``) are differentiated by hand;
 * a sample at camera-frame point ``x`` moves with the right-perturbed pose ``T exp(xi)`` as
@@ -61,19 +61,17 @@ class Linearisation:
 @dataclass(frozen=True)
 class FieldValues:
     """sdf (S,) in units of tr and grad_sdf (S, 3) per metre (map frame), plus what the
-    colour pass needs: hidden (S, H) trunk outputs, the features (S, D) and their spatial
-    derivative (S, 3, D), and the finite-difference step in feature space."""
+    colour pass needs: the features (S, D) and their spatial derivative (S, 3, D)."""
 
     sdf: torch.Tensor
     grad_sdf: torch.Tensor
     hidden: torch.Tensor
     feats: torch.Tensor
     dfeats: torch.Tensor
-    step: float
 
 
 def field_with_gradients(points: torch.Tensor, voxel_index: torch.Tensor, view: MapView, decoder,
-                         step: float = 2e-3, segments: Segments | None = None) -> FieldValues:
+                         segments: Segments | None = None) -> FieldValues:
     """SDF at points (S, 3) and its spatial gradient.
 
     The trilinear features and their spatial derivative are exact
@@ -88,23 +86,38 @@ def field_with_gradients(points: torch.Tensor, voxel_index: torch.Tensor, view: 
         sdf, hidden = decoder.sdf_and_hidden(f)
         (d_sdf,) = torch.autograd.grad(sdf.sum(), f)
     grad_sdf = (dfeats @ d_sdf[:, :, None])[..., 0]
-    return FieldValues(sdf.detach(), grad_sdf, hidden.detach(), feats, dfeats, step)
+    return FieldValues(sdf.detach(), grad_sdf, hidden.detach(), feats, dfeats)
+
+
+def _linear_with_tangents(x: torch.Tensor, dx: torch.Tensor, weight: torch.Tensor,
+                          bias: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """x (A, n) -> x W^T + b, and its tangents dx (3, A, n) -> dx W^T."""
+    return torch.nn.functional.linear(x, weight, bias), dx @ weight.T
+
+
+def _relu_with_tangents(x: torch.Tensor, dx: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    keep = x > 0
+    return x * keep, dx * keep
 
 
 def color_with_gradients(field: FieldValues, decoder, active: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Colour (A, 3) at the ``active`` samples (A,) and its gradient (A, 3, 3) (channel, axis).
-
-    The decoder is differenced forward in feature space, ``(f(e + h de/dx) - f(e)) / h``, for
-    the three axes in one batch (three colour channels make reverse mode no cheaper). It is
-    piecewise linear up to the sigmoid, so this is exact to O(h) unless a step crosses a kink.
-    """
-    A = active.shape[0]
-    feats, dfeats = field.feats[active], field.dfeats[active]
-    shifted = (feats[None] + field.step * dfeats.transpose(0, 1)).reshape(3 * A, feats.shape[1])
-    hidden = torch.cat([field.hidden[active], decoder.sdf_and_hidden(shifted)[1]])
-    rgb_all = color_of_hidden(decoder, hidden).reshape(4, A, 3)
-    grad = (rgb_all[1:] - rgb_all[:1]).permute(1, 2, 0) / field.step
-    return rgb_all[0], grad
+    """Colour (A, 3) at the ``active`` samples (A,) and its spatial gradient (A, 3, 3)
+    (channel, axis), exact: forward mode through the decoder, one tangent per axis (three
+    colour channels make reverse mode no cheaper), with each ReLU's mask from the samples'
+    own activations. The feature rows of the SDF head and the colour head's first layer have
+    no activation between them and run as one product, as ``Decoder.color_from_hidden``."""
+    x, dx = field.feats[active], field.dfeats[active].transpose(0, 1)  # (A, D), (3, A, D)
+    for layer in decoder.trunk_linears():
+        x, dx = _relu_with_tangents(*_linear_with_tangents(x, dx, layer.weight, layer.bias))
+    head = [m for m in decoder.color_head if isinstance(m, torch.nn.Linear)]
+    w, b = decoder.sdf_head.weight[1:], decoder.sdf_head.bias[1:]
+    x, dx = _linear_with_tangents(x, dx, head[0].weight @ w, head[0].weight @ b + head[0].bias)
+    for layer in head[1:]:
+        x, dx = _relu_with_tangents(x, dx)
+        x, dx = _linear_with_tangents(x, dx, layer.weight, layer.bias)
+    rgb = torch.sigmoid(x)
+    grad = (rgb * (1 - rgb))[None] * dx  # (3 axes, A, 3 channels)
+    return rgb, grad.permute(1, 2, 0)
 
 
 def twist_rows(grad_map: torch.Tensor, x_cam: torch.Tensor, R: torch.Tensor) -> torch.Tensor:
@@ -120,7 +133,7 @@ def linearise(T_map_cam: torch.Tensor, dirs_cam: torch.Tensor, rgb_gt: torch.Ten
               max_hits: int, weights: LossWeights, max_depth: float = 10.0,
               color_weight_eps: float = 1e-5, eps_depth: float = 5e-3,
               eps_color: float = 1e-2, miss_cost: float | None = None,
-              mask_in_front: bool = True) -> Linearisation:
+              mask_in_front: bool = True, renormalise_color: bool = False) -> Linearisation:
     """The tracking loss of R rays at pose T_map_cam (4, 4) and its Gauss-Newton model.
 
     dirs_cam (R, 3) camera-frame directions with z = 1, rgb_gt (R, 3), depth_gt (R,),
@@ -128,12 +141,13 @@ def linearise(T_map_cam: torch.Tensor, dirs_cam: torch.Tensor, rgb_gt: torch.Ten
     ``eps_depth`` / ``eps_color`` floor the residuals in the IRLS weights of the L1 terms;
     ``miss_cost``: see the denominators below (None: the losses exactly as compute_losses).
     Renders exactly as ``slam.render.render_rays`` (mid-step samples, the same
-    ``mask_in_front``) with no autograd.
+    ``mask_in_front`` and ``renormalise_color``) with no autograd.
     """
     with torch.no_grad():
         rendered = render_with_jacobians(T_map_cam, dirs_cam, view, decoder, near=near, far=far, step=step,
                                          truncation=truncation, max_hits=max_hits,
-                                         color_weight_eps=color_weight_eps, mask_in_front=mask_in_front)
+                                         color_weight_eps=color_weight_eps, mask_in_front=mask_in_front,
+                                         renormalise_color=renormalise_color)
         return linearise_rendered(rendered, rgb_gt, depth_gt, ray_weight, weights=weights, max_depth=max_depth,
                                   eps_depth=eps_depth, eps_color=eps_color, miss_cost=miss_cost)
 
@@ -165,12 +179,16 @@ class RenderedJacobians:
 def render_with_jacobians(T: torch.Tensor, dirs_cam: torch.Tensor, view: MapView, decoder, *,
                           near: torch.Tensor, far: torch.Tensor, step: float, truncation: float,
                           max_hits: int, color_weight_eps: float = 1e-5,
-                          mask_in_front: bool = True, jacobians: bool = True) -> RenderedJacobians:
+                          mask_in_front: bool = True, jacobians: bool = True,
+                          renormalise_color: bool = False) -> RenderedJacobians:
     """Render R rays (``dirs_cam`` (R, 3), z = 1) at pose T (4, 4) with the twist Jacobians of
     their depth and colour and of every sample's SDF (no autograd; see ``linearise``).
 
     ``jacobians=False`` renders the values only and leaves the Jacobians zero, at about half
-    the cost: enough for the loss at a pose whose model may never be needed."""
+    the cost: enough for the loss at a pose whose model may never be needed.
+    ``renormalise_color``: a ray's colour is the weighted mean over the coloured samples
+    (weight above ``color_weight_eps``), as ``render_rays`` renders it with the same switch,
+    so that a high threshold does not darken it; its Jacobian is then exact for that set."""
     tr = truncation
     R_, o = T[:3, :3], T[:3, 3]
     num_rays = dirs_cam.shape[0]
@@ -199,21 +217,25 @@ def render_with_jacobians(T: torch.Tensor, dirs_cam: torch.Tensor, view: MapView
     inv_W = 1.0 / (W + 1e-8)
     depth = torch.zeros_like(W).index_add(0, r, w * t) * inv_W
     ra = r[active]
+    # The colour's normaliser: every sample's weight, or only the coloured samples'.
+    inv_Wc = 1.0 / (torch.zeros_like(W).index_add(0, ra, w[active]) + 1e-8) if renormalise_color else inv_W
     color = torch.zeros(num_rays, 3, dtype=t.dtype, device=t.device).index_add(
-        0, ra, w[active, None] * rgb) * inv_W[:, None]
+        0, ra, w[active, None] * rgb) * inv_Wc[:, None]
     hit = torch.zeros(num_rays, dtype=torch.bool, device=t.device)
     hit[r] = True
     if not jacobians:
         return RenderedJacobians(T, depth, W, color, hit, W.new_zeros(num_rays, 6), W.new_zeros(num_rays, 3, 6),
                                  r, t, s, t.new_zeros(t.shape[0], 6), tr)
 
-    # d(ray depth)/d(sample point) = (t - D)/W * dw/ds * grad s; colour adds w/W * grad c.
+    # d(ray depth)/d(sample point) = (t - D)/W * dw/ds * grad s; colour adds w/W * grad c
+    # (W: the colour's normaliser; with it over the coloured samples only, the samples left
+    # out of the colour leave its derivative too, and the expression stays exact).
     J_s = twist_rows(field.grad_sdf, x_cam, R_)  # (S, 6)
     a = (t - depth[r]) * inv_W[r] * dw_ds
     J_depth = torch.zeros(num_rays, 6, dtype=t.dtype, device=t.device).index_add(0, r, a[:, None] * J_s)
     J_rgb_c = twist_rows(grad_rgb, x_cam[active][:, None, :], R_)  # (A, 3, 6)
-    b = (rgb - color[ra]) * (inv_W[ra] * dw_ds[active])[:, None]  # (A, 3)
-    per_sample = b[..., None] * J_s[active][:, None, :] + (w[active] * inv_W[ra])[:, None, None] * J_rgb_c
+    b = (rgb - color[ra]) * (inv_Wc[ra] * dw_ds[active])[:, None]  # (A, 3)
+    per_sample = b[..., None] * J_s[active][:, None, :] + (w[active] * inv_Wc[ra])[:, None, None] * J_rgb_c
     J_color = torch.zeros(num_rays, 3, 6, dtype=t.dtype, device=t.device).index_add(0, ra, per_sample)
     return RenderedJacobians(T, depth, W, color, hit, J_depth, J_color, r, t, s, J_s, tr)
 

@@ -220,7 +220,8 @@ class Tracker:
             return render_with_jacobians(T, batch.dirs_cam, fmap.view, fmap.decoder, near=near, far=far,
                                          step=r.step_ratio * fmap.view.voxel_size, truncation=r.truncation,
                                          max_hits=r.max_hits, color_weight_eps=c.color_weight_eps,
-                                         mask_in_front=r.mask_in_front, jacobians=jacobians)
+                                         mask_in_front=r.mask_in_front, jacobians=jacobians,
+                                         renormalise_color=True)
 
         def dense_of(rendered: RenderedJacobians, ray_weight: torch.Tensor | None) -> Linearisation:
             return linearise_rendered(rendered, batch.rgb, batch.depth, ray_weight, weights=self.weights,
@@ -307,7 +308,8 @@ class Tracker:
             origins = T[:3, 3].expand(n, 3)
             out = render_rays(origins, dirs, fmap.view, fmap.decoder, near=near, far=far,
                               step=step, truncation=r.truncation, max_hits=r.max_hits,
-                              color_weight_eps=c.color_weight_eps, mask_in_front=r.mask_in_front)
+                              color_weight_eps=c.color_weight_eps, mask_in_front=r.mask_in_front,
+                              renormalise_color=True)
             residual = (out.depth.detach() - batch.depth).abs()
             hit = out.hit & (out.weight_sum.detach() > 1e-3)
             hit_ratio = float(hit.float().mean())

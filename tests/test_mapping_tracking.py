@@ -461,13 +461,17 @@ def _linearisation_inputs(trained, frames, n=128):
     return fmap, batch, kwargs, LossWeights(c.rgb_weight, c.depth_weight, c.sdf_weight, c.fs_weight)
 
 
-@pytest.mark.parametrize("mask_in_front", [True, False])
-def test_linearisation_cost_and_gradient_match_autograd_through_render_rays(trained, frames, mask_in_front):
+@pytest.mark.parametrize("mask_in_front,renormalise", [(True, False), (False, False), (True, True)])
+def test_linearisation_cost_and_gradient_match_autograd_through_render_rays(trained, frames, mask_in_front,
+                                                                            renormalise):
     """The closed-form model against the reference: the paper's losses on render_rays, and
     their autograd gradient with respect to the twist (IRLS makes g half of it), with either
-    first-surface mask (``render.mask_in_front``)."""
+    first-surface mask (``render.mask_in_front``), and with the colour renormalised over
+    samples above the ``cpu`` tracker's weight threshold (a fifth of the peak)."""
     fmap, batch, kwargs, weights = _linearisation_inputs(trained, frames)
     kwargs["mask_in_front"] = mask_in_front
+    if renormalise:
+        kwargs.update(renormalise_color=True, color_weight_eps=0.05)
     T0 = gt_pose(frames[0]) @ se3_exp(torch.tensor([0.01, -0.01, 0.005, 0.01, 0.0, -0.01]))
     lin = linearise(T0, batch.dirs_cam, batch.rgb, batch.depth, None, fmap.view, fmap.decoder, weights=weights,
                     eps_depth=1e-12, eps_color=1e-12, **kwargs)
@@ -485,6 +489,29 @@ def test_linearisation_cost_and_gradient_match_autograd_through_render_rays(trai
     other = linearise(T0, batch.dirs_cam, batch.rgb, batch.depth, None, fmap.view, fmap.decoder, weights=weights,
                       eps_depth=1e-12, eps_color=1e-12, **{**kwargs, "mask_in_front": not mask_in_front})
     assert other.cost != lin.cost, "the switch reaches the closed-form model"
+
+
+@pytest.mark.parametrize("renormalise", [False, True])
+def test_colour_jacobian_matches_autograd_through_render_rays(trained, frames, renormalise):
+    """The rendered colour's twist Jacobian (R, 3, 6) against autograd through render_rays,
+    with the colour over every sample's weight or renormalised over the samples above a
+    high threshold (the cpu tracker's): the weights' part and the colour field's part both."""
+    fmap, batch, kwargs, _ = _linearisation_inputs(trained, frames, n=48)
+    kwargs.update(color_weight_eps=0.05 if renormalise else 1e-5, renormalise_color=renormalise)
+    T0 = gt_pose(frames[0]) @ se3_exp(torch.tensor([0.01, -0.01, 0.005, 0.01, 0.0, -0.01]))
+    rendered = render_with_jacobians(T0, batch.dirs_cam, fmap.view, fmap.decoder, **kwargs)
+    n = batch.depth.shape[0]
+
+    def color_at(xi: torch.Tensor) -> torch.Tensor:
+        T = T0 @ se3_exp(xi)
+        return render_rays(T[:3, 3].expand(n, 3), batch.dirs_cam @ T[:3, :3].T, fmap.view, fmap.decoder,
+                           **kwargs).color
+
+    reference = torch.autograd.functional.jacobian(color_at, torch.zeros(6))  # (R, 3, 6)
+    assert torch.allclose(rendered.color, color_at(torch.zeros(6)).detach(), atol=1e-5)
+    hit = rendered.hit
+    err = (rendered.J_color[hit] - reference[hit]).norm() / reference[hit].norm()
+    assert float(err) < 1e-3, float(err)
 
 
 def test_one_render_serves_several_ray_weightings(trained, frames):
