@@ -65,7 +65,6 @@ class FieldValues:
 
     sdf: torch.Tensor
     grad_sdf: torch.Tensor
-    hidden: torch.Tensor
     feats: torch.Tensor
     dfeats: torch.Tensor
 
@@ -83,10 +82,10 @@ def field_with_gradients(points: torch.Tensor, voxel_index: torch.Tensor, view: 
     feats, dfeats = interpolate_with_gradient(points, voxel_index, view, segments)
     with torch.enable_grad():
         f = feats.detach().requires_grad_(True)
-        sdf, hidden = decoder.sdf_and_hidden(f)
+        sdf = decoder.sdf(f)
         (d_sdf,) = torch.autograd.grad(sdf.sum(), f)
     grad_sdf = (dfeats @ d_sdf[:, :, None])[..., 0]
-    return FieldValues(sdf.detach(), grad_sdf, hidden.detach(), feats, dfeats)
+    return FieldValues(sdf.detach(), grad_sdf, feats, dfeats)
 
 
 def _linear_with_tangents(x: torch.Tensor, dx: torch.Tensor, weight: torch.Tensor,
@@ -202,7 +201,7 @@ def render_with_jacobians(T: torch.Tensor, dirs_cam: torch.Tensor, view: MapView
 
     if jacobians:
         field = field_with_gradients(points, samples.voxel_index, view, decoder, segments=samples.segments)
-        s, hidden = field.sdf, field.hidden
+        s = field.sdf
     else:
         s, hidden = decode_samples(points, samples.voxel_index, view, decoder)
     w, dw_ds = sdf_weights_and_slope(s, t, r, num_rays, tr, mask_in_front)
