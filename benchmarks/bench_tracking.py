@@ -82,16 +82,15 @@ def run(sequence: str, start: int, count: int, variants: dict) -> dict:
     device = torch.device("cpu")
     features = FeatureOdometry.from_config(base)
     results = {name: {"seconds": [], "error_mm": [], "error_deg": [], "ok": 0} for name in variants}
-    mappers: list[Mapper] = []
 
     def pose(i: int) -> torch.Tensor:
         return torch.as_tensor(raw[i].T_world_cam, dtype=torch.float32)
 
-    def after_mapping(i: int) -> None:
+    def after_mapping(i: int, mapper: Mapper) -> None:
         j = i + 1
         if i < start or j >= len(frames):
             return
-        fmap = FrozenMap(mappers[0].snapshot(), base, device)
+        fmap = FrozenMap(mapper.snapshot(), base, device)
         frame = prepare_frame(frames[j], None, device, base.voxel.max_depth)
         features.correspondences(raw[i])
         features.remember(np.asarray(raw[i].T_world_cam, np.float64))
@@ -109,17 +108,7 @@ def run(sequence: str, start: int, count: int, variants: dict) -> dict:
             r["error_deg"].append(float(xi[3:].norm()) * 180 / np.pi)
             r["ok"] += int(result.ok)
 
-    original_init = Mapper.__init__
-
-    def keep(self, *args, **kwargs):
-        original_init(self, *args, **kwargs)
-        mappers.append(self)
-
-    Mapper.__init__ = keep
-    try:
-        map_with_gt_poses(frames[: start + count + 1], base, on_frame=after_mapping)
-    finally:
-        Mapper.__init__ = original_init
+    map_with_gt_poses(frames[: start + count + 1], base, on_frame=after_mapping)
     return results
 
 

@@ -308,12 +308,13 @@ def pipeline_frame(frame, width: int | None):
 
 
 def map_with_gt_poses(frames: Sequence, config, *, extra_iterations: int = 0,
-                      on_frame: Callable[[int], None] | None = None):
+                      on_frame: Callable[[int, object], None] | None = None):
     """Map ``frames`` (already at pipeline size) with their GT poses as ``--gt-poses`` runs do:
     ``Mapper.process`` on every frame with keyframe poses fixed, then the end-of-sequence global
     bundle adjustment (``mapping.final_iterations``). ``extra_iterations`` adds more iterations
     of the windowed optimisation, in rounds of ``mapping.iterations`` over a fresh random
-    keyframe window each. Returns the ``Mapper``."""
+    keyframe window each. ``on_frame(i, mapper)`` runs after frame i is mapped. Returns the
+    ``Mapper``."""
     import torch
 
     from slam.frames import prepare_frame
@@ -330,7 +331,7 @@ def map_with_gt_poses(frames: Sequence, config, *, extra_iterations: int = 0,
         tf = prepare_frame(frame, None, device, config.voxel.max_depth)
         mapper.process(TrackedFrame(tf, torch.as_tensor(frame.T_world_cam, dtype=torch.float32)))
         if on_frame is not None:
-            on_frame(i)
+            on_frame(i, mapper)
     m = config.mapping
     mapper.global_bundle_adjustment(mapper.current, m.final_iterations, m.final_rays)
     # Extra rounds re-draw the keyframe window each time, as mapping more frames would.
