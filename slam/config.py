@@ -487,8 +487,8 @@ def _cpu() -> SLAMConfig:
         # at 0.5 the motion prior (scaled by the SDF-dominated mean curvature) held back
         # about half of each frame's motion there. Same harness, GT maps: laps corner
         # (frames 336-360) 10.53 -> 8.55 mm, laps 21-60 4.36 -> 3.65 mm, fr1/rpy 21-60
-        # 10.68 -> 10.46 mm at the same cost; the default laps path 6.27 / 4.29 cm against
-        # 5.64-7.85 cm (benchmarks/README.md, issue 17).
+        # 10.68 -> 10.46 mm at the same cost; the default laps path 6.27 / 4.29 / 4.73 cm
+        # against 5.64-7.85 cm over five runs at 0.5 (benchmarks/README.md, issue 17).
         tracking=TrackingConfig(optimizer="gauss_newton", num_rays=512, iterations=4, rgb_weight=5.0,
                                 color_weight_eps=5e-2, convergence_tol=1e-4,
                                 feature_count=1000, feature_weight=0.003, motion_prior=0.01,
