@@ -482,14 +482,15 @@ def _cpu() -> SLAMConfig:
         # threshold cost 0.54x (laps hall) and 0.74x (fr1/rpy) of 6 steps at 1e-3 with the
         # same error (4.36 / 10.67 mm against 4.37 / 10.69 mm); the stop 0.95x / 0.77x more,
         # the error unchanged (benchmarks/README.md).
-        # Colour weight 5 (paper: 0.5). At the laps hall's corners the view is a textured
+        # Colour weight 20 (paper: 0.5). At the laps hall's corners the view is a textured
         # plain wall: depth fixes three directions, only colour sees the other three, and
         # at 0.5 the motion prior (scaled by the SDF-dominated mean curvature) held back
-        # about half of each frame's motion there. Same harness, GT maps: laps corner
-        # (frames 336-360) 10.53 -> 8.55 mm, laps 21-60 4.36 -> 3.65 mm, fr1/rpy 21-60
-        # 10.68 -> 10.46 mm at the same cost; the default laps path 6.27 / 4.29 / 4.73 cm
-        # against 5.64-7.85 cm over five runs at 0.5 (benchmarks/README.md, issue 17).
-        tracking=TrackingConfig(optimizer="gauss_newton", num_rays=512, iterations=4, rgb_weight=5.0,
+        # about half of each frame's motion there. Same harness, GT maps, weights 0.5 / 5 /
+        # 20: laps corner (frames 336-360) 10.53 / 8.55 / 7.92 mm, laps 21-60 4.36 / 3.65 /
+        # 3.75 mm, fr1/rpy 21-60 10.68 / 10.46 / 9.38 mm at the same cost. The default laps
+        # path, alternating runs on one host: 5 -> 4.82 / 5.87 / 4.44 / 5.74 cm, 20 -> 4.54 /
+        # 5.05 / 5.13 / 3.93 cm (and 4.98); 5.64-7.85 cm at 0.5 (benchmarks/README.md, issue 17).
+        tracking=TrackingConfig(optimizer="gauss_newton", num_rays=512, iterations=4, rgb_weight=20.0,
                                 color_weight_eps=5e-2, convergence_tol=1e-4,
                                 feature_count=1000, feature_weight=0.003, motion_prior=0.01,
                                 feature_dense_check=True, border_margin=0.1),
