@@ -29,7 +29,10 @@ depth moves by a fraction of a millimetre and its colour by a few levels (Replic
 held-out views: 0.1 dB of PSNR), for about a third of the time. A pixel none of whose coarse
 neighbours (the 4 x 4 coarse cells around it) saw a surface stays empty: only a surface
 narrower than about ``coarse_stride`` pixels, or one hidden behind the first surface at
-every neighbour, can differ more.
+every neighbour, can differ more. Where the coarse samples around a pixel lie on one plane
+(``planar_depths``: within ``PLANAR_TOLERANCE``), its band centres on the depth interpolated
+between them instead of spanning their range: a floor seen at a grazing angle then costs
+fewer samples (Replica room0: 7.5 -> 6.5 a ray, 5-8 % of the view's time, the same PSNR).
 
 Views need no gradients, so on a CPU that multiplies bfloat16 natively (AVX512-BF16 or AMX)
 the decoder runs in bfloat16 (``precision="auto"``, ``Bfloat16Decoder``): 20 % off a banded
@@ -67,6 +70,13 @@ DEFAULT_COARSE_STRIDE = 4
 # d / tr^2 (1 cm at tr = 0.1 m); beyond 4 widths it is under 7 % of its peak. Replica room0,
 # 5 held-out 640x363 views: PSNR 23.81 dB full, 23.73 banded with 4 widths, 23.71 with 3.
 BAND_WEIGHT_WIDTHS = 4.0
+# Where the coarse samples around a pixel lie on one plane to within this (metres of
+# depth), the pixel's band centres on the depth interpolated between them
+# (``planar_depths``) instead of spanning all four: a floor seen at a grazing angle no longer
+# costs a band as deep as the depths across its coarse cell. 0 turns it off. Same-process
+# A/B, 10 held-out 640-wide views, 2 rounds: room0 1.22 -> 1.12-1.19 s, fr1/rpy 1.61-1.80 ->
+# 1.58-1.60 s, PSNR unchanged (0.5 cm and 2 cm: the same within the spread).
+PLANAR_TOLERANCE = 0.01
 
 
 def _cpu_flags() -> set[str] | None:
@@ -265,6 +275,58 @@ def depth_bands(coarse_depth: torch.Tensor, coarse_surface: torch.Tensor, cu: to
     return lo.reshape(-1), hi.reshape(-1)
 
 
+def _second_differences(q: torch.Tensor, seen: torch.Tensor, dim: int) -> torch.Tensor:
+    """|q[i-1] - 2 q[i] + q[i+1]| along ``dim`` of a (hc, wc) grid; inf on the grid's edge and
+    where one of the three saw no surface (nothing to say there that a plane holds)."""
+    q, seen = q.movedim(dim, 0), seen.movedim(dim, 0)
+    out = torch.full_like(q, float("inf"))
+    if q.shape[0] >= 3:
+        inner = (q[:-2] - 2 * q[1:-1] + q[2:]).abs()
+        both = seen[:-2] & seen[1:-1] & seen[2:]
+        out[1:-1] = torch.where(both, inner, out[1:-1])
+    return out.movedim(0, dim)
+
+
+def planar_depths(coarse_depth: torch.Tensor, coarse_surface: torch.Tensor, cu: torch.Tensor,
+                  cv: torch.Tensor, width: int, height: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-pixel depth interpolated between the 2 x 2 coarse samples that bracket it, and how
+    far the coarse samples around it are from one plane.
+
+    coarse_depth, coarse_surface (hc, wc) at pixel columns ``cu`` (wc,) and rows ``cv`` (hc,),
+    evenly spaced but for the last -> depth, off_plane (H * W,) row-major, metres. On a plane,
+    inverse depth q = 1/z is affine in the pixel coordinates, so bilinear interpolation of q
+    is exact there. ``off_plane`` bounds how far the four bracketing samples and their
+    neighbours along each axis are from affine: the cell's twist ``q00 - q01 - q10 + q11``
+    (a quarter of it: bilinear against the best plane) and the second differences along
+    each axis at the four corners (a crease that runs inside the cell, such as a wall
+    meeting the floor, leaves the twist at zero but not these), turned into depth with
+    ``|dz| = z^2 |dq|``. It is inf where one of those samples saw no surface, and on the
+    grid's edge.
+    Example: samples of the plane z = 1 / (0.5 + 0.01 u) -> that plane's depth at every
+    pixel, off_plane 0 inside the grid.
+    """
+    hc, wc = coarse_depth.shape
+    q = torch.where(coarse_surface, 1.0 / coarse_depth.clamp(min=1e-6), torch.zeros_like(coarse_depth))
+    bend = torch.maximum(_second_differences(q, coarse_surface, 0), _second_differences(q, coarse_surface, 1))
+    u = torch.arange(width, device=cu.device)
+    v = torch.arange(height, device=cv.device)
+    u0 = (torch.searchsorted(cu, u, right=True) - 1).clamp(0, wc - 1)
+    v0 = (torch.searchsorted(cv, v, right=True) - 1).clamp(0, hc - 1)
+    u1, v1 = (u0 + 1).clamp(max=wc - 1), (v0 + 1).clamp(max=hc - 1)
+    a = ((u - cu[u0]).to(q.dtype) / (cu[u1] - cu[u0]).clamp(min=1).to(q.dtype)).clamp(0, 1)[None, :]
+    b = ((v - cv[v0]).to(q.dtype) / (cv[v1] - cv[v0]).clamp(min=1).to(q.dtype)).clamp(0, 1)[:, None]
+    q00, q01, q10, q11 = q[v0][:, u0], q[v0][:, u1], q[v1][:, u0], q[v1][:, u1]
+    q_pixel = (1 - b) * ((1 - a) * q00 + a * q01) + b * ((1 - a) * q10 + a * q11)
+    depth = 1.0 / q_pixel.clamp(min=1e-6)
+    corners_bend = torch.maximum(torch.maximum(bend[v0][:, u0], bend[v0][:, u1]),
+                                 torch.maximum(bend[v1][:, u0], bend[v1][:, u1]))
+    off_q = torch.maximum(0.25 * (q00 - q01 - q10 + q11).abs(), corners_bend)
+    s = coarse_surface
+    all_four = s[v0][:, u0] & s[v0][:, u1] & s[v1][:, u0] & s[v1][:, u1]
+    off_plane = torch.where(all_four, off_q * depth * depth, torch.full_like(depth, float("inf")))
+    return depth.reshape(-1), off_plane.reshape(-1)
+
+
 def _render_submap_banded(submap, T_map_cam: torch.Tensor, dirs_cam: torch.Tensor, config,
                           near: float, chunk: int, width: int, height: int, stride: int, decoder=None,
                           view=None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -277,6 +339,12 @@ def _render_submap_banded(submap, T_map_cam: torch.Tensor, dirs_cam: torch.Tenso
                                                           decoder=decoder, view=view)
     lo, hi = depth_bands(coarse_depth.reshape(len(cv), len(cu)), coarse_surface.reshape(len(cv), len(cu)),
                          cu, cv, width, height)
+    if PLANAR_TOLERANCE > 0:
+        planar, off_plane = planar_depths(coarse_depth.reshape(len(cv), len(cu)),
+                                          coarse_surface.reshape(len(cv), len(cu)), cu, cv, width, height)
+        on_plane = off_plane <= PLANAR_TOLERANCE
+        lo = torch.where(on_plane, planar - off_plane, lo)
+        hi = torch.where(on_plane, planar + off_plane, hi)
     # At least two steps, so that a coarse preset's band still holds the two samples that
     # bracket the surface and one more on either side.
     margin = max(BAND_WEIGHT_WIDTHS * config.render.truncation ** 2,

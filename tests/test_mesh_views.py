@@ -21,7 +21,7 @@ from slam.config import preset
 from slam.maps import MapSet, SubMap
 from slam.mesh import empty_mesh, export_mesh, extract_mesh, extract_submap_mesh, mesh_to_bytes
 from slam.render import camera_rays, interpolate_embeddings, rays_in_map
-from slam.views import RenderedView, coarse_grid, depth_bands, rays_near_surface, render_view
+from slam.views import RenderedView, coarse_grid, depth_bands, planar_depths, rays_near_surface, render_view
 from slam.voxels import morton_decode
 
 CONFIG = preset("test")
@@ -425,6 +425,64 @@ def test_depth_bands_span_the_coarse_neighbours():
     # Nothing seen anywhere: every band is empty.
     lo, _ = depth_bands(depth, torch.zeros_like(surface), cu, cv, 9, 9)
     assert torch.isinf(lo).all()
+
+
+def _plane_depth(u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """z-depth of a tilted plane seen by a pinhole camera: 1/z is affine in (u, v)."""
+    return 1.0 / (0.5 + 0.01 * u + 0.004 * v)
+
+
+def test_planar_depths_are_exact_on_a_plane():
+    cu, cv = coarse_grid(13, 4), coarse_grid(10, 4)  # [0, 4, 8, 12] and [0, 4, 8, 9]
+    coarse = _plane_depth(cu[None, :].double(), cv[:, None].double())
+    depth, off_plane = planar_depths(coarse, torch.ones_like(coarse, dtype=torch.bool), cu, cv, 13, 10)
+    u, v = torch.meshgrid(torch.arange(13.0), torch.arange(10.0), indexing="xy")
+    # Linear interpolation of z itself would err by ~1 mm here; of 1/z, by rounding only.
+    torch.testing.assert_close(depth, _plane_depth(u.double(), v.double()).reshape(-1), rtol=1e-12, atol=1e-12)
+    assert off_plane.reshape(10, 13)[0:4, 4:8].isinf().all()  # the grid's edge: nothing to check
+    # A cell whose corners have neighbours both ways, evenly spaced: nothing off the plane.
+    grid = torch.arange(0, 17, 4)
+    coarse = _plane_depth(grid[None, :].double(), grid[:, None].double())
+    _, off_plane = planar_depths(coarse, torch.ones_like(coarse, dtype=torch.bool), grid, grid, 17, 17)
+    assert off_plane.reshape(17, 17)[4:12, 4:12].max() < 1e-12
+
+
+def test_planar_depths_flag_an_edge_and_a_missing_sample():
+    cu = cv = coarse_grid(17, 4)  # a 5 x 5 coarse grid
+    flat = torch.ones(5, 5)
+    _, off_plane = planar_depths(flat, flat > 0, cu, cv, 17, 17)
+    assert off_plane.reshape(17, 17)[6, 6] == 0.0  # inside a flat grid
+    assert torch.isinf(off_plane.reshape(17, 17)[1, 6])  # the grid's edge: no neighbour to check
+    # A crease along a cell's edge (rows 0-2 at 1 m, 3-4 at 2 m): the cell above it has no
+    # twist, but its lower corners bend.
+    crease = torch.where(torch.arange(5)[:, None] < 3, 1.0, 2.0).expand(5, 5)
+    _, off_plane = planar_depths(crease, crease > 0, cu, cv, 17, 17)
+    assert off_plane.reshape(17, 17)[10, 6] > 0.1
+    # A corner that saw nothing.
+    missing = flat.clone()
+    missing[2, 2] = 0.0
+    _, off_plane = planar_depths(missing, missing > 0, cu, cv, 17, 17)
+    assert torch.isinf(off_plane.reshape(17, 17)[6, 6])
+
+
+@pytest.mark.parametrize("camera", ["trained", "moved"])
+def test_planar_bands_change_little_on_the_fitted_map(fitted, camera):
+    """The banded view with bands centred on the planar interpolation against the plain
+    bands, on the wall and floor: the same pixels, the same depths to a millimetre."""
+    import slam.views as views
+
+    T = torch.eye(4) if camera == "trained" else moved_camera()
+    old = views.PLANAR_TOLERANCE
+    try:
+        views.PLANAR_TOLERANCE = 0.0
+        plain = render_view(fitted, T, SCENE_K, *SCENE_SIZE, method="banded")
+        views.PLANAR_TOLERANCE = 0.01
+        planar = render_view(fitted, T, SCENE_K, *SCENE_SIZE, method="banded")
+    finally:
+        views.PLANAR_TOLERANCE = old
+    assert (plain.valid != planar.valid).mean() < 0.005
+    both = plain.valid & planar.valid
+    assert np.abs(planar.depth[both] - plain.depth[both]).max() < 1e-3
 
 
 @pytest.mark.parametrize("camera", ["trained", "moved"])
