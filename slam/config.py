@@ -489,7 +489,8 @@ def _cpu() -> SLAMConfig:
         # 20: laps corner (frames 336-360) 10.53 / 8.55 / 7.92 mm, laps 21-60 4.36 / 3.65 /
         # 3.75 mm, fr1/rpy 21-60 10.68 / 10.46 / 9.38 mm at the same cost. The default laps
         # path, alternating runs on one host: 5 -> 4.82 / 5.87 / 4.44 / 5.74 cm, 20 -> 4.54 /
-        # 5.05 / 5.13 / 3.93 cm (and 4.98); 5.64-7.85 cm at 0.5 (benchmarks/README.md, issue 17).
+        # 5.05 / 5.13 / 3.93 cm (nine runs at 20: mean 4.59 cm); 5.64-7.85 cm at 0.5
+        # (benchmarks/README.md, issue 17).
         tracking=TrackingConfig(optimizer="gauss_newton", num_rays=512, iterations=4, rgb_weight=20.0,
                                 color_weight_eps=5e-2, convergence_tol=1e-4,
                                 feature_count=1000, feature_weight=0.003, motion_prior=0.01,
