@@ -240,6 +240,17 @@ def coarse_grid(size: int, stride: int) -> torch.Tensor:
     return torch.tensor(ticks, dtype=torch.long)
 
 
+def _bracketing_cells(cu: torch.Tensor, cv: torch.Tensor, width: int, height: int
+                      ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Indices (u0, u1) (W,) into ``cu`` and (v0, v1) (H,) into ``cv`` of the coarse columns
+    and rows that bracket each pixel column and row (equal at the last one)."""
+    u = torch.arange(width, device=cu.device)
+    v = torch.arange(height, device=cv.device)
+    u0 = (torch.searchsorted(cu, u, right=True) - 1).clamp(0, len(cu) - 1)
+    v0 = (torch.searchsorted(cv, v, right=True) - 1).clamp(0, len(cv) - 1)
+    return u0, (u0 + 1).clamp(max=len(cu) - 1), v0, (v0 + 1).clamp(max=len(cv) - 1)
+
+
 def depth_bands(coarse_depth: torch.Tensor, coarse_surface: torch.Tensor, cu: torch.Tensor,
                 cv: torch.Tensor, width: int, height: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Per-pixel depth range of the surfaces seen by its coarse neighbours.
@@ -253,11 +264,7 @@ def depth_bands(coarse_depth: torch.Tensor, coarse_surface: torch.Tensor, cu: to
     inf = torch.tensor(float("inf"), dtype=coarse_depth.dtype, device=coarse_depth.device)
     lo_c = torch.where(coarse_surface, coarse_depth, inf)
     hi_c = torch.where(coarse_surface, coarse_depth, -inf)
-    u = torch.arange(width, device=cu.device)
-    v = torch.arange(height, device=cv.device)
-    u0 = (torch.searchsorted(cu, u, right=True) - 1).clamp(0, len(cu) - 1)
-    v0 = (torch.searchsorted(cv, v, right=True) - 1).clamp(0, len(cv) - 1)
-    u1, v1 = (u0 + 1).clamp(max=len(cu) - 1), (v0 + 1).clamp(max=len(cv) - 1)
+    u0, u1, v0, v1 = _bracketing_cells(cu, cv, width, height)
 
     def bracket(lo_grid: torch.Tensor, hi_grid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         lo = torch.minimum(torch.minimum(lo_grid[v0][:, u0], lo_grid[v0][:, u1]),
@@ -305,14 +312,11 @@ def planar_depths(coarse_depth: torch.Tensor, coarse_surface: torch.Tensor, cu: 
     Example: samples of the plane z = 1 / (0.5 + 0.01 u) -> that plane's depth at every
     pixel, off_plane 0 inside the grid.
     """
-    hc, wc = coarse_depth.shape
     q = torch.where(coarse_surface, 1.0 / coarse_depth.clamp(min=1e-6), torch.zeros_like(coarse_depth))
     bend = torch.maximum(_second_differences(q, coarse_surface, 0), _second_differences(q, coarse_surface, 1))
+    u0, u1, v0, v1 = _bracketing_cells(cu, cv, width, height)
     u = torch.arange(width, device=cu.device)
     v = torch.arange(height, device=cv.device)
-    u0 = (torch.searchsorted(cu, u, right=True) - 1).clamp(0, wc - 1)
-    v0 = (torch.searchsorted(cv, v, right=True) - 1).clamp(0, hc - 1)
-    u1, v1 = (u0 + 1).clamp(max=wc - 1), (v0 + 1).clamp(max=hc - 1)
     a = ((u - cu[u0]).to(q.dtype) / (cu[u1] - cu[u0]).clamp(min=1).to(q.dtype)).clamp(0, 1)[None, :]
     b = ((v - cv[v0]).to(q.dtype) / (cv[v1] - cv[v0]).clamp(min=1).to(q.dtype)).clamp(0, 1)[:, None]
     q00, q01, q10, q11 = q[v0][:, u0], q[v0][:, u1], q[v1][:, u0], q[v1][:, u1]
@@ -329,7 +333,8 @@ def planar_depths(coarse_depth: torch.Tensor, coarse_surface: torch.Tensor, cu: 
 
 def _render_submap_banded(submap, T_map_cam: torch.Tensor, dirs_cam: torch.Tensor, config,
                           near: float, chunk: int, width: int, height: int, stride: int, decoder=None,
-                          view=None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+                          view=None, planar_tolerance: float = PLANAR_TOLERANCE
+                          ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The ``banded`` method for one submap: (H * W, 3) directions -> colour, depth, surface."""
     device = dirs_cam.device
     cu, cv = coarse_grid(width, stride).to(device), coarse_grid(height, stride).to(device)
@@ -337,12 +342,12 @@ def _render_submap_banded(submap, T_map_cam: torch.Tensor, dirs_cam: torch.Tenso
     _, coarse_depth, coarse_surface = _render_submap_full(submap, T_map_cam, dirs_cam[coarse_index],
                                                           config, near, chunk, with_color=False,
                                                           decoder=decoder, view=view)
-    lo, hi = depth_bands(coarse_depth.reshape(len(cv), len(cu)), coarse_surface.reshape(len(cv), len(cu)),
-                         cu, cv, width, height)
-    if PLANAR_TOLERANCE > 0:
-        planar, off_plane = planar_depths(coarse_depth.reshape(len(cv), len(cu)),
-                                          coarse_surface.reshape(len(cv), len(cu)), cu, cv, width, height)
-        on_plane = off_plane <= PLANAR_TOLERANCE
+    coarse_depth = coarse_depth.reshape(len(cv), len(cu))
+    coarse_surface = coarse_surface.reshape(len(cv), len(cu))
+    lo, hi = depth_bands(coarse_depth, coarse_surface, cu, cv, width, height)
+    if planar_tolerance > 0:
+        planar, off_plane = planar_depths(coarse_depth, coarse_surface, cu, cv, width, height)
+        on_plane = off_plane <= planar_tolerance
         lo = torch.where(on_plane, planar - off_plane, lo)
         hi = torch.where(on_plane, planar + off_plane, hi)
     # At least two steps, so that a coarse preset's band still holds the two samples that
@@ -367,7 +372,7 @@ def _render_submap_banded(submap, T_map_cam: torch.Tensor, dirs_cam: torch.Tenso
 def render_view(mapset, T_world_cam, K, width: int, height: int, *, chunk_rays: int | None = None,
                 device: str | torch.device | None = None, near: float = DEFAULT_NEAR,
                 method: str = "banded", coarse_stride: int = DEFAULT_COARSE_STRIDE,
-                precision: str = "auto") -> RenderedView:
+                precision: str = "auto", planar_tolerance: float = PLANAR_TOLERANCE) -> RenderedView:
     """Render colour and depth of the whole map set seen by one pinhole camera.
 
     T_world_cam (4, 4) camera-to-world, OpenCV axes; K (3, 3) intrinsics of a
@@ -376,7 +381,8 @@ def render_view(mapset, T_world_cam, K, width: int, height: int, *, chunk_rays: 
     to ``config.render.max_distance`` (D_max) in z-depth. ``method`` is ``banded`` (coarse
     pass, then a depth band per pixel) or ``full`` (the reference); see the module docstring.
     ``precision`` is the decoder's: ``auto`` (bfloat16 on a CPU that multiplies it natively,
-    ``Bfloat16Decoder``; else float32), ``float32`` or ``bfloat16``.
+    ``Bfloat16Decoder``; else float32), ``float32`` or ``bfloat16``. ``planar_tolerance``
+    (metres, ``banded`` only; 0: off): see ``PLANAR_TOLERANCE``.
     """
     width, height = int(width), int(height)
     if width <= 0 or height <= 0:
@@ -387,6 +393,8 @@ def render_view(mapset, T_world_cam, K, width: int, height: int, *, chunk_rays: 
         raise ValueError(f"precision must be one of {VIEW_PRECISIONS}, got {precision!r}")
     if int(coarse_stride) < 1:
         raise ValueError(f"coarse_stride must be at least 1, got {coarse_stride}")
+    if not float(planar_tolerance) >= 0:
+        raise ValueError(f"planar_tolerance must be at least 0 (metres; 0 turns it off), got {planar_tolerance}")
     T_world_cam = _as_tensor(T_world_cam, "T_world_cam", (4, 4))
     K = _as_tensor(K, "K", (3, 3))
     config = mapset.config
@@ -415,7 +423,7 @@ def render_view(mapset, T_world_cam, K, width: int, height: int, *, chunk_rays: 
         else:
             color, depth, surface = _render_submap_banded(submap, T_map_cam, dirs_cam, config, near, chunk,
                                                           width, height, int(coarse_stride), decoder=decoder,
-                                                          view=voxels)
+                                                          view=voxels, planar_tolerance=float(planar_tolerance))
         nearer = surface & (depth < best_depth)
         best_depth = torch.where(nearer, depth, best_depth)
         rgb = torch.where(nearer[:, None], color.clamp(0.0, 1.0), rgb)

@@ -469,17 +469,9 @@ def test_planar_depths_flag_an_edge_and_a_missing_sample():
 def test_planar_bands_change_little_on_the_fitted_map(fitted, camera):
     """The banded view with bands centred on the planar interpolation against the plain
     bands, on the wall and floor: the same pixels, the same depths to a millimetre."""
-    import slam.views as views
-
     T = torch.eye(4) if camera == "trained" else moved_camera()
-    old = views.PLANAR_TOLERANCE
-    try:
-        views.PLANAR_TOLERANCE = 0.0
-        plain = render_view(fitted, T, SCENE_K, *SCENE_SIZE, method="banded")
-        views.PLANAR_TOLERANCE = 0.01
-        planar = render_view(fitted, T, SCENE_K, *SCENE_SIZE, method="banded")
-    finally:
-        views.PLANAR_TOLERANCE = old
+    plain = render_view(fitted, T, SCENE_K, *SCENE_SIZE, method="banded", planar_tolerance=0.0)
+    planar = render_view(fitted, T, SCENE_K, *SCENE_SIZE, method="banded", planar_tolerance=0.01)
     assert (plain.valid != planar.valid).mean() < 0.005
     both = plain.valid & planar.valid
     assert np.abs(planar.depth[both] - plain.depth[both]).max() < 1e-3
@@ -516,6 +508,8 @@ def test_banded_view_composites_submaps_like_the_full_render():
         render_view(mapset, np.eye(4), K, 40, 30, method="fast")
     with pytest.raises(ValueError, match="coarse_stride"):
         render_view(mapset, np.eye(4), K, 40, 30, coarse_stride=0)
+    with pytest.raises(ValueError, match="planar_tolerance"):
+        render_view(mapset, np.eye(4), K, 40, 30, planar_tolerance=-0.01)
     with pytest.raises(ValueError, match="precision"):
         render_view(mapset, np.eye(4), K, 40, 30, precision="float16")
 
