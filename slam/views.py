@@ -5,13 +5,16 @@ own frame (``T_map_cam = T_world_map^-1 T_world_cam``) with ``slam.render.render
 chunks of ``config.render.chunk_rays`` rays under ``torch.no_grad`` so that memory does not
 grow with the image size. Depth is z-depth in metres, as the input depth images.
 
-A ray *sees a surface* in a submap when one of its samples lies within one sampling step of
-the zero level set (``|s| * tr <= step``). A ray that crosses the surface always has such a
-sample, including when the crossing lies just in front of its first sample (a surface near
-the front face of the allocated region); a ray through free space (``s`` near 1) or past
-voxels with no surface has none, and stays empty: depth 0 and black. A per-ray weight
-threshold would not do: poorly trained free space (``s = 0.5``) adds weight on every sample,
-so long rays would pass it. Where several submaps see a surface, the nearest one wins.
+A ray *sees a surface* in a submap when the SDF changes sign between two of its neighbouring
+samples, or when one of its samples lies within one sampling step of the zero level set
+(``|s| * tr <= step``: a crossing just in front of its first sample, a surface near the front
+face of the allocated region). The sign change is needed as well: a learned SDF is often
+steeper than a distance (slope 2 on fr1/rpy and Replica), and then both samples around a
+crossing can lie more than a step from zero (Replica room0: 130 such pixels a 640-wide view,
+black before, 0.2 dB of PSNR). A ray through free space (``s`` near 1) or past voxels with no
+surface has neither, and stays empty: depth 0 and black. A per-ray weight threshold would not
+do: poorly trained free space (``s = 0.5``) adds weight on every sample, so long rays would
+pass it. Where several submaps see a surface, the nearest one wins.
 
 Two methods give nearly the same image:
 
@@ -19,20 +22,22 @@ Two methods give nearly the same image:
 meets, up to M_h of them, and decodes every sample.
 
 ``banded`` (the default) renders first a coarse grid of every ``coarse_stride``-th pixel in
-each direction with the SDF head only, then every pixel only within a band around the
-depths its coarse neighbours saw: from the nearest to the farthest, widened on both sides by
-``BAND_WEIGHT_WIDTHS`` widths of the SDF weight (4 tr^2, 4 cm at tr = 0.1 m). The samples lie
-on the same grid in ``t`` whatever the ray's range, and they are found by lookup rather than
-by traversal (``slam.render.sample_points_in_band``), so a pixel gets the full render's
-samples near its surface, and drops only those whose weight is under 7 % of the peak: its
-depth moves by a fraction of a millimetre and its colour by a few levels (Replica room0,
-held-out views: 0.1 dB of PSNR), for about a third of the time. A pixel none of whose coarse
-neighbours (the 4 x 4 coarse cells around it) saw a surface stays empty: only a surface
-narrower than about ``coarse_stride`` pixels, or one hidden behind the first surface at
-every neighbour, can differ more. Where the coarse samples around a pixel lie on one plane
-(``planar_depths``: within ``PLANAR_TOLERANCE``), its band centres on the depth interpolated
-between them instead of spanning their range: a floor seen at a grazing angle then costs
-fewer samples (Replica room0: 7.5 -> 6.5 a ray, 5-8 % of the view's time, the same PSNR).
+each direction with the SDF head only (at ``COARSE_STEP_FACTOR`` times the step), then every
+pixel only within a band around the depths its coarse neighbours saw: from the nearest to the
+farthest, widened on both sides by ``BAND_WEIGHT_WIDTHS`` widths of the SDF weight (3 tr^2,
+3 cm at tr = 0.1 m). The samples lie on the same grid in ``t`` whatever the ray's range, and
+they are found by lookup rather than by traversal (``slam.render.sample_points_in_band``), so
+a pixel gets the full render's samples near its surface, and drops only those whose weight is
+too small to colour it: its depth moves by a few millimetres at most and its colour by a few
+levels (10 held-out 640-wide views: Replica room0 0.08 dB of PSNR, fr1/rpy 0.01 dB), for
+about a third of the time. A pixel none of whose coarse neighbours (the 4 x 4 coarse cells
+around it) saw a surface stays empty: only a surface narrower than about ``coarse_stride``
+pixels, or one hidden behind the first surface at every neighbour, can differ more. Where
+the coarse samples around a pixel lie on one plane (``planar_depths``: within
+``PLANAR_TOLERANCE``), its band centres on the depth interpolated between them instead of
+spanning their range: a floor seen at a grazing angle then costs fewer samples (Replica
+room0: 7.5 -> 6.5 a ray, 5-8 % of the view's time, the same PSNR). The banded pixels render
+in runs of similar sample counts (``band_chunks``), not of similar pixel counts.
 
 Views need no gradients, so on a CPU that multiplies bfloat16 natively (AVX512-BF16 or AMX)
 the decoder runs in bfloat16 (``precision="auto"``, ``Bfloat16Decoder``): 20 % off a banded
@@ -43,6 +48,7 @@ sample the bands and interpolate the embeddings in one pass each.
 from __future__ import annotations
 
 import copy
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -67,9 +73,16 @@ VIEW_PRECISIONS = ("auto", "float32", "bfloat16")
 DEFAULT_COARSE_STRIDE = 4
 # The band reaches this many weight widths past the coarse neighbours' depths. The weight
 # sigmoid(s/tr) sigmoid(-s/tr) of a surface at distance d has s = d/tr, so it falls with
-# d / tr^2 (1 cm at tr = 0.1 m); beyond 4 widths it is under 7 % of its peak. Replica room0,
-# 5 held-out 640x363 views: PSNR 23.81 dB full, 23.73 banded with 4 widths, 23.71 with 3.
-BAND_WEIGHT_WIDTHS = 4.0
+# d / tr^2 (1 cm at tr = 0.1 m); beyond 3 widths it is under 0.045, 18 % of its peak: under
+# ``VIEW_COLOR_WEIGHT_EPS``, so the samples the band drops would not have coloured the pixel
+# anyway, and only its depth moves. Same-process A/B against 4 widths (and 2 steps for
+# ``BAND_MIN_STEPS``), 10 held-out 640-wide views, 2 rounds: fr1/rpy 1.03-1.23 -> 0.89-0.94 s,
+# 14.718 -> 14.705 dB, depth 2.5 -> 3.3 mm from the full render's; room0 0.97-1.00 ->
+# 0.83 s, 24.339 -> 24.297 dB (full 24.373).
+BAND_WEIGHT_WIDTHS = 3.0
+# ... and at least this many sampling steps, so that a coarse preset's band still holds the
+# two samples that bracket the surface and one more.
+BAND_MIN_STEPS = 1.5
 # Where the coarse samples around a pixel lie on one plane to within this (metres of
 # depth), the pixel's band centres on the depth interpolated between them
 # (``planar_depths``) instead of spanning all four: a floor seen at a grazing angle no longer
@@ -77,6 +90,19 @@ BAND_WEIGHT_WIDTHS = 4.0
 # A/B, 10 held-out 640-wide views, 2 rounds: room0 1.22 -> 1.12-1.19 s, fr1/rpy 1.61-1.80 ->
 # 1.58-1.60 s, PSNR unchanged (0.5 cm and 2 cm: the same within the spread).
 PLANAR_TOLERANCE = 0.01
+# The coarse pass samples at this many times the step: it only places the bands, and a
+# crossing between two samples is interpolated (``first_zero_crossing``), so its depth moves
+# little. Same-process A/B, fr1/rpy 640 wide: 10 % off the view (1.43 -> 1.30 s), PSNR
+# +0.004 dB, depth 2.3 -> 2.5 mm from the full render's; 4x was no faster and 5 mm off.
+COARSE_STEP_FACTOR = 2.0
+# The band pass renders its pixels in runs of at most this many samples for each ray of a
+# ``chunk_rays`` chunk (65k at 4096), not in chunks of ``chunk_rays`` pixels: a band is a
+# few samples deep, so those chunks were small and their fixed costs showed (fr1/rpy 640
+# wide: 75 calls a view). Same-process A/B: 16 and 32 equally fast, 8 as slow as before, 64
+# slower (the products' operands no longer fit the cache). A full-range chunk may hold
+# M_h / step_ratio samples a ray (160 at the cpu preset), so memory stays under the full
+# path's.
+BAND_CHUNK_SAMPLES_PER_RAY = 16
 
 
 def _cpu_flags() -> set[str] | None:
@@ -169,15 +195,24 @@ def pixel_centres(width: int, height: int) -> torch.Tensor:
     return torch.stack([u.reshape(-1), v.reshape(-1)], -1)
 
 
-def rays_near_surface(sdf: torch.Tensor, ray_index: torch.Tensor, num_rays: int,
-                      band: float) -> torch.Tensor:
-    """(R,) bool: rays with a sample whose ``|sdf| <= band``.
+def rays_near_surface(sdf: torch.Tensor, t: torch.Tensor, ray_index: torch.Tensor, num_rays: int,
+                      band: float, max_gap: float) -> torch.Tensor:
+    """(R,) bool: rays with a sample whose ``|sdf| <= band``, or two consecutive samples at
+    most ``max_gap`` apart in ``t`` whose SDF changes sign.
 
-    sdf (S,) and band in the same units (here: the truncation), ray_index (S,) -> (R,).
-    Example: sdf [1, 0.3, -0.1 | 1, 0.5], rays [0, 0, 0 | 1, 1], band 0.2 -> [True, False].
+    sdf (S,) and band in the same units (here: the truncation), t (S,) and max_gap in metres,
+    ray_index (S,), sorted by ray, then t -> (R,). The sign change catches a surface whose
+    learned SDF is steeper than a distance (slope 2 is common on real data): its two
+    samples around the crossing can both lie more than a step from zero. The gap keeps a
+    change across unallocated space, between two unrelated surfaces, from counting.
+    Example: sdf [1, 0.3, -0.1 | 1, 0.5 | 0.4, -0.4], t [0, 1, 2 | 0, 1 | 0, 1],
+    rays [0, 0, 0 | 1, 1 | 2, 2], band 0.2, max_gap 1.5 -> [True, False, True, False].
     """
     found = torch.zeros(num_rays, dtype=torch.bool, device=sdf.device)
     found[ray_index[sdf.abs() <= band]] = True
+    crossing = ((sdf[1:] * sdf[:-1] < 0) & (ray_index[1:] == ray_index[:-1])
+                & (t[1:] - t[:-1] <= max_gap))
+    found[ray_index[1:][crossing]] = True
     return found
 
 
@@ -207,8 +242,10 @@ def _render_submap_chunk(submap, T_map_cam: torch.Tensor, dirs_cam: torch.Tensor
                       step=step, truncation=render.truncation, max_hits=render.max_hits,
                       color_weight_eps=VIEW_COLOR_WEIGHT_EPS if with_color else float("inf"),
                       traverse=traverse, mask_in_front=render.mask_in_front, renormalise_color=True)
-    # s is in units of tr: one step of depth is step / tr of s.
-    surface = rays_near_surface(out.sdf, out.samples.ray_index, num_rays, step / render.truncation)
+    # s is in units of tr: one step of depth is step / tr of s. Consecutive samples of a
+    # voxel lie a step apart; 1.5 steps allows for float error.
+    surface = rays_near_surface(out.sdf, out.samples.t, out.samples.ray_index, num_rays,
+                                step / render.truncation, 1.5 * step)
     return out.color, out.depth, surface
 
 
@@ -331,16 +368,47 @@ def planar_depths(coarse_depth: torch.Tensor, coarse_surface: torch.Tensor, cu: 
     return depth.reshape(-1), off_plane.reshape(-1)
 
 
-def _render_submap_banded(submap, T_map_cam: torch.Tensor, dirs_cam: torch.Tensor, config,
-                          near: float, chunk: int, width: int, height: int, stride: int, decoder=None,
-                          view=None, planar_tolerance: float = PLANAR_TOLERANCE
-                          ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The ``banded`` method for one submap: (H * W, 3) directions -> colour, depth, surface."""
+def band_sample_counts(near: torch.Tensor, far: torch.Tensor, step: float) -> torch.Tensor:
+    """(R,) int64: how many grid samples ``t = (k + 1/2) step`` each ray's band [near, far)
+    holds (R,), those in unallocated voxels included: ``slam.render.sample_points_in_band``'s
+    count, an upper bound on the samples it returns."""
+    return (torch.ceil(far / step - 0.5) - torch.ceil(near / step - 0.5)).clamp(min=0).long()
+
+
+def band_chunks(counts: torch.Tensor, max_samples: int) -> list[tuple[int, int]]:
+    """Consecutive runs ``[start, end)`` of rays with at most ``max_samples`` samples in all
+    (a ray with more makes a run alone), covering every ray. counts (R,) int64.
+    Example: counts [3, 3, 3, 9, 1], max_samples 6 -> [(0, 2), (2, 3), (3, 4), (4, 5)].
+    """
+    total = torch.cumsum(counts, 0)
+    runs, start = [], 0
+    while start < counts.numel():
+        before = int(total[start] - counts[start])
+        end = int(torch.searchsorted(total, before + max_samples, right=True))
+        end = max(end, start + 1)
+        runs.append((start, end))
+        start = end
+    return runs
+
+
+def _coarse_config(config):
+    """The coarse pass's config: the same but for a step ``COARSE_STEP_FACTOR`` times longer."""
+    if COARSE_STEP_FACTOR == 1.0:
+        return config
+    render = dataclasses.replace(config.render, step_ratio=config.render.step_ratio * COARSE_STEP_FACTOR)
+    return dataclasses.replace(config, render=render)
+
+
+def _pixel_bands(submap, T_map_cam: torch.Tensor, dirs_cam: torch.Tensor, config, near: float, chunk: int,
+                 width: int, height: int, stride: int, decoder=None, view=None,
+                 planar_tolerance: float = PLANAR_TOLERANCE) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The coarse pass and the bands it gives: (H * W, 3) directions -> the pixels with a band
+    (P,) int64 and its [near, far) (P,) in metres of ``t``."""
     device = dirs_cam.device
     cu, cv = coarse_grid(width, stride).to(device), coarse_grid(height, stride).to(device)
     coarse_index = (cv[:, None] * width + cu[None, :]).reshape(-1)
     _, coarse_depth, coarse_surface = _render_submap_full(submap, T_map_cam, dirs_cam[coarse_index],
-                                                          config, near, chunk, with_color=False,
+                                                          _coarse_config(config), near, chunk, with_color=False,
                                                           decoder=decoder, view=view)
     coarse_depth = coarse_depth.reshape(len(cv), len(cu))
     coarse_surface = coarse_surface.reshape(len(cv), len(cu))
@@ -350,21 +418,34 @@ def _render_submap_banded(submap, T_map_cam: torch.Tensor, dirs_cam: torch.Tenso
         on_plane = off_plane <= planar_tolerance
         lo = torch.where(on_plane, planar - off_plane, lo)
         hi = torch.where(on_plane, planar + off_plane, hi)
-    # At least two steps, so that a coarse preset's band still holds the two samples that
-    # bracket the surface and one more on either side.
+    # At least BAND_MIN_STEPS steps, so that a coarse preset's band still holds the two
+    # samples that bracket the surface and one more on either side.
     margin = max(BAND_WEIGHT_WIDTHS * config.render.truncation ** 2,
-                 2.0 * config.render.step_ratio * submap.voxels.voxel_size)
+                 BAND_MIN_STEPS * config.render.step_ratio * submap.voxels.voxel_size)
     banded = torch.nonzero(torch.isfinite(lo), as_tuple=True)[0]
+    band_near = (lo[banded] - margin).clamp(min=near)
+    band_far = (hi[banded] + margin).clamp(max=config.render.max_distance)
+    return banded, band_near, band_far
+
+
+def _render_submap_banded(submap, T_map_cam: torch.Tensor, dirs_cam: torch.Tensor, config,
+                          near: float, chunk: int, width: int, height: int, stride: int, decoder=None,
+                          view=None, planar_tolerance: float = PLANAR_TOLERANCE
+                          ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The ``banded`` method for one submap: (H * W, 3) directions -> colour, depth, surface."""
+    banded, band_near, band_far = _pixel_bands(submap, T_map_cam, dirs_cam, config, near, chunk, width, height,
+                                               stride, decoder=decoder, view=view, planar_tolerance=planar_tolerance)
+    step = config.render.step_ratio * submap.voxels.voxel_size
     num_pixels = width * height
+    device = dirs_cam.device
     rgb = torch.zeros(num_pixels, 3, device=device)
     depth = torch.zeros(num_pixels, device=device)
     surface = torch.zeros(num_pixels, dtype=torch.bool, device=device)
-    for start in range(0, banded.numel(), chunk):
-        idx = banded[start:start + chunk]
-        band_near = (lo[idx] - margin).clamp(min=near)
-        band_far = (hi[idx] + margin).clamp(max=config.render.max_distance)
-        c, d, s = _render_submap_chunk(submap, T_map_cam, dirs_cam[idx], config, band_near, band_far,
-                                       traverse=False, decoder=decoder, view=view)
+    runs = band_chunks(band_sample_counts(band_near, band_far, step), chunk * BAND_CHUNK_SAMPLES_PER_RAY)
+    for start, end in runs:
+        idx = banded[start:end]
+        c, d, s = _render_submap_chunk(submap, T_map_cam, dirs_cam[idx], config, band_near[start:end],
+                                       band_far[start:end], traverse=False, decoder=decoder, view=view)
         rgb[idx], depth[idx], surface[idx] = c, d, s
     return rgb, depth, surface
 

@@ -21,7 +21,8 @@ from slam.config import preset
 from slam.maps import MapSet, SubMap
 from slam.mesh import empty_mesh, export_mesh, extract_mesh, extract_submap_mesh, mesh_to_bytes
 from slam.render import camera_rays, interpolate_embeddings, rays_in_map
-from slam.views import RenderedView, coarse_grid, depth_bands, planar_depths, rays_near_surface, render_view
+from slam.views import (RenderedView, band_chunks, band_sample_counts, coarse_grid, depth_bands, planar_depths,
+                        rays_near_surface, render_view)
 from slam.voxels import morton_decode
 
 CONFIG = preset("test")
@@ -238,9 +239,19 @@ def test_export_round_trip(fmt, tmp_path):
 
 # ------------------------------------------------------------- exact views
 def test_rays_near_surface_example():
-    sdf = torch.tensor([1.0, 0.3, -0.1, 1.0, 0.5])
-    rays = torch.tensor([0, 0, 0, 1, 1])
-    assert rays_near_surface(sdf, rays, 3, 0.2).tolist() == [True, False, False]
+    sdf = torch.tensor([1.0, 0.3, -0.1, 1.0, 0.5, 0.4, -0.4])
+    t = torch.tensor([0.0, 1.0, 2.0, 0.0, 1.0, 0.0, 1.0])
+    rays = torch.tensor([0, 0, 0, 1, 1, 2, 2])
+    assert rays_near_surface(sdf, t, rays, 4, 0.2, 1.5).tolist() == [True, False, True, False]
+
+
+def test_rays_near_surface_ignores_a_sign_change_across_a_gap():
+    # Ray 0: a steep crossing between neighbouring samples. Ray 1: the same values, but the
+    # samples lie in two voxels 3 m apart (free space between): no surface there.
+    sdf = torch.tensor([0.4, -0.4, 0.4, -0.4])
+    t = torch.tensor([1.0, 1.02, 1.0, 4.0])
+    rays = torch.tensor([0, 0, 1, 1])
+    assert rays_near_surface(sdf, t, rays, 2, 0.2, 0.03).tolist() == [True, False]
 
 
 def test_render_plane_depth_colour_and_empty_pixels():
@@ -463,6 +474,39 @@ def test_planar_depths_flag_an_edge_and_a_missing_sample():
     missing[2, 2] = 0.0
     _, off_plane = planar_depths(missing, missing > 0, cu, cv, 17, 17)
     assert torch.isinf(off_plane.reshape(17, 17)[6, 6])
+
+
+def test_band_chunks_cover_every_ray_in_bounded_runs():
+    assert band_chunks(torch.tensor([3, 3, 3, 9, 1]), 6) == [(0, 2), (2, 3), (3, 4), (4, 5)]
+    assert band_chunks(torch.tensor([2, 2, 2]), 6) == [(0, 3)]  # an exact fit stays one run
+    assert band_chunks(torch.tensor([0, 0, 5]), 4) == [(0, 2), (2, 3)]  # a long ray runs alone
+    assert band_chunks(torch.zeros(0, dtype=torch.long), 4) == []
+    counts = torch.randint(0, 12, (500,), generator=torch.Generator().manual_seed(0))
+    runs = band_chunks(counts, 40)
+    assert runs[0][0] == 0 and runs[-1][1] == 500
+    assert all(a[1] == b[0] for a, b in zip(runs, runs[1:]))
+    assert all(int(counts[s:e].sum()) <= 40 or e - s == 1 for s, e in runs)
+
+
+def test_band_sample_counts_count_the_grid_points_in_the_band():
+    near = torch.tensor([0.0, 0.31, 1.05, 2.0, 0.5])
+    far = torch.tensor([0.5, 0.49, 1.05, 1.0, 0.51])
+    step = 0.1
+    # Grid t = (k + 1/2) step in [near, far): 0.05 .. 0.45; 0.35, 0.45; none; none; none.
+    expected = [int(((torch.arange(40) + 0.5) * step >= n).logical_and((torch.arange(40) + 0.5) * step < f).sum())
+                for n, f in zip(near.tolist(), far.tolist())]
+    assert band_sample_counts(near, far, step).tolist() == expected == [5, 2, 0, 0, 0]
+
+
+def test_banded_view_does_not_depend_on_the_chunk_size(fitted):
+    """The band pass runs in sample-bounded runs of the chunk: any chunk size gives the same
+    image."""
+    T = moved_camera()
+    big = render_view(fitted, T, SCENE_K, *SCENE_SIZE, method="banded")
+    small = render_view(fitted, T, SCENE_K, *SCENE_SIZE, method="banded", chunk_rays=7)
+    assert (big.valid == small.valid).all()
+    np.testing.assert_allclose(small.depth, big.depth, atol=1e-5)
+    np.testing.assert_allclose(small.rgb, big.rgb, atol=1e-5)
 
 
 @pytest.mark.parametrize("camera", ["trained", "moved"])
