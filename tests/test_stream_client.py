@@ -548,7 +548,49 @@ def test_realsense_recording_through_the_sdk(tmp_path):
         assert set(np.unique(row[row > 0])) <= {1200 + k, 2400 + k}
         edge = int(np.argmax(row == 2400 + k))
         assert 40 <= edge <= 42, f"depth edge at colour column {edge}, expected ~41 after alignment (32 unaligned)"
-    assert numbers == list(range(numbers[0], numbers[0] + len(numbers)))
+    # Consecutive but for the mispaired framesets the source skipped (colour k with depth k+1).
+    assert numbers == sorted(set(numbers))
+    assert numbers[-1] - numbers[0] + 1 - len(numbers) <= source.mispaired
+
+
+class _FakeFrame:
+    def __init__(self, stamp_ms: float, pixels: np.ndarray) -> None:
+        self.stamp_ms, self.pixels = stamp_ms, pixels
+
+    def __bool__(self) -> bool:
+        return True
+
+    def get_timestamp(self) -> float:
+        return self.stamp_ms
+
+    def get_data(self) -> np.ndarray:
+        return self.pixels
+
+
+class _FakeFrameset:
+    def __init__(self, color_ms: float, depth_ms: float) -> None:
+        self.color = _FakeFrame(color_ms, np.zeros((4, 4, 3), np.uint8))
+        self.depth = _FakeFrame(depth_ms, np.full((4, 4), 1000, np.uint16))
+
+    def get_color_frame(self) -> _FakeFrame:
+        return self.color
+
+    def get_depth_frame(self) -> _FakeFrame:
+        return self.depth
+
+
+def test_realsense_skips_a_frameset_whose_colour_and_depth_are_frames_apart():
+    """The SDK's syncer can pair colour k with depth k + 1; such a frameset (more than half a
+    frame apart at 30 Hz) is skipped and counted, a few milliseconds of skew are not."""
+    from server.camera_sources import RealSenseSource
+
+    source = object.__new__(RealSenseSource)  # no SDK: the pairing check alone
+    sets = iter([_FakeFrameset(0.0, 0.0), _FakeFrameset(33.3, 66.7), _FakeFrameset(66.7, 70.0), None])
+    source._next = lambda: next(sets)
+    source.align = type("Identity", (), {"process": staticmethod(lambda frameset: frameset)})()
+    source.max_pairing_gap_ms, source.mispaired, source.max_frames = 500.0 / 30, 0, None
+    stamps = [item.encode().timestamp for item in source.frames(lambda: False)]
+    assert stamps == pytest.approx([0.0, 0.0667]) and source.mispaired == 1
 
 
 def test_missing_recording_is_a_clear_error(tmp_path):
