@@ -504,9 +504,13 @@ def _cpu() -> SLAMConfig:
         # voxels further: tracking a frame from the previous GT pose against the map of the
         # frames before it (fr1/rpy 6-59, GT poses) errs 0.96 deg instead of 1.16 deg.
         # The final bundle adjustment is budgeted: 500 iterations at most, 50 per keyframe, and
-        # no longer than the run before it (at least 10 s), so that it is at most about half
-        # of a short run's wall time (fr1/desk, 9 frames, 6 keyframes: 500 iterations took
-        # 16.8 of 28.8 s, ATE 0.26 cm; capped, 279 took 10.0 of 23.3 s, ATE 0.38 cm).
+        # no longer than 0.15x the run before it but at least 10 s, so that it is at most about
+        # half of a short run's wall time (fr1/desk, 9 frames, 6 keyframes: 500 iterations took
+        # 16.8 of 28.8 s, ATE 0.26 cm; capped, 279 took 10.0 of 23.3 s, ATE 0.38 cm) and a
+        # minute's run spends 10 s there, not 12-18 (time share 1.0 before; bench_slam, 2-3
+        # runs each, alternating: fr1/rpy 150 2.08-2.45 -> 2.67-3.05 frames/s, ATE 2.84-3.68
+        # -> 3.19-3.24 cm; walk 200 ATE 0.67-0.79 -> 0.65-0.75 cm, mesh accuracy 0.91-0.96 ->
+        # 0.95-0.98 cm).
         # The newest frame's pose optimised with the window (issue 21 item 2; the paper's way):
         # walk 200 frames 0.71 -> 0.57 cm ATE over 3 seeds in one process; with slots, fr1/rpy
         # process mode as above, synthetic laps 5.67 / 7.85 cm against 7.01 (within that
@@ -518,7 +522,7 @@ def _cpu() -> SLAMConfig:
         # ATE 3.02 / 4.57 -> 3.07 / 4.02 cm (benchmarks/README.md, issue 18).
         mapping=MappingConfig(num_rays=192, iterations=12, window_size=4, first_frame_iterations=100,
                               final_iterations=500, final_rays=512, final_iterations_per_keyframe=50,
-                              final_time_share=1.0, optimize_current_pose=True, thin_samples=True,
+                              final_time_share=0.15, optimize_current_pose=True, thin_samples=True,
                               free_space_stride=2, color_weight_eps=5e-2),
         mesh=MeshConfig(resolution=6),
         # Maps of a 3 m region: a lap around a room then comes back into other maps than the
