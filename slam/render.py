@@ -276,6 +276,15 @@ def sample_points_from_hits(hits: VoxelHits, step: float, offsets: torch.Tensor)
     return RaySamples(hits.ray_index[seg], t, hits.voxel_index[seg], Segments(seg, hits.voxel_index))
 
 
+def band_grid(near: torch.Tensor, far: torch.Tensor, step: float, offset: float = 0.5
+              ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The grid samples ``t = (k + offset) * step`` in each ray's [near, far): the first k (R,)
+    float and how many (R,) int64, those in unallocated voxels included.
+    Example: near [0.0], far [0.5], step 0.1 -> k0 [0.], counts [5] (t = 0.05 .. 0.45)."""
+    k0 = torch.ceil(near / step - offset)
+    return k0, (torch.ceil(far / step - offset) - k0).clamp(min=0).long()
+
+
 def sample_points_in_band(origins: torch.Tensor, dirs: torch.Tensor, near: torch.Tensor, far: torch.Tensor,
                           step: float, view: MapView, offset: float = 0.5) -> RaySamples:
     """Samples at ``t = (k + offset) * step`` in [near, far) that lie in allocated voxels,
@@ -287,8 +296,7 @@ def sample_points_in_band(origins: torch.Tensor, dirs: torch.Tensor, near: torch
     the voxels a ray crosses: for short ranges, such as a band around a known depth.
     origins, dirs (R, 3); near, far (R,) -> RaySamples (no segments), sorted by ray, then t.
     """
-    k0 = torch.ceil(near / step - offset)
-    counts = (torch.ceil(far / step - offset) - k0).clamp(min=0).long()
+    k0, counts = band_grid(near, far, step, offset)
     if kernels.use_numba(origins, dirs, k0):
         from .kernels.fused import band_samples
 
@@ -302,8 +310,7 @@ def sample_points_in_band_reference(origins: torch.Tensor, dirs: torch.Tensor, n
                                     far: torch.Tensor, step: float, view: MapView,
                                     offset: float = 0.5) -> RaySamples:
     """``sample_points_in_band`` in plain torch operators, whatever ``VOXFUSION_KERNELS`` says."""
-    k0 = torch.ceil(near / step - offset)
-    counts = (torch.ceil(far / step - offset) - k0).clamp(min=0).long()
+    k0, counts = band_grid(near, far, step, offset)
     return _band_samples_torch(origins, dirs, k0, counts, step, view, offset)
 
 

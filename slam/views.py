@@ -54,7 +54,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from .render import camera_rays, rays_in_map, render_rays
+from .render import band_grid, camera_rays, rays_in_map, render_rays
 
 # Rays start this far in front of the camera (z-depth, metres): a camera placed inside an
 # allocated voxel must not render the SDF at its own centre. Real depth starts beyond it.
@@ -369,10 +369,10 @@ def planar_depths(coarse_depth: torch.Tensor, coarse_surface: torch.Tensor, cu: 
 
 
 def band_sample_counts(near: torch.Tensor, far: torch.Tensor, step: float) -> torch.Tensor:
-    """(R,) int64: how many grid samples ``t = (k + 1/2) step`` each ray's band [near, far)
-    holds (R,), those in unallocated voxels included: ``slam.render.sample_points_in_band``'s
-    count, an upper bound on the samples it returns."""
-    return (torch.ceil(far / step - 0.5) - torch.ceil(near / step - 0.5)).clamp(min=0).long()
+    """(R,) int64: how many grid samples each ray's band [near, far) holds, those in
+    unallocated voxels included (``slam.render.band_grid``): an upper bound on what
+    ``sample_points_in_band`` returns."""
+    return band_grid(near, far, step)[1]
 
 
 def band_chunks(counts: torch.Tensor, max_samples: int) -> list[tuple[int, int]]:
@@ -419,7 +419,7 @@ def _pixel_bands(submap, T_map_cam: torch.Tensor, dirs_cam: torch.Tensor, config
         lo = torch.where(on_plane, planar - off_plane, lo)
         hi = torch.where(on_plane, planar + off_plane, hi)
     # At least BAND_MIN_STEPS steps, so that a coarse preset's band still holds the two
-    # samples that bracket the surface and one more on either side.
+    # samples that bracket the surface and one more.
     margin = max(BAND_WEIGHT_WIDTHS * config.render.truncation ** 2,
                  BAND_MIN_STEPS * config.render.step_ratio * submap.voxels.voxel_size)
     banded = torch.nonzero(torch.isfinite(lo), as_tuple=True)[0]
