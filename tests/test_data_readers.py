@@ -439,9 +439,14 @@ def test_undecodable_image_is_named(tum_dir):
     broken = tum_dir / "rgb" / f"{RGB_TIMES[0]:.6f}.png"
     broken.write_bytes(b"not a png at all")
     seq = open_sequence(tum_dir)
-    with pytest.raises(DataError, match="cannot decode image") as err:
+    with pytest.raises(DataError, match="not a PNG or JPEG image") as err:
         seq[0]
     assert str(broken) in str(err.value)
+    truncated = tum_dir / "rgb" / f"{RGB_TIMES[1]:.6f}.png"
+    truncated.write_bytes(truncated.read_bytes()[:60])
+    with pytest.raises(DataError, match="cannot decode the image") as err:
+        seq[1]
+    assert str(truncated) in str(err.value)
 
 
 def test_rgb_and_depth_of_different_sizes_are_named(tum_dir):

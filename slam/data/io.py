@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 import re
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator, Sequence
@@ -22,6 +23,7 @@ import cv2
 import numpy as np
 
 from slam.data.frame import DataError, Frame
+from slam.data.images import decode_image, read_image_bytes
 
 
 # --------------------------------------------------------------------------------------------
@@ -108,17 +110,44 @@ def scale_intrinsics_matrix(K: np.ndarray, sx: float, sy: float) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------------------------
+# Paths: every file a dataset names stays inside its folder
+
+
+def confined(path: Path, root: Path, what: str | None = None) -> Path:
+    """``path`` when it lies inside ``root`` once symlinks are followed; DataError otherwise.
+
+    A dataset (an uploaded zip above all) must not make the reader open the server's files, so
+    list entries and links that lead out of the folder are refused before anything is opened,
+    and the message names the path as the dataset wrote it, not where it leads.
+    """
+    resolved, base = Path(path).resolve(), Path(root).resolve()
+    if resolved != base and base not in resolved.parents:
+        shown = what or str(path)
+        raise DataError(f"{shown}: leads outside the dataset folder (every file a dataset names must lie inside it)")
+    return Path(path)
+
+
+def dataset_entry(root: Path, name: str, where: str) -> Path:
+    """The file a dataset's list names (``rgb/1.png`` in TUM's ``rgb.txt``), as a path under
+    ``root``. Absolute paths, drive letters and ``..`` are refused from the text alone (so an
+    error never depends on what exists on the machine), then links by :func:`confined`."""
+    text = name.replace("\\", "/")
+    if not text or text.startswith("/") or re.match(r"^[A-Za-z]:", text) or ".." in text.split("/"):
+        raise DataError(f"{where}: {name!r} is not a path inside the dataset folder "
+                        f"(absolute paths and '..' are not allowed)")
+    return confined(Path(root) / text, root, f"{where}: {name!r}")
+
+
+# --------------------------------------------------------------------------------------------
 # Images
 
 
 def _imread(path: Path) -> np.ndarray:
+    """Decode an image file, its size checked from the header first (``slam.data.images``)."""
     path = Path(path)
     if not path.is_file():
         raise DataError(f"missing file: {path}")
-    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if image is None:
-        raise DataError(f"cannot decode image: {path}")
-    return image
+    return decode_image(read_image_bytes(path, str(path)), str(path))
 
 
 def read_color(path: Path) -> np.ndarray:
@@ -323,6 +352,14 @@ def select_frames(frames: Sequence[FrameFiles], stride: int, max_frames: int | N
     return chosen if max_frames is None else chosen[:max_frames]
 
 
+@dataclass(frozen=True)
+class SkippedFrame:
+    """A frame left out of an iteration: its index and why."""
+
+    index: int
+    reason: str
+
+
 @dataclass(repr=False)
 class FileSequence:
     """An :class:`~slam.data.frame.RGBDSequence` over files; decodes a frame only when asked.
@@ -337,6 +374,8 @@ class FileSequence:
     stride: int = 1
     max_frames: int | None = None
     frames: tuple[FrameFiles, ...] = field(init=False)
+    skipped: list["SkippedFrame"] = field(init=False, default_factory=list)
+    """Frames the last iteration skipped because they could not be read."""
     _undistort: dict[tuple[int, int], UndistortMaps] = field(init=False, default_factory=dict, repr=False)
 
     def __post_init__(self) -> None:
@@ -345,11 +384,19 @@ class FileSequence:
         self.frames = select_frames(self.layout.frames, self.stride, self.max_frames)
         if not self.frames:
             raise DataError(f"no frames found in {self.layout.root}")
-        # Fail before any work starts rather than at frame 500.
+        # Fail before any work starts rather than at frame 500; never open a file outside the folder.
         for files in self.frames:
             for path in (files.rgb, files.depth):
+                confined(path, self.layout.root, self._relative(path))
                 if not path.is_file():
                     raise DataError(f"missing file: {path}")
+
+    def _relative(self, path: Path) -> str:
+        """``path`` as the dataset names it (relative to its folder), for messages."""
+        try:
+            return str(Path(path).relative_to(self.layout.root))
+        except ValueError:
+            return Path(path).name
 
     def __repr__(self) -> str:
         return (
@@ -379,8 +426,18 @@ class FileSequence:
         return len(self.frames)
 
     def __iter__(self) -> Iterator[Frame]:
+        """Every frame in order; a frame that cannot be read (corrupt, over the size limit,
+        sizes that disagree) is skipped and recorded in ``skipped``, as a stream skips a bad
+        frame, instead of ending the run at frame 500. ``self[i]`` raises instead."""
+        self.skipped = []
         for i in range(len(self)):
-            yield self[i]
+            try:
+                frame = self[i]
+            except DataError as error:
+                self.skipped.append(SkippedFrame(index=i, reason=str(error)))
+                print(f"skipping frame {i} of {self.name}: {error}", file=sys.stderr, flush=True)
+                continue
+            yield frame
 
     def __getitem__(self, i: int) -> Frame:
         if not isinstance(i, (int, np.integer)):

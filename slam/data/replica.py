@@ -24,6 +24,7 @@ from slam.data.io import (
     FrameFiles,
     Intrinsics,
     SequenceLayout,
+    confined,
     numbered_files,
     read_text,
     resolve_depth_scale,
@@ -52,7 +53,7 @@ def find_cam_params(root: Path) -> Path | None:
     """``cam_params.json`` in the scene folder, else in its parent, else None."""
     for folder in (root, root.parent):
         if (folder / "cam_params.json").is_file():
-            return folder / "cam_params.json"
+            return confined(folder / "cam_params.json", folder, "cam_params.json")
     return None
 
 
@@ -79,7 +80,7 @@ def replica_layout(root: Path, intrinsics: Intrinsics | None = None, depth_scale
     if not results.is_dir():
         raise DataError(f"missing folder: {results} (a Replica scene has results/frameNNNNNN.jpg)")
     colors = numbered_files(results, COLOR_PATTERN)
-    traj_path = root / "traj.txt"
+    traj_path = confined(root / "traj.txt", root, "traj.txt")
     poses = read_trajectory(traj_path) if traj_path.is_file() else None
     if poses is not None and colors and colors[-1][0] >= len(poses):
         raise DataError(f"{traj_path} has {len(poses)} poses but there is a frame number {colors[-1][0]}")

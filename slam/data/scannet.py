@@ -20,6 +20,7 @@ from slam.data.io import (
     FrameFiles,
     Intrinsics,
     SequenceLayout,
+    confined,
     numbered_files,
     read_matrix_file,
     resolve_depth_scale,
@@ -36,7 +37,8 @@ def read_scannet_intrinsics(path: Path) -> Intrinsics:
     return Intrinsics.from_values([K[0, 0], K[1, 1], K[0, 2], K[1, 2]], source=str(path))
 
 
-def _pose(path: Path) -> np.ndarray | None:
+def _pose(path: Path, root: Path) -> np.ndarray | None:
+    confined(path, root, f"pose/{path.name}")
     return valid_pose_or_none(read_matrix_file(path)) if path.is_file() else None
 
 
@@ -51,11 +53,12 @@ def scannet_layout(root: Path, intrinsics: Intrinsics | None = None, depth_scale
             rgb=path,
             depth=root / "depth" / f"{number}.png",
             timestamp=float(number),
-            T_world_cam=_pose(root / "pose" / f"{number}.txt"),
+            T_world_cam=_pose(root / "pose" / f"{number}.txt", root),
         )
         for number, path in numbered_files(root / "color", r"(\d+)\.(?:jpg|jpeg|png)")
     )
     if intrinsics is None:
+        confined(root / INTRINSICS_FILE, root, str(INTRINSICS_FILE))
         if not (root / INTRINSICS_FILE).is_file():
             raise DataError(f"missing file: {root / INTRINSICS_FILE}; give intrinsics (--intrinsics fx,fy,cx,cy)")
         intrinsics = read_scannet_intrinsics(root / INTRINSICS_FILE)

@@ -19,6 +19,7 @@ from slam.data.io import (
     FrameFiles,
     Intrinsics,
     SequenceLayout,
+    confined,
     numbered_files,
     read_matrix_file,
     resolve_depth_scale,
@@ -42,7 +43,7 @@ def _frames_of(folder: Path, first_timestamp: float) -> list[FrameFiles]:
     frames = []
     for number, path in numbered_files(folder, COLOR_PATTERN):
         stem = path.name[: -len(".color.png")]
-        pose_path = folder / f"{stem}.pose.txt"
+        pose_path = confined(folder / f"{stem}.pose.txt", folder, f"{stem}.pose.txt")
         pose = valid_pose_or_none(read_matrix_file(pose_path)) if pose_path.is_file() else None
         frames.append(FrameFiles(path, folder / f"{stem}.depth.png", first_timestamp + number, pose))
     return frames

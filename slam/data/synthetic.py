@@ -208,6 +208,13 @@ class SyntheticSequence:
         return gt_mesh(self.scene, spacing)
 
 
+MAX_FRAMES = 20_000
+"""Most frames a synthetic spec may ask for (the large laps hall's nominal path is 2,200): the
+trajectory and its ground truth are made for every frame, so the count bounds the work."""
+MAX_SIDE = 2048
+"""Largest synthetic image side (pixels)."""
+
+
 def _parse_int(key: str, text: str, spec: str, low: int, high: int | None = None) -> int:
     try:
         value = int(text)
@@ -273,7 +280,7 @@ def parse_synthetic_spec(spec: str) -> SyntheticSpec:
         if size not in HALL_SIZES:
             raise DataError(f"synthetic spec {spec!r}: option size={size!r} must be one of {', '.join(HALL_SIZES)}")
     fields: dict[str, object] = {"kind": kind, "frames": nominal_frames(kind, size), "size": size}
-    limits = {"frames": (1, None), "seed": (0, 2**63 - 1), "width": (16, 4096), "height": (16, 4096),
+    limits = {"frames": (1, MAX_FRAMES), "seed": (0, 2**63 - 1), "width": (16, MAX_SIDE), "height": (16, MAX_SIDE),
               "noise": (0, 1), "agents": (1, 8), "agent": (0, 7)}
     for key, text in options.items():
         if key not in ("blank", "drop", "size"):

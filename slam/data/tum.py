@@ -23,7 +23,16 @@ from pathlib import Path
 import numpy as np
 
 from slam.data.frame import DataError
-from slam.data.io import FrameFiles, Intrinsics, SequenceLayout, read_intrinsics_txt, read_text, resolve_depth_scale
+from slam.data.io import (
+    FrameFiles,
+    Intrinsics,
+    SequenceLayout,
+    confined,
+    dataset_entry,
+    read_intrinsics_txt,
+    read_text,
+    resolve_depth_scale,
+)
 from slam.geometry import pose_from_tum
 
 MAX_TIME_DIFFERENCE = 0.02
@@ -135,6 +144,8 @@ def _groundtruth_poses(root: Path, rgb_times: np.ndarray) -> list[np.ndarray | N
 def tum_layout(root: Path, intrinsics: Intrinsics | None = None, depth_scale: float | None = None) -> SequenceLayout:
     """Describe a TUM RGB-D folder (see the module docstring for the rules)."""
     root = Path(root)
+    for name in ("rgb.txt", "depth.txt", "groundtruth.txt", "intrinsics.txt"):
+        confined(root / name, root, name)
     for required in ("rgb.txt", "depth.txt"):
         if not (root / required).is_file():
             raise DataError(f"missing file: {root / required} (a TUM folder has rgb.txt and depth.txt)")
@@ -146,8 +157,8 @@ def tum_layout(root: Path, intrinsics: Intrinsics | None = None, depth_scale: fl
     poses = _groundtruth_poses(root, kept_times)
     frames = tuple(
         FrameFiles(
-            rgb=root / rgb_rows[i][1][0],
-            depth=root / depth_rows[j][1][0],
+            rgb=dataset_entry(root, rgb_rows[i][1][0], "rgb.txt"),
+            depth=dataset_entry(root, depth_rows[j][1][0], "depth.txt"),
             timestamp=rgb_rows[i][0],
             T_world_cam=pose,
         )
