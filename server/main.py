@@ -8,6 +8,8 @@ asset store. Run it with one uvicorn worker (sessions live in this process's mem
 
 from __future__ import annotations
 
+import logging
+import re
 from contextlib import asynccontextmanager
 from dataclasses import dataclass
 
@@ -17,6 +19,8 @@ from fastapi.responses import JSONResponse
 from fastapi.staticfiles import StaticFiles
 
 from server.assets import AssetStore
+from server.budget import RequestBudget
+from server.decoding import shared_helper
 from server.errors import error_text, validation_message
 from server.rendering import MapCache, MeshFiles, NoMapYet
 from server.routes_pages import STATIC_DIR
@@ -61,54 +65,25 @@ class DemoSession:
     """Printed with the session id once the server is up (the URL to open)."""
 
 
-class BodySizeLimit:
-    """Pure ASGI middleware: 413 for request bodies over ``max_bytes``, before they are read
-    (Content-Length) or as soon as a streamed body passes the limit."""
+class RedactTokens(logging.Filter):
+    """Blanks ``token=...`` in uvicorn's access log lines: the page and the viewer pass the
+    token in the query string once, and a log is read by more people than the token is for."""
 
-    def __init__(self, app, max_bytes: int) -> None:
-        self.app = app
-        self.max_bytes = max_bytes
+    PATTERN = re.compile(r"(?i)(token=)[^&\s]*")
 
-    async def __call__(self, scope, receive, send) -> None:
-        if scope["type"] != "http":
-            await self.app(scope, receive, send)
-            return
-        declared = dict(scope.get("headers") or []).get(b"content-length")
-        if declared is not None and declared.isdigit() and int(declared) > self.max_bytes:
-            await self._too_large(send)
-            return
-        received = 0
-        started = False
-
-        async def limited_receive():
-            nonlocal received
-            message = await receive()
-            if message["type"] == "http.request":
-                received += len(message.get("body", b""))
-                if received > self.max_bytes:
-                    raise _BodyTooLarge()
-            return message
-
-        async def tracking_send(message):
-            nonlocal started
-            if message["type"] == "http.response.start":
-                started = True
-            await send(message)
-
-        try:
-            await self.app(scope, limited_receive, tracking_send)
-        except _BodyTooLarge:
-            if not started:
-                await self._too_large(send)
-
-    async def _too_large(self, send) -> None:
-        response = JSONResponse({"detail": f"request body larger than {self.max_bytes // (1024 * 1024)} MiB "
-                                           f"(VOXFUSION_MAX_UPLOAD_MB)"}, status_code=413)
-        await response({"type": "http"}, None, send)
+    def filter(self, record: logging.LogRecord) -> bool:
+        if isinstance(record.args, tuple):
+            record.args = tuple(self.PATTERN.sub(r"\1***", a) if isinstance(a, str) else a for a in record.args)
+        elif isinstance(record.msg, str):
+            record.msg = self.PATTERN.sub(r"\1***", record.msg)
+        return True
 
 
-class _BodyTooLarge(Exception):
-    pass
+def redact_access_log() -> None:
+    """Install :class:`RedactTokens` on uvicorn's access logger (once)."""
+    logger = logging.getLogger("uvicorn.access")
+    if not any(isinstance(f, RedactTokens) for f in logger.filters):
+        logger.addFilter(RedactTokens())
 
 
 def _error_handlers(app: FastAPI) -> None:
@@ -134,8 +109,8 @@ def _error_handlers(app: FastAPI) -> None:
     app.add_exception_handler(NoMapYet, detail(409))
 
 
-_BODY_ERRORS = {"400": "the body cannot be parsed (not JSON, not UTF-8, a broken form)",
-                "413": "the body is larger than VOXFUSION_MAX_UPLOAD_MB"}
+_BODY_ERRORS = {"400": "the body cannot be parsed (not JSON, not UTF-8, nested too deeply, a broken form)",
+                "413": "the body is larger than the route's limit (server/README.md, 'Resource budget')"}
 
 
 def _one_error_shape(schema: dict) -> dict:
@@ -182,6 +157,7 @@ def create_app(settings: Settings | None = None, demo: DemoSession | None = None
         import torch
 
         settings.data_dir.mkdir(parents=True, exist_ok=True)
+        redact_access_log()  # here: uvicorn has configured its loggers by now
         threads_before = torch.get_num_threads()
         torch.set_num_threads(settings.render_threads)
         viewer = None
@@ -211,6 +187,7 @@ def create_app(settings: Settings | None = None, demo: DemoSession | None = None
             manager.stop(grace_s=min(settings.cancel_grace_s, 5.0))
             if viewer is not None:
                 viewer.stop()
+            shared_helper().close()
             torch.set_num_threads(threads_before)
 
     # FastAPI's own /docs, /redoc and /openapi.json are off: routes_docs serves them with
@@ -221,7 +198,7 @@ def create_app(settings: Settings | None = None, demo: DemoSession | None = None
                                 {"name": "ar"}, {"name": "viewer"}])
     app.openapi = lambda: _one_error_shape(FastAPI.openapi(app))  # type: ignore[method-assign]
     app.state.settings = settings
-    app.add_middleware(BodySizeLimit, max_bytes=settings.max_upload_bytes)
+    app.add_middleware(RequestBudget, max_upload_bytes=settings.max_upload_bytes)
     _error_handlers(app)
     for module in (routes_sessions, routes_series, routes_stream, routes_render, routes_ar, routes_assets, routes_pages,
                    routes_docs):

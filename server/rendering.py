@@ -199,6 +199,8 @@ def mesh_bytes_from_arrays(parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]
     from slam.mesh import mesh_to_bytes
 
     vertices, faces, colors, base = [], [], [], 0
+    if not any(len(f) for _, f, _ in parts):
+        raise NoMapYet("the mesh is empty: nothing has been mapped yet")
     for v, f, c in parts:
         vertices.append(np.asarray(v, dtype=np.float64))
         faces.append(np.asarray(f, dtype=np.int64) + base)
@@ -229,6 +231,8 @@ class MeshFiles:
             if hit is not None and hit[0] == stamp:
                 return hit[1]
         mesh = trimesh.load(ply_path, file_type="ply", process=False)
+        if len(getattr(mesh, "faces", ())) == 0:  # GLB/OBJ exporters fail on an empty mesh
+            raise NoMapYet("the mesh is empty: nothing was mapped")
         data = mesh_to_bytes(mesh, file_format)
         with self._lock:
             self._cache[key] = (stamp, data)

@@ -16,14 +16,14 @@ from starlette.concurrency import run_in_threadpool
 
 from ar import ObjectSpecError, VirtualObject, composite, load_objects_json, rasterize_objects
 from server.assets import AssetStore
+from server.decoding import DecodeFailed, shared_helper
 from server.deps import get_assets, get_manager, get_map_cache, require_token
 from server.errors import error_text, strip_paths
+from server.inputs import input_frame
 from server.rendering import Camera, MapCache, check_pose, intrinsics_matrix, png_from_rgb, render
 from server.routes_render import load_map
 from server.schemas import ARRequest, ErrorOut
 from server.sessions import SessionManager, check_session_id
-from server.stream import read_recorded_frame
-from server.worker import SourceSpec
 from slam.data import DataError
 
 router = APIRouter(tags=["ar"], dependencies=[Depends(require_token)],
@@ -51,29 +51,6 @@ class Background:
     depth: np.ndarray
     """(H, W) float32 metres, 0 = unknown."""
     camera: Camera
-
-
-def input_frame(sources: tuple[SourceSpec, ...], session_dir, index: int, agent: int = 0):
-    """(rgb, depth, K, timestamp) of ``agent``'s ``index``-th input frame (the agent's source,
-    or its frames in a stream). KeyError if absent."""
-    if sources[0].kind == "stream":
-        frame = read_recorded_frame(session_dir / "input", index, agent)
-        return frame.rgb, frame.depth, frame.K, frame.timestamp
-    if agent >= len(sources):
-        raise KeyError(f"agent {agent} does not exist (the session has {len(sources)} source"
-                       f"{'s' if len(sources) > 1 else ''})")
-    spec = sources[agent]
-    from slam.data import open_sequence
-
-    if spec.kind == "synthetic":
-        sequence = open_sequence(f"synthetic:{spec.path}", "synthetic", stride=spec.stride, max_frames=spec.max_frames)
-    else:
-        sequence = open_sequence(spec.path, spec.format, stride=spec.stride, max_frames=spec.max_frames,
-                                 intrinsics=spec.intrinsics, depth_scale=spec.depth_scale)
-    if not 0 <= index < len(sequence):
-        raise KeyError(f"frame {index} does not exist (the input has {len(sequence)} frames)")
-    frame = sequence[index]
-    return frame.rgb, frame.depth, frame.K, frame.timestamp
 
 
 def estimated_pose(manager: SessionManager, session_id: str, index: int, timestamp: float,
@@ -130,11 +107,16 @@ async def background_for(request: ARRequest, session_id: str, manager: SessionMa
     state = manager.get(session_id)
     whose = "" if agent == 0 else f" of agent {agent}"
     try:
-        rgb, depth, frame_K, stamp = await run_in_threadpool(input_frame, state.sources, manager.session_dir(session_id),
-                                                             index, agent)
+        # In the decode helper: the frame is an untrusted image (server.inputs).
+        rgb, depth, frame_K, stamp = await run_in_threadpool(shared_helper().call, input_frame, state.sources,
+                                                             manager.session_dir(session_id), index, agent)
+    except DecodeFailed as error:
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_ENTITY, f"background frame:{index}{whose}: {error}") from None
     except (KeyError, DataError) as error:
         message = strip_paths(error_text(error), manager.session_dir(session_id) / "input", "the input")
-        raise HTTPException(status.HTTP_404_NOT_FOUND, f"background frame:{index}{whose}: {message}") from None
+        # No such frame: 404; a frame that exists but cannot be used (corrupt, too large): 422.
+        code = status.HTTP_404_NOT_FOUND if isinstance(error, KeyError) else status.HTTP_422_UNPROCESSABLE_ENTITY
+        raise HTTPException(code, f"background frame:{index}{whose}: {message}") from None
     height, width = depth.shape
     if size is not None and size != (width, height):
         raise HTTPException(422,

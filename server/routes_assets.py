@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Depends, File, HTTPException, UploadFile, status
+from fastapi import APIRouter, Depends, File, HTTPException, Response, UploadFile, status
 from starlette.concurrency import run_in_threadpool
 
 from ar import AssetError
 from ar.assets import MAX_ASSET_BYTES
-from server.assets import AssetStore
+from server.assets import AssetsFull, AssetStore
 from server.deps import get_assets, require_token
 from server.schemas import AssetOut, ErrorOut
 
@@ -16,7 +16,7 @@ router = APIRouter(prefix="/api/assets", tags=["ar"], dependencies=[Depends(requ
 
 
 @router.post("", status_code=status.HTTP_201_CREATED, response_model=AssetOut,
-             responses={413: {"model": ErrorOut}, 422: {"model": ErrorOut}},
+             responses={413: {"model": ErrorOut}, 422: {"model": ErrorOut}, 507: {"model": ErrorOut}},
              summary="Upload a virtual object (GLB, OBJ or PLY)")
 async def upload_asset(file: UploadFile = File(description="a .glb, .obj or .ply mesh"),
                        assets: AssetStore = Depends(get_assets)) -> AssetOut:
@@ -29,4 +29,16 @@ async def upload_asset(file: UploadFile = File(description="a .glb, .obj or .ply
         asset_id, vertices, faces = await run_in_threadpool(assets.add, data, file.filename or "")
     except AssetError as error:
         raise HTTPException(422, str(error)) from None
+    except AssetsFull as error:
+        raise HTTPException(507, str(error)) from None
     return AssetOut(id=asset_id, vertices=vertices, faces=faces)
+
+
+@router.delete("/{asset_id}", status_code=status.HTTP_204_NO_CONTENT, responses={404: {"model": ErrorOut}},
+               summary="Delete an uploaded virtual object")
+def delete_asset(asset_id: str, assets: AssetStore = Depends(get_assets)) -> Response:
+    try:
+        assets.delete(asset_id)
+    except KeyError:
+        raise HTTPException(404, f"no asset {asset_id!r}") from None
+    return Response(status_code=status.HTTP_204_NO_CONTENT)

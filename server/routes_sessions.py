@@ -14,11 +14,13 @@ from starlette.concurrency import run_in_threadpool
 from starlette.datastructures import UploadFile
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
+from server.budget import MAX_FRAMES_OPTION, MAX_STRIDE
+from server.decoding import DecodeFailed, shared_helper
 from server.deps import get_manager, get_map_cache, get_mesh_files, get_settings, require_token
 from server.errors import strip_paths, validation_message
 from server.rendering import MapCache, MeshFiles, NoMapYet, mesh_bytes_from_arrays
 from server.schemas import ErrorOut, SessionCreated, SessionCreateJSON, SessionOut, SessionOutputs
-from server.sessions import SessionManager, SessionStatus, check_session_id, new_session_id
+from server.sessions import SessionManager, SessionNotFound, SessionStatus, check_session_id, new_session_id
 from server.settings import Settings
 from server.upload import (
     MAX_AGENTS,
@@ -26,6 +28,7 @@ from server.upload import (
     ZipLimits,
     dataset_root,
     extract_zip,
+    inspect_dataset,
     parse_depth_scale,
     parse_intrinsics,
     remove_tree,
@@ -33,6 +36,7 @@ from server.upload import (
 )
 from server.worker import SourceSpec
 from slam.data import FORMATS, DataError
+from slam.data.images import ImageTooLarge
 
 router = APIRouter(prefix="/api/sessions", tags=["sessions"], dependencies=[Depends(require_token)],
                    responses={401: {"model": ErrorOut}, 404: {"model": ErrorOut}})
@@ -54,8 +58,8 @@ _MULTIPART_SCHEMA = {
         "intrinsics": {"type": "string", "description": "fx,fy,cx,cy (replaces the format's camera)",
                        "example": "517.3,516.5,318.6,255.3"},
         "depth_scale": {"type": "number", "description": "raw depth units per metre", "example": 5000},
-        "stride": {"type": "integer", "minimum": 1, "default": 1},
-        "max_frames": {"type": "integer", "minimum": 1},
+        "stride": {"type": "integer", "minimum": 1, "maximum": MAX_STRIDE, "default": 1},
+        "max_frames": {"type": "integer", "minimum": 1, "maximum": MAX_FRAMES_OPTION},
     },
 }
 _CREATE_OPENAPI = {
@@ -114,16 +118,18 @@ def _form_text(form, name: str) -> str | None:
     return value or None
 
 
-def _form_int(form, name: str) -> int | None:
+def _form_int(form, name: str, maximum: int) -> int | None:
     text = _form_text(form, name)
     if text is None:
         return None
+    if len(text) > 20:
+        raise UploadError(f"{name}: expected a whole number from 1 to {maximum}, got {text[:20]!r}...")
     try:
         value = int(text)
     except ValueError:
         raise UploadError(f"{name}: expected a whole number, got {text!r}") from None
-    if value < 1:
-        raise UploadError(f"{name}: must be >= 1, got {value}")
+    if not 1 <= value <= maximum:
+        raise UploadError(f"{name}: must be between 1 and {maximum}, got {value}")
     return value
 
 
@@ -140,7 +146,8 @@ def _upload_spec(form) -> tuple[SourceSpec, str]:
     spec = SourceSpec(kind="dataset", format=fmt,
                       intrinsics=None if intrinsics is None else parse_intrinsics(intrinsics),
                       depth_scale=None if depth_scale is None else parse_depth_scale(depth_scale),
-                      stride=_form_int(form, "stride") or 1, max_frames=_form_int(form, "max_frames"))
+                      stride=_form_int(form, "stride", MAX_STRIDE) or 1,
+                      max_frames=_form_int(form, "max_frames", MAX_FRAMES_OPTION))
     return spec, preset
 
 
@@ -164,8 +171,6 @@ def _unpack_dataset(settings: Settings, session_dir: Path, upload: UploadFile, s
     session folder on error."""
     from dataclasses import replace
 
-    from slam.data import detect_format, open_sequence
-
     input_dir = input_dir or session_dir / "input"
     zip_path = settings.uploads_dir / f"{session_dir.name}.zip"
     try:
@@ -173,14 +178,14 @@ def _unpack_dataset(settings: Settings, session_dir: Path, upload: UploadFile, s
         extract_zip(zip_path, input_dir, ZipLimits(settings.max_zip_entries, settings.max_unzipped_bytes))
         root = dataset_root(input_dir)
         try:
-            fmt = detect_format(root) if spec.format == "auto" else spec.format
-            sequence = open_sequence(root, fmt, stride=spec.stride, max_frames=spec.max_frames,
-                                     intrinsics=spec.intrinsics, depth_scale=spec.depth_scale)
-            if len(sequence) == 0:
-                raise DataError("the dataset has no frames")
-            sequence[0]
+            # Out of this process: the images are untrusted (server.decoding).
+            fmt = shared_helper().call(inspect_dataset, str(root), spec)
+        except ImageTooLarge as error:
+            raise UploadError(f"the dataset cannot be read: {error}", status=413) from None
         except DataError as error:
             raise UploadError(f"the dataset cannot be read: {error}") from None
+        except DecodeFailed as error:
+            raise UploadError(f"the dataset cannot be read: {error}", status=413) from None
         return replace(spec, path=str(root), format=fmt, name=client_file_name(upload.filename))
     except UploadError as error:
         # Messages name files: show them as the archive has them, never as server paths
@@ -232,7 +237,8 @@ def _json_spec(body: SessionCreateJSON) -> tuple[list[SourceSpec], str]:
     if not isinstance(body.spec, str):
         raise UploadError("spec: a list of specs is for synthetic sessions; a stream's frames name their agent")
     intrinsics = None if body.intrinsics is None else parse_intrinsics(body.intrinsics)
-    return [SourceSpec(kind="stream", format="stream", intrinsics=intrinsics, depth_scale=body.depth_scale)], preset
+    depth_scale = None if body.depth_scale is None else parse_depth_scale(body.depth_scale)
+    return [SourceSpec(kind="stream", format="stream", intrinsics=intrinsics, depth_scale=depth_scale)], preset
 
 
 @router.post("", status_code=status.HTTP_201_CREATED, response_model=SessionCreated,
@@ -285,7 +291,13 @@ async def create_session(request: Request, manager: SessionManager = Depends(get
 
 @router.get("", response_model=list[SessionOut], summary="All sessions, newest first")
 def list_sessions(manager: SessionManager = Depends(get_manager)) -> list[SessionOut]:
-    return [session_out(manager, s) for s in manager.list()]
+    listed = []
+    for state in manager.list():
+        try:
+            listed.append(session_out(manager, state))
+        except SessionNotFound:  # deleted while the list was being made: not listed
+            continue
+    return listed
 
 
 @router.get("/{session_id}", response_model=SessionOut, summary="Status of one session")
@@ -316,7 +328,7 @@ def trajectory_file(directory: Path, agent: int) -> Path:
                        409: {"model": ErrorOut}},
             summary="Estimated trajectory (TUM text) of one agent, also while running")
 def get_trajectory(session_id: str,
-                   agent: int = Query(0, ge=0,
+                   agent: int = Query(0, ge=0, le=MAX_AGENTS - 1,
                                       description="agent (camera) of a collaborative session; 0 is the first"),
                    manager: SessionManager = Depends(get_manager)) -> Response:
     """All agents' trajectories share one world frame (the first agent's first camera). While

@@ -7,6 +7,8 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from server.budget import DEPTH_SCALE_RANGE, MAX_FRAMES_OPTION
+
 EXAMPLE_POSE = [[1.0, 0.0, 0.0, 0.5], [0.0, 0.0, 1.0, -1.5], [0.0, -1.0, 0.0, 1.4], [0.0, 0.0, 0.0, 1.0]]
 MAX_SIDE = 2048
 
@@ -92,8 +94,9 @@ class SessionCreateJSON(Strict):
     preset: Literal["test", "cpu", "paper"] | None = Field(None, description="config preset; default cpu without a GPU")
     intrinsics: str | None = Field(None, description="stream: 'fx,fy,cx,cy' (else on the first frame)",
                                    examples=["525,525,319.5,239.5"])
-    depth_scale: float | None = Field(None, gt=0, description="stream: raw depth units per metre (default 1000)")
-    max_frames: int | None = Field(None, ge=1)
+    depth_scale: float | None = Field(None, ge=DEPTH_SCALE_RANGE[0], le=DEPTH_SCALE_RANGE[1],
+                                      description="stream: raw depth units per metre (default 1000)")
+    max_frames: int | None = Field(None, ge=1, le=MAX_FRAMES_OPTION)
 
     @field_validator("spec")
     @classmethod

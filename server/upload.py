@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import shutil
 import stat
-import struct
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
@@ -23,11 +22,14 @@ from pathlib import Path, PurePosixPath
 import cv2
 import numpy as np
 
+from server.budget import DEPTH_SCALE_RANGE, FOCAL_RANGE, PRINCIPAL_POINT_LIMIT
+from slam.data.frame import DataError
+from slam.data.images import MAX_IMAGE_SIDE, PNG_SIGNATURE, ImageTooLarge, decode_image, image_format
+
 # Entries that archivers add and that are never part of a dataset.
 _IGNORED_TOP_LEVEL = {"__MACOSX", ".DS_Store", "Thumbs.db"}
-PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
-MAX_FRAME_SIDE = 4096
-"""Largest streamed image side; bigger headers are refused before decoding (decompression bombs)."""
+MAX_FRAME_SIDE = MAX_IMAGE_SIDE
+"""Largest image side anywhere; bigger headers are refused before decoding (decompression bombs)."""
 MAX_AGENTS = 16
 """Most agents (cameras) in one collaborative session: file parts of an upload, or stream agent ids."""
 
@@ -166,6 +168,30 @@ def save_upload(source, target: Path, max_bytes: int) -> int:
             raise UploadError(f"the upload is larger than {max_bytes // (1024 * 1024)} MiB", status=413) from None
 
 
+def inspect_dataset(root: str, spec) -> str:
+    """Check an extracted dataset before its session is queued; returns its format.
+
+    Opens it as the worker will (``spec``: a ``server.worker.SourceSpec``), reads the header of
+    every selected frame's images (a decompression bomb anywhere in the zip is refused now,
+    not at frame 500) and decodes the first frame. Meant to run in the decode helper
+    (``server.decoding``); raises DataError (ImageTooLarge for a header over the limits).
+    """
+    from slam.data import detect_format, open_sequence
+    from slam.data.images import check_image_size, header_of
+
+    fmt = detect_format(root) if spec.format == "auto" else spec.format
+    sequence = open_sequence(root, fmt, stride=spec.stride, max_frames=spec.max_frames,
+                             intrinsics=spec.intrinsics, depth_scale=spec.depth_scale)
+    if len(sequence) == 0:
+        raise DataError("the dataset has no frames")
+    for files in getattr(sequence, "frames", ()):
+        for path in (files.rgb, files.depth):
+            what = str(Path(path).relative_to(root)) if Path(path).is_relative_to(root) else Path(path).name
+            check_image_size(header_of(path, what), what)
+    sequence[0]
+    return fmt
+
+
 def remove_tree(path: Path) -> None:
     shutil.rmtree(path, ignore_errors=True)
 
@@ -222,6 +248,12 @@ def parse_intrinsics(text: str | list | tuple, what: str = "intrinsics") -> tupl
         raise UploadError(f"{what}: expected four numbers 'fx,fy,cx,cy', got {text!r}") from None
     if not all(np.isfinite([fx, fy, cx, cy])) or fx <= 0 or fy <= 0:
         raise UploadError(f"{what}: fx and fy must be positive and all values finite, got {text!r}")
+    low, high = FOCAL_RANGE
+    if not (low <= fx <= high and low <= fy <= high):
+        raise UploadError(f"{what}: focal lengths fx, fy must lie in {low:g}..{high:g} pixels, got {fx:g}, {fy:g}")
+    if max(abs(cx), abs(cy)) > PRINCIPAL_POINT_LIMIT:
+        raise UploadError(f"{what}: the principal point cx, cy must lie within {PRINCIPAL_POINT_LIMIT:g} pixels "
+                          f"of the image corner, got {cx:g}, {cy:g}")
     return fx, fy, cx, cy
 
 
@@ -237,30 +269,26 @@ def parse_depth_scale(value: float | str, what: str = "depth_scale") -> float:
         raise UploadError(f"{what}: expected a number (raw depth units per metre), got {value!r}") from None
     if not np.isfinite(scale) or scale <= 0:
         raise UploadError(f"{what}: must be a positive number (raw depth units per metre), got {value!r}")
+    low, high = DEPTH_SCALE_RANGE
+    if not low <= scale <= high:
+        raise UploadError(f"{what}: must lie in {low:g}..{high:g} raw depth units per metre "
+                          f"(1000: millimetres, 5000: TUM), got {scale:g}")
     return scale
 
 
-def _png_size(data: bytes) -> tuple[int, int] | None:
-    """(width, height) from a PNG's IHDR chunk, or None when ``data`` is not a PNG."""
-    if len(data) < 24 or not data.startswith(PNG_SIGNATURE):
-        return None
-    return struct.unpack(">II", data[16:24])
-
-
-def _check_side(size: tuple[int, int] | None, what: str) -> None:
-    if size is not None and (max(size) > MAX_FRAME_SIDE or min(size) < 1):
-        raise UploadError(f"{what}: image size {size[0]}x{size[1]} is outside 1..{MAX_FRAME_SIDE} pixels per side",
-                          status=413 if max(size) > MAX_FRAME_SIDE else 422)
+def _decode(data: bytes, what: str) -> np.ndarray:
+    """Checked header, then decode (``slam.data.images``); errors as UploadError (413 when too large)."""
+    try:
+        return decode_image(data, what)
+    except ImageTooLarge as error:
+        raise UploadError(str(error), status=413) from None
+    except DataError as error:
+        raise UploadError(str(error)) from None
 
 
 def decode_color(data: bytes, what: str = "color") -> np.ndarray:
     """Encoded PNG/JPEG bytes -> (H, W, 3) uint8 RGB. Grey images are repeated, alpha dropped."""
-    if not data:
-        raise UploadError(f"{what}: the image is empty")
-    _check_side(_png_size(data), what)
-    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
-    if image is None:
-        raise UploadError(f"{what}: cannot decode the image (corrupt, truncated, or not PNG/JPEG)")
+    image = _decode(data, what)
     if image.dtype != np.uint8:
         raise UploadError(f"{what}: colour must be 8 bits per channel, got {image.dtype}")
     if image.ndim == 2:
@@ -274,15 +302,9 @@ def decode_color(data: bytes, what: str = "color") -> np.ndarray:
 
 def decode_depth(data: bytes, what: str = "depth") -> np.ndarray:
     """16-bit single-channel PNG bytes -> (H, W) uint16 raw depth."""
-    if not data:
-        raise UploadError(f"{what}: the image is empty")
-    size = _png_size(data)
-    if size is None:
+    if data and image_format(data) != "png":
         raise UploadError(f"{what}: depth must be a 16-bit PNG (the data is not a PNG)")
-    _check_side(size, what)
-    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
-    if image is None:
-        raise UploadError(f"{what}: cannot decode the PNG (corrupt or truncated)")
+    image = _decode(data, what)
     if image.ndim != 2:
         raise UploadError(f"{what}: depth must be single-channel, got {image.shape[2]} channels")
     if image.dtype != np.uint16:

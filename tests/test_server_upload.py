@@ -121,7 +121,7 @@ def test_corrupt_and_truncated_images_are_refused():
     good = png(np.full((8, 8, 3), 128, np.uint8))
     with pytest.raises(UploadError, match="cannot decode"):
         decode_color(good[: len(good) // 2])
-    with pytest.raises(UploadError, match="cannot decode"):
+    with pytest.raises(UploadError, match="not a PNG or JPEG"):
         decode_color(b"garbage bytes that are no image")
     with pytest.raises(UploadError, match="empty"):
         decode_color(b"")
@@ -144,8 +144,18 @@ def test_oversized_frame_header_is_refused_before_decoding():
     header = io.BytesIO(png(np.zeros((1, 1), np.uint16)))
     data = bytearray(header.getvalue())
     data[16:24] = (100_000).to_bytes(4, "big") + (10).to_bytes(4, "big")  # claim 100000 x 10 pixels
-    with pytest.raises(UploadError, match="outside 1..4096") as info:
+    with pytest.raises(UploadError, match="100000x10 pixels is over the limit") as info:
         decode_depth(bytes(data))
+    assert info.value.status == 413
+
+
+def test_oversized_jpeg_header_is_refused_before_decoding():
+    """A JPEG's size sits in its start-of-frame segment, after any APPn block: found there too."""
+    data = bytearray(cv2.imencode(".jpg", np.zeros((8, 8, 3), np.uint8))[1].tobytes())
+    sof = next(i for i in range(2, len(data) - 1) if data[i] == 0xFF and data[i + 1] == 0xC0)
+    data[sof + 5:sof + 9] = (60000).to_bytes(2, "big") + (60000).to_bytes(2, "big")
+    with pytest.raises(UploadError, match="60000x60000 pixels is over the limit") as info:
+        decode_color(bytes(data))
     assert info.value.status == 413
 
 
