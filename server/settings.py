@@ -9,6 +9,7 @@
 | ``VOXFUSION_MAX_UNZIPPED_MB`` | 8192 | largest total uncompressed size of a zip |
 | ``VOXFUSION_MAX_ZIP_ENTRIES`` | 200000 | most entries in a zip |
 | ``VOXFUSION_MAX_SESSIONS`` | cpu_count // 4, at least 1 (64 with ``ray``) | sessions running at once; more wait in a queue (with ``ray``: sessions handed to the cluster, which queues what does not fit) |
+| ``VOXFUSION_MAX_QUEUED`` | 32 | sessions waiting to start; a create beyond gets 429 (``Retry-After``) |
 | ``VOXFUSION_VIEWER_PORT`` | 8080 | viser's own port (0: any free port; -1: no viewer) |
 | ``VOXFUSION_CANCEL_GRACE_S`` | 10 | seconds a cancelled worker gets before it is killed |
 | ``VOXFUSION_RENDER_THREADS`` | 1 | torch threads of the API process (renders, meshes) |
@@ -69,6 +70,8 @@ class Settings:
     max_zip_entries: int = 200_000
     max_sessions: int = 1
     """Sessions that run at once; later ones wait in a FIFO queue."""
+    max_queued: int = 32
+    """Sessions that may wait in that queue; one more gets 429 with ``Retry-After``."""
     viewer_host: str = "127.0.0.1"
     """Interface viser binds to. The page reaches it through the API's ``/viewer`` proxy, the
     only client its WebSocket admits (``server.viewer``)."""
@@ -183,6 +186,7 @@ def settings_from_env(env: Mapping[str, str] | None = None) -> Settings:
         max_unzipped_mb=_int(env, "VOXFUSION_MAX_UNZIPPED_MB", 8192, 1),
         max_zip_entries=_int(env, "VOXFUSION_MAX_ZIP_ENTRIES", 200_000, 1),
         max_sessions=_int(env, "VOXFUSION_MAX_SESSIONS", sessions_default, 1),
+        max_queued=_int(env, "VOXFUSION_MAX_QUEUED", 32, 1),
         viewer_port=_int(env, "VOXFUSION_VIEWER_PORT", 8080, -1),
         cancel_grace_s=_float(env, "VOXFUSION_CANCEL_GRACE_S", 10.0, 0.0),
         render_threads=_int(env, "VOXFUSION_RENDER_THREADS", 1, 1),
