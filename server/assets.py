@@ -35,7 +35,7 @@ def mesh_bytes(mesh: object) -> int:
 
 
 class AssetsFull(RuntimeError):
-    """The store holds MAX_ASSETS files or MAX_ASSET_STORE_BYTES (507)."""
+    """The store holds MAX_ASSETS files or MAX_ASSET_STORE_BYTES (409: a client error, a quota, not a server fault)."""
 
 
 class AssetStore:

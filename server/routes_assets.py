@@ -16,7 +16,7 @@ router = APIRouter(prefix="/api/assets", tags=["ar"], dependencies=[Depends(requ
 
 
 @router.post("", status_code=status.HTTP_201_CREATED, response_model=AssetOut,
-             responses={413: {"model": ErrorOut}, 422: {"model": ErrorOut}, 507: {"model": ErrorOut}},
+             responses={413: {"model": ErrorOut}, 422: {"model": ErrorOut}, 409: {"model": ErrorOut}},
              summary="Upload a virtual object (GLB, OBJ or PLY)")
 async def upload_asset(file: UploadFile = File(description="a .glb, .obj or .ply mesh"),
                        assets: AssetStore = Depends(get_assets)) -> AssetOut:
@@ -30,7 +30,7 @@ async def upload_asset(file: UploadFile = File(description="a .glb, .obj or .ply
     except AssetError as error:
         raise HTTPException(422, str(error)) from None
     except AssetsFull as error:
-        raise HTTPException(507, str(error)) from None
+        raise HTTPException(409, str(error)) from None
     return AssetOut(id=asset_id, vertices=vertices, faces=faces)
 
 

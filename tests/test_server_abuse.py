@@ -337,12 +337,16 @@ def test_assets_are_bounded_and_can_be_deleted(tmp_path):
     store.add(data, "fits-again.obj")
 
 
-def test_asset_delete_route(client):
+def test_asset_routes_refuse_a_full_store_and_delete(client, monkeypatch):
+    monkeypatch.setattr(client.app.state.assets, "max_assets", 1)
     response = client.post("/api/assets", files={"file": ("cube.obj", _cube_obj(), "text/plain")})
     assert response.status_code == 201, response.text
     asset = response.json()["id"]
+    full = client.post("/api/assets", files={"file": ("cube.obj", _cube_obj(), "text/plain")})
+    assert full.status_code == 409 and "DELETE /api/assets/{id}" in full.json()["detail"]
     assert client.delete(f"/api/assets/{asset}").status_code == 204
     assert client.delete(f"/api/assets/{asset}").status_code == 404
+    assert client.post("/api/assets", files={"file": ("cube.obj", _cube_obj(), "text/plain")}).status_code == 201
 
 
 def _cube_obj() -> bytes:

@@ -1,0 +1,341 @@
+"""Issue 39's abuse cases against a real server, with the API process's memory watched.
+
+    python benchmarks/bench_abuse.py [--fuzz-minutes 10] [--out bench_abuse.json]
+
+Starts ``voxfusion serve`` (``python -m server.cli serve``) on 127.0.0.1 with a token, in a
+subprocess, then runs each case an attacker or an operator tried (uploads naming the server's
+files, image bombs, huge sizes in small requests, a full queue, oversized and deeply nested
+JSON, a slow body, out-of-range numbers, empty mesh exports, lists racing deletions, many
+assets) and reports per case: the answers' status codes, whether any was a 5xx, whether one
+hung (no answer within 30 s), and the API process's resident memory (peak so far, from
+``/proc/PID/status`` ``VmHWM``). With ``--fuzz-minutes`` it then runs schemathesis's CLI
+against the same server for that long (with the token) and counts server errors.
+
+Verdict: 0 server errors, 0 hangs, peak API memory under 1 GB (issue 39's figures).
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import json
+import os
+import socket
+import struct
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import zipfile
+import zlib
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import cv2
+import httpx
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+TOKEN = "bench-abuse-token"
+HANG_S = 30.0
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def png(image: np.ndarray) -> bytes:
+    return cv2.imencode(".png", image)[1].tobytes()
+
+
+def png_bomb(width: int, height: int) -> bytes:
+    """A valid grey PNG of zeros: kilobytes compressed, width * height bytes decoded."""
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    compressor = zlib.compressobj(9)
+    row = b"\x00" * (width + 1)
+    body = b"".join(compressor.compress(row) for _ in range(height)) + compressor.flush()
+    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0))
+            + chunk(b"IDAT", body) + chunk(b"IEND", b""))
+
+
+TIMES = (1.0, 1.033, 1.066)
+COLOR = png(np.full((48, 64, 3), 120, np.uint8))
+DEPTH = png(np.full((48, 64), 5000, np.uint16))
+
+
+def tum_zip(rgb_names: list[str] | None = None, replace: dict[str, bytes] | None = None) -> bytes:
+    top = "rgbd_dataset_freiburg1_tiny/"
+    names = rgb_names or [f"rgb/{t:.6f}.png" for t in TIMES]
+    entries = {top + "rgb.txt": "".join(f"{t:.6f} {n}\n" for t, n in zip(TIMES, names)).encode(),
+               top + "depth.txt": "".join(f"{t:.6f} depth/{t:.6f}.png\n" for t in TIMES).encode(),
+               top + "intrinsics.txt": b"52 52 31.5 23.5\n"}
+    for t in TIMES:
+        entries[top + f"rgb/{t:.6f}.png"] = COLOR
+        entries[top + f"depth/{t:.6f}.png"] = DEPTH
+    for name, data in (replace or {}).items():
+        entries[top + name] = data
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w", compression=zipfile.ZIP_DEFLATED) as archive:
+        for name, data in entries.items():
+            archive.writestr(name, data)
+    return buffer.getvalue()
+
+
+@dataclass
+class CaseResult:
+    name: str
+    statuses: list[int] = field(default_factory=list)
+    seconds: float = 0.0
+    server_errors: int = 0
+    hangs: int = 0
+    peak_mb: float = 0.0
+    note: str = ""
+
+
+class Server:
+    """``voxfusion serve`` in a subprocess on 127.0.0.1, behind a token."""
+
+    def __init__(self, data_dir: Path, extra_env: dict[str, str] | None = None) -> None:
+        self.port = free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        env = {**os.environ, "VOXFUSION_TOKEN": TOKEN, **(extra_env or {}),
+               "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")]))}
+        self.log = open(data_dir.parent / "server.log", "ab")
+        self.process = subprocess.Popen(
+            [sys.executable, "-m", "server.cli", "serve", "--host", "127.0.0.1", "--port", str(self.port),
+             "--data-dir", str(data_dir), "--viewer-port", "-1"],
+            cwd=REPO, env=env, stdout=self.log, stderr=subprocess.STDOUT)
+        self.headers = {"Authorization": f"Bearer {TOKEN}"}
+        self.client = httpx.Client(base_url=self.url, timeout=HANG_S, headers=self.headers)
+        deadline = time.monotonic() + 120
+        while True:
+            try:
+                self.client.get("/api/sessions").raise_for_status()
+                return
+            except httpx.HTTPError:
+                if time.monotonic() > deadline or self.process.poll() is not None:
+                    raise RuntimeError(f"the server did not start (see {self.log.name})") from None
+                time.sleep(0.5)
+
+    def memory_mb(self) -> tuple[float, float]:
+        """(resident now, peak resident) of the API process, MiB."""
+        fields = {}
+        with open(f"/proc/{self.process.pid}/status") as status:
+            for line in status:
+                key, _, value = line.partition(":")
+                fields[key] = value
+        return int(fields["VmRSS"].split()[0]) / 1024, int(fields["VmHWM"].split()[0]) / 1024
+
+    def alive(self) -> bool:
+        return self.process.poll() is None
+
+    def stop(self) -> None:
+        self.client.close()
+        if self.alive():
+            self.process.terminate()
+            try:
+                self.process.wait(30)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+        self.log.close()
+
+
+def run_case(server: Server, name: str, requests) -> CaseResult:
+    """Send ``requests(client)`` (a generator of responses or exceptions) and record them."""
+    result = CaseResult(name)
+    started = time.monotonic()
+    for outcome in requests(server.client):
+        if isinstance(outcome, httpx.TimeoutException):
+            result.hangs += 1
+            result.statuses.append(0)
+        elif isinstance(outcome, Exception):
+            result.note = f"{type(outcome).__name__}: {outcome}"
+            result.statuses.append(-1)
+        else:
+            result.statuses.append(outcome.status_code)
+            result.server_errors += outcome.status_code >= 500
+    result.seconds = round(time.monotonic() - started, 2)
+    result.peak_mb = round(server.memory_mb()[1], 1)
+    if not server.alive():
+        result.note += " SERVER DIED"
+        result.server_errors += 1
+    return result
+
+
+def _send(call):
+    try:
+        return call()
+    except httpx.HTTPError as error:
+        return error
+
+
+def _upload(client, data: bytes, **form):
+    return _send(lambda: client.post("/api/sessions", files={"file": ("d.zip", data, "application/zip")},
+                                     data={"preset": "test", **form}))
+
+
+def cases() -> dict[str, object]:
+    def outside_paths(client):
+        for name in ("/etc/hostname", "/no/such/file.png", "../../../../etc/passwd", "rgb/../../x.png"):
+            yield _upload(client, tum_zip([name, f"rgb/{TIMES[1]:.6f}.png", f"rgb/{TIMES[2]:.6f}.png"]))
+        first = _upload(client, tum_zip())
+        yield first
+        if not isinstance(first, Exception) and first.status_code == 201:
+            victim = first.json()["id"]
+            stolen = f"../../../{victim}/input/rgbd_dataset_freiburg1_tiny/rgb/{TIMES[0]:.6f}.png"
+            yield _upload(client, tum_zip([stolen, f"rgb/{TIMES[1]:.6f}.png", f"rgb/{TIMES[2]:.6f}.png"]))
+
+    def image_bombs(client):
+        for side in (10_000, 30_000):
+            yield _upload(client, tum_zip(replace={f"rgb/{TIMES[1]:.6f}.png": png_bomb(side, side)}))
+
+    def huge_sizes(client):
+        for spec in ("orbit?frames=100000000000", "orbit?frames=1000000", "orbit?width=100000"):
+            yield _send(lambda: client.post("/api/sessions", json={"source": "synthetic", "spec": spec}))
+        created = _send(lambda: client.post("/api/sessions", json={"source": "synthetic", "preset": "test",
+                                                                   "spec": "orbit?frames=20000&width=64"}))
+        yield created
+        if not isinstance(created, Exception) and created.status_code == 201:
+            session = created.json()["id"]
+            yield _send(lambda: client.get(f"/api/sessions/{session}/series"))
+            yield _send(lambda: client.post(f"/api/sessions/{session}/ar",
+                                            json={"background": "frame:19999", "objects": []}))
+            yield _send(lambda: client.delete(f"/api/sessions/{session}"))
+
+    def full_queue(client):
+        created = []
+        for _ in range(150):
+            response = _send(lambda: client.post("/api/sessions", json={"source": "stream", "preset": "test"}))
+            yield response
+            if not isinstance(response, Exception) and response.status_code == 201:
+                created.append(response.json()["id"])
+        for session in created:
+            yield _send(lambda: client.delete(f"/api/sessions/{session}"))
+
+    def big_and_deep_json(client):
+        body = b'{"source": "synthetic", "spec": "' + b"x" * (200 * 1024 * 1024) + b'"}'
+        yield _send(lambda: client.post("/api/sessions", content=body, headers={"content-type": "application/json"}))
+        deep = b"[" * 200_000 + b"]" * 200_000
+        for route in ("/api/sessions", "/api/sessions/000000000000/render"):
+            yield _send(lambda: client.post(route, content=deep, headers={"content-type": "application/json"}))
+
+    def out_of_range(client):
+        for value in ("1e-300", "1e300"):
+            yield _upload(client, tum_zip(), depth_scale=value)
+            yield _upload(client, tum_zip(), intrinsics=f"{value},{value},0,0")
+            yield _send(lambda: client.post("/api/sessions", json={"source": "stream", "depth_scale": float(value)}))
+
+    def operator(client):
+        for _ in range(20):  # list while creating and deleting
+            created = _send(lambda: client.post("/api/sessions", json={"source": "stream", "preset": "test"}))
+            yield created
+            results = []
+            thread = threading.Thread(target=lambda: results.append(_send(lambda: client.get("/api/sessions"))))
+            thread.start()
+            if not isinstance(created, Exception) and created.status_code == 201:
+                yield _send(lambda: client.delete(f"/api/sessions/{created.json()['id']}"))
+            thread.join()
+            yield from results
+        yield _send(lambda: client.get("/api/sessions/000000000000/mesh", params={"format": "glb"}))
+
+    def many_assets(client):
+        cube = "".join(f"v {x} {y} {z}\n" for x in (0, 1) for y in (0, 1) for z in (0, 1)) + "f 1 2 4\nf 1 4 3\n"
+        ids = []
+        for k in range(300):
+            response = _send(lambda: client.post("/api/assets", files={"file": (f"c{k}.obj", cube.encode())}))
+            yield response
+            if not isinstance(response, Exception) and response.status_code == 201:
+                ids.append(response.json()["id"])
+        for asset in ids:
+            yield _send(lambda: client.delete(f"/api/assets/{asset}"))
+
+    return {"1 upload names files outside itself": outside_paths, "2 image bombs in a zip": image_bombs,
+            "3 huge sizes in small requests": huge_sizes, "4 150 creates at a full queue": full_queue,
+            "5 200 MiB and 200k-deep JSON": big_and_deep_json, "7 values out of range": out_of_range,
+            "7 lists racing deletions, empty mesh": operator, "7 300 assets": many_assets}
+
+
+def slow_body_then_sigterm(data_dir: Path) -> CaseResult:
+    """Case 6: a body at 1 byte/s holds a request open; SIGTERM must still end the server
+    within Docker's 10 s."""
+    server = Server(data_dir)
+    result = CaseResult("6 SIGTERM during a 1 byte/s body")
+    sock = socket.create_connection(("127.0.0.1", server.port))
+    sock.sendall(f"POST /api/sessions HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer {TOKEN}\r\n"
+                 f"Content-Type: application/json\r\nContent-Length: 1000\r\n\r\n{{".encode())
+    time.sleep(1.0)
+    result.peak_mb = round(server.memory_mb()[1], 1)
+    started = time.monotonic()
+    server.process.terminate()
+    try:
+        server.process.wait(timeout=HANG_S)
+        result.statuses.append(server.process.returncode)
+    except subprocess.TimeoutExpired:
+        result.hangs += 1
+        server.process.kill()
+    result.seconds = round(time.monotonic() - started, 2)
+    result.note = f"exited {result.seconds} s after SIGTERM"
+    sock.close()
+    server.stop()
+    return result
+
+
+def fuzz(server: Server, minutes: float) -> CaseResult:
+    """schemathesis's CLI against the server for ``minutes``, with the token."""
+    result = CaseResult(f"schemathesis {minutes:g} min")
+    report = Path(tempfile.mkdtemp()) / "junit.xml"
+    command = [str(Path(sys.executable).with_name("st")), "run", f"{server.url}/openapi.json",
+               "-H", f"Authorization: Bearer {TOKEN}", "--max-time", str(int(minutes * 60)),
+               "--checks", "not_a_server_error", "--request-timeout", str(HANG_S), "--report", "junit",
+               "--report-junit-path", str(report), "--generation-deterministic"]
+    started = time.monotonic()
+    completed = subprocess.run(command, cwd=REPO, capture_output=True, text=True)
+    result.seconds = round(time.monotonic() - started, 1)
+    tail = completed.stdout.strip().splitlines()[-12:]
+    result.note = " | ".join(tail)
+    result.statuses.append(completed.returncode)
+    result.server_errors = int("not_a_server_error" in completed.stdout and completed.returncode != 0)
+    result.peak_mb = round(server.memory_mb()[1], 1)
+    return result
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--fuzz-minutes", type=float, default=0.0)
+    parser.add_argument("--out", type=Path, default=None)
+    args = parser.parse_args()
+    work = Path(tempfile.mkdtemp(prefix="bench-abuse-"))
+    server = Server(work / "data")
+    results = []
+    try:
+        print(f"server up: {server.memory_mb()[0]:.0f} MiB resident", flush=True)
+        for name, requests in cases().items():
+            result = run_case(server, name, requests)
+            results.append(result)
+            print(f"{name}: {result.seconds} s, statuses {sorted(set(result.statuses))}, 5xx {result.server_errors}, "
+                  f"hangs {result.hangs}, peak {result.peak_mb} MiB {result.note}", flush=True)
+        if args.fuzz_minutes > 0:
+            results.append(fuzz(server, args.fuzz_minutes))
+            print(f"fuzz: {results[-1]}", flush=True)
+    finally:
+        server.stop()
+    results.append(slow_body_then_sigterm(work / "data2"))
+    print(f"{results[-1].name}: {results[-1].note}, hangs {results[-1].hangs}", flush=True)
+    errors = sum(r.server_errors for r in results)
+    hangs = sum(r.hangs for r in results)
+    peak = max(r.peak_mb for r in results)
+    verdict = errors == 0 and hangs == 0 and peak < 1024
+    print(f"\nserver errors {errors}, hangs {hangs}, peak API memory {peak:.0f} MiB: "
+          f"{'PASS' if verdict else 'FAIL'} (0, 0, < 1024)")
+    if args.out:
+        args.out.write_text(json.dumps([asdict(r) for r in results], indent=1))
+    return 0 if verdict else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
