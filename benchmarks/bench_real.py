@@ -1,0 +1,261 @@
+"""Presets and preset changes on every real sequence we have, N runs each (issue 41).
+
+    python benchmarks/bench_real.py [--runs 3] [--variant NAME=PRESET[:JSON]]... [--peer]
+                                    [--sequences rpy150,desk,...] [--max-frames N]
+                                    [--extra-args "--single-process"] [--json FILE] [--markdown FILE]
+
+Each run is ``voxfusion run`` (``python -m slam.cli run``) in a child process, the way users
+run it: tracking and mapping in separate processes unless ``--extra-args`` says otherwise.
+Variants alternate run by run (A B A B ..., the order rotated each round), so a slow hour
+hits them alike. A variant is a preset and optional JSON overrides of it, e.g.
+``ray=cpu:{"loss": {"normalisation": "ray"}}``; the first variant is the baseline. ``--peer``
+adds the classical peer (Open3D's tensor SLAM at 1 cm voxels, ``benchmarks/peer_open3d.py``)
+as one more variant.
+
+Sequences: ``../shared/data`` (TUM fr1/rpy 150 frames, fr1/desk, Replica room0) and every
+dataset folder in the cache ``$VOXFUSION_DATA_CACHE`` (default ``~/.cache/voxfusion/data``;
+how it was filled: ``benchmarks/README.md``, "Real data"). Benchmarks may read the cache;
+tests never need it.
+
+Per sequence and variant: ATE RMSE (cm) mean, sample standard deviation, min-max; frames/s
+mean. Per sequence and variant other than the baseline, the verdict of ``benchmarks/README.md``'s
+decision rule: ``better`` / ``worse`` when the means differ by more than the larger of the two
+standard deviations (and by more than 0.05 cm), else ``within spread``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shlex
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import REPLICA, SHARED_DATA, TUM_RPY, markdown_table  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+CACHE = Path(os.environ.get("VOXFUSION_DATA_CACHE", Path.home() / ".cache" / "voxfusion" / "data"))
+MIN_DIFFERENCE_CM = 0.05
+"""Means closer than this are within spread whatever the spreads (a tenth of a millimetre is noise)."""
+
+
+@dataclass(frozen=True)
+class RealSequence:
+    name: str
+    path: Path
+    max_frames: int | None = None
+    peer_depth_max: float = 3.0
+
+
+@dataclass(frozen=True)
+class Variant:
+    name: str
+    preset: str
+    overrides: dict = field(default_factory=dict)
+
+    @property
+    def is_peer(self) -> bool:
+        return self.preset == "open3d"
+
+
+@dataclass
+class Run:
+    sequence: str
+    variant: str
+    round: int
+    ate_cm: float | None
+    fps: float | None
+    frames: int
+    seconds: float
+    load: str
+    error: str | None = None
+
+
+def sequences(max_frames: int | None) -> list[RealSequence]:
+    """The shared sequences, then every dataset folder of the cache (name order)."""
+    found = []
+    shared = [("rpy150", TUM_RPY, 150), ("desk", SHARED_DATA / "rgbd_dataset_freiburg1_desk", None),
+              ("room0", REPLICA / "room0", None)]
+    for name, path, frames in shared:
+        if path.is_dir():
+            found.append(RealSequence(name, path, frames if max_frames is None else min(frames or max_frames,
+                                                                                         max_frames)))
+    if CACHE.is_dir():
+        for path in sorted(p for p in CACHE.iterdir() if p.is_dir()):
+            if (path / "rgb.txt").is_file() or (path / "results").is_dir():
+                found.append(RealSequence(path.name.removeprefix("rgbd_dataset_"), path, max_frames))
+    return found
+
+
+def parse_variant(text: str) -> Variant:
+    """``NAME=PRESET[:JSON]`` -> Variant."""
+    name, sep, rest = text.partition("=")
+    if not sep or not name:
+        raise argparse.ArgumentTypeError(f"variant {text!r}: expected NAME=PRESET[:JSON]")
+    preset, _, overrides = rest.partition(":")
+    try:
+        parsed = json.loads(overrides) if overrides else {}
+    except json.JSONDecodeError as error:
+        raise argparse.ArgumentTypeError(f"variant {name}: overrides are not JSON ({error})") from None
+    return Variant(name, preset, parsed)
+
+
+def run_voxfusion(seq: RealSequence, variant: Variant, out: Path, extra: list[str], timeout: float) -> dict:
+    """One ``voxfusion run``; returns run.json."""
+    out.mkdir(parents=True, exist_ok=True)
+    command = [sys.executable, "-m", "slam.cli", "run", str(seq.path), "--out", str(out), "--preset", variant.preset,
+               "--quiet", *extra]
+    if seq.max_frames:
+        command += ["--max-frames", str(seq.max_frames)]
+    if variant.overrides:
+        (out / "overrides.json").write_text(json.dumps(variant.overrides))
+        command += ["--config", str(out / "overrides.json")]
+    completed = subprocess.run(command, cwd=REPO, capture_output=True, text=True, timeout=timeout)
+    if completed.returncode != 0 or not (out / "run.json").is_file():
+        tail = " | ".join((completed.stdout + completed.stderr).strip().splitlines()[-4:])
+        raise RuntimeError(f"exit {completed.returncode}: {tail}")
+    return json.loads((out / "run.json").read_text())
+
+
+def run_peer(seq: RealSequence, out: Path, timeout: float) -> dict:
+    """Open3D's tensor SLAM at 1 cm voxels through bench_slam.py's worker; ATE against GT."""
+    from slam.eval import ate, read_trajectory
+
+    command = [sys.executable, "benchmarks/bench_slam.py", "--worker", "open3d-1cm", "--source", str(seq.path),
+               "--max-frames", str(seq.max_frames or 100_000), "--out", str(out), "--depth-max",
+               str(seq.peer_depth_max)]
+    completed = subprocess.run(command, cwd=REPO, capture_output=True, text=True, timeout=timeout)
+    if completed.returncode != 0 or not (out / "result.json").is_file():
+        tail = " | ".join((completed.stdout + completed.stderr).strip().splitlines()[-4:])
+        raise RuntimeError(f"exit {completed.returncode}: {tail}")
+    info = json.loads((out / "result.json").read_text())
+    gt = ground_truth(seq)
+    info["ate_rmse_m"] = ate(gt, read_trajectory(out / "trajectory.txt")).rmse
+    return info
+
+
+def ground_truth(seq: RealSequence):
+    """The sequence's ground truth as a Trajectory (frames with a GT pose)."""
+    import numpy as np
+
+    from slam.data import open_sequence
+    from slam.eval import Trajectory
+
+    sequence = open_sequence(seq.path, max_frames=seq.max_frames)
+    pairs = [(t, T) for t, T in zip(sequence.timestamps, sequence.gt_poses) if T is not None]
+    return Trajectory(np.array([t for t, _ in pairs]), np.stack([T for _, T in pairs]))
+
+
+def summary(runs: list[Run], variants: list[Variant]) -> list[dict]:
+    """Per sequence and variant: mean / std / min / max ATE, mean fps, verdict against the baseline."""
+    rows = []
+    for seq in dict.fromkeys(r.sequence for r in runs):
+        stats = {}
+        for variant in variants:
+            ates = [r.ate_cm for r in runs if r.sequence == seq and r.variant == variant.name and r.ate_cm is not None]
+            fps = [r.fps for r in runs if r.sequence == seq and r.variant == variant.name and r.fps is not None]
+            failed = sum(1 for r in runs if r.sequence == seq and r.variant == variant.name and r.error)
+            stats[variant.name] = {
+                "sequence": seq, "variant": variant.name, "runs": len(ates), "failed": failed,
+                "ate_mean": statistics.fmean(ates) if ates else None,
+                "ate_std": statistics.stdev(ates) if len(ates) > 1 else 0.0,
+                "ate_min": min(ates) if ates else None, "ate_max": max(ates) if ates else None,
+                "fps_mean": statistics.fmean(fps) if fps else None}
+        base = stats[variants[0].name]
+        for variant in variants:
+            row = stats[variant.name]
+            row["verdict"] = "baseline" if variant is variants[0] else verdict(base, row)
+            rows.append(row)
+    return rows
+
+
+def verdict(base: dict, other: dict) -> str:
+    """The decision rule of benchmarks/README.md ("Real data") for lower-is-better ATE."""
+    if base["ate_mean"] is None or other["ate_mean"] is None:
+        return "no data"
+    difference = other["ate_mean"] - base["ate_mean"]
+    spread = max(base["ate_std"], other["ate_std"], MIN_DIFFERENCE_CM)
+    if difference < -spread:
+        return "better"
+    if difference > spread:
+        return "worse"
+    return "within spread"
+
+
+def table(rows: list[dict]) -> str:
+    def number(value, digits=2):
+        return "-" if value is None else f"{value:.{digits}f}"
+
+    return markdown_table(
+        ["sequence", "variant", "runs", "ATE cm mean", "std", "min-max", "frames/s", "verdict"],
+        [[r["sequence"], r["variant"], f"{r['runs']}" + (f" ({r['failed']} failed)" if r["failed"] else ""),
+          number(r["ate_mean"]), number(r["ate_std"]), f"{number(r['ate_min'])}-{number(r['ate_max'])}",
+          number(r["fps_mean"]), r["verdict"]] for r in rows])
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--runs", type=int, default=3)
+    parser.add_argument("--variant", type=parse_variant, action="append", default=None,
+                        help="NAME=PRESET[:JSON overrides]; the first is the baseline (default: cpu=cpu)")
+    parser.add_argument("--peer", action="store_true", help="add Open3D at 1 cm voxels as a variant")
+    parser.add_argument("--sequences", default=None, help="comma-separated names (default: all found)")
+    parser.add_argument("--max-frames", type=int, default=None, help="cap every sequence at N frames")
+    parser.add_argument("--extra-args", default="", help="more arguments for 'voxfusion run'")
+    parser.add_argument("--timeout", type=float, default=3600.0)
+    parser.add_argument("--json", type=Path, default=None)
+    parser.add_argument("--markdown", type=Path, default=None)
+    args = parser.parse_args()
+    variants = args.variant or [Variant("cpu", "cpu")]
+    if args.peer:
+        variants.append(Variant("open3d-1cm", "open3d"))
+    seqs = sequences(args.max_frames)
+    if args.sequences:
+        wanted = args.sequences.split(",")
+        seqs = [s for s in seqs if s.name in wanted]
+    if not seqs:
+        print("no real sequences found", file=sys.stderr)
+        return 2
+    extra = shlex.split(args.extra_args)
+    work = Path(tempfile.mkdtemp(prefix="bench-real-"))
+    listed = ", ".join(f"{s.name} ({s.max_frames or 'all'} frames)" for s in seqs)
+    print(f"sequences: {listed}; "
+          f"variants: {', '.join(v.name for v in variants)}; {args.runs} runs; work in {work}", flush=True)
+    runs: list[Run] = []
+    for round_ in range(args.runs):
+        for seq in seqs:
+            order = variants[round_ % len(variants):] + variants[:round_ % len(variants)]
+            for variant in order:
+                out = work / f"{seq.name}_{variant.name}_{round_}"
+                load, started = f"{os.getloadavg()[0]:.1f}", time.perf_counter()
+                try:
+                    info = run_peer(seq, out, args.timeout) if variant.is_peer else \
+                        run_voxfusion(seq, variant, out, extra, args.timeout)
+                    ate = info.get("ate_rmse_m")
+                    run = Run(seq.name, variant.name, round_, None if ate is None else ate * 100, info.get("fps"),
+                              int(info.get("frames", 0)), round(time.perf_counter() - started, 1), load)
+                except (RuntimeError, subprocess.TimeoutExpired) as error:
+                    run = Run(seq.name, variant.name, round_, None, None, 0, round(time.perf_counter() - started, 1),
+                              load, error=str(error)[:400])
+                runs.append(run)
+                shown = "failed: " + run.error if run.error else f"ATE {run.ate_cm:.2f} cm, {run.fps:.2f} frames/s"
+                print(f"round {round_} {seq.name} {variant.name}: {shown} ({run.seconds} s, load {load})", flush=True)
+    rows = summary(runs, variants)
+    print("\n" + table(rows))
+    if args.json:
+        args.json.write_text(json.dumps({"runs": [asdict(r) for r in runs], "summary": rows,
+                                         "variants": [asdict(v) for v in variants]}, indent=1))
+    if args.markdown:
+        args.markdown.write_text(table(rows) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
