@@ -139,7 +139,13 @@ def loop_quality(info: dict, gts: list[dict[int, np.ndarray]], min_gap: int) -> 
     verified = [c for c in info.get("loop_candidates", []) if c.get("verified")]
     false_verified = [c for c in verified if not is_true_match(gts[c["agent"]][c["frame_index"]],
                                                                 gts[c["match_agent"]][c["match_frame_index"]])]
-    return {"loops": accepted, "false_loops": len(false), "verified_loops": len(verified),
+    from slam.eval.loops import loop_pose_errors
+
+    pose_errors = loop_pose_errors(verified, lambda agent, index: gts[agent].get(index))
+    worst = max(pose_errors, key=lambda e: e.translation_m, default=None)
+    return {"loop_pose_error_max_m": None if worst is None else worst.translation_m,
+            "loop_pose_error_max_deg": None if worst is None else max(e.rotation_deg for e in pose_errors),
+            "loops": accepted, "false_loops": len(false), "verified_loops": len(verified),
             "false_verified_loops": len(false_verified),
             "precision": (accepted - len(false)) / accepted if accepted else None,
             "recall": len(detected) / opportunities if opportunities else None,

@@ -561,3 +561,24 @@ def test_cli_eval_mesh_errors_exit_2(tmp_path, capsys):
     with pytest.raises(SystemExit) as exit_info:
         run_cli(add_eval_mesh_arguments, cmd_eval_mesh, argv + ["--intrinsics", "1,2,3", "--size", "64,48"])
     assert exit_info.value.code == 2
+
+
+def test_loop_pose_error_against_ground_truth():
+    """A loop's measured relative pose (query camera in the match camera's frame) against GT."""
+    from slam.eval.loops import loop_pose_errors, relative_pose_error
+
+    T_match, T_query = np.eye(4), np.eye(4)
+    T_query[0, 3] = 0.1
+    assert relative_pose_error(np.eye(4), T_match, T_query) == pytest.approx((0.1, 0.0))
+    turn = np.eye(4)
+    turn[:3, :3] = [[0, -1, 0], [1, 0, 0], [0, 0, 1]]  # 90 degrees about z
+    measured = T_query.copy()
+    # The world frame of the ground truth does not matter, only the two poses' relation.
+    assert relative_pose_error(measured, turn @ T_match, turn @ T_query) == pytest.approx((0.0, 0.0), abs=1e-9)
+    assert relative_pose_error(measured, T_match, T_query @ turn)[1] == pytest.approx(90.0)
+    gt = {(0, 3): T_query, (0, 1): T_match}
+    loops = [{"agent": 0, "frame_index": 3, "match_agent": 0, "match_frame_index": 1, "T_match_query": measured.tolist()},
+             {"agent": 0, "frame_index": 3, "match_agent": 0, "match_frame_index": 2, "T_match_query": measured.tolist()},
+             {"agent": 0, "frame_index": 3, "match_agent": 0, "match_frame_index": 1}]
+    errors = loop_pose_errors(loops, lambda agent, index: gt.get((agent, index)))
+    assert len(errors) == 1 and errors[0].translation_m == pytest.approx(0.0) and errors[0].gt_distance_m == 0.1

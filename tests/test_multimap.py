@@ -182,8 +182,9 @@ def test_two_agents_are_joined_by_a_verified_loop(tmp_path):
     """Agents with unknown relative start poses (agent 1 starts at the origin of its own
     frame) meet halfway around the table: a verified loop joins agent 1's map to agent 0's
     world, and both trajectories then fit the ground truth with one alignment."""
-    from slam.eval.trajectory import Trajectory
     from slam.eval import ate
+    from slam.eval.loops import loop_pose_errors
+    from slam.eval.trajectory import Trajectory
 
     cfg = replace(_BASE, runtime=replace(_BASE.runtime, processes=False, checkpoint_every_keyframes=0),
                   mesh=replace(_BASE.mesh, resolution=2, update_every_keyframes=100))
@@ -204,6 +205,11 @@ def test_two_agents_are_joined_by_a_verified_loop(tmp_path):
         assert c["scores"]["pnp_inliers"] >= cfg.loop.min_inliers
     assert {c["agent"] for c in info["loop_closures"]} <= {0, 1}
     assert any(c["agent"] != c["match_agent"] for c in info["loop_closures"])
+    # Each loop records the relative pose it measured, which ground truth can check (issue 41).
+    errors = loop_pose_errors(info["loop_closures"], lambda agent, index: gt[agent].get(index))
+    assert len(errors) == len(info["loop_closures"])
+    for error in errors:
+        assert error.translation_m < 0.05 and error.rotation_deg < 3.0, error
     est = [read_tum(tmp_path / f"trajectory_{k}.txt") for k in range(2)]
     both = Trajectory(np.concatenate([e.timestamps + 100 * k for k, e in enumerate(est)]),
                       np.concatenate([e.poses for e in est]))

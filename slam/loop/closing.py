@@ -48,12 +48,24 @@ from .pose_graph import PoseNode, RelativePoseEdge, optimise_pose_graph
 from .verification import LoopVerification, frozen_in_map_frame, refinement_tracker, verify_candidate
 
 
+def measured_relative_pose(T_map_match: np.ndarray, T_map_query: np.ndarray) -> dict:
+    """What a verified loop measured, for ``run.json``: the query keyframe's pose in the match
+    keyframe's camera frame (``T_match_query``, 4x4 rows, metres) and its size (distance and
+    angle), so that a loop can be checked against ground truth by its pose error
+    (``slam.eval.loops``), not only by how far apart its frames are."""
+    T = np.linalg.solve(np.asarray(T_map_match, np.float64), np.asarray(T_map_query, np.float64))
+    angle = np.degrees(np.arccos(np.clip((np.trace(T[:3, :3]) - 1) / 2, -1.0, 1.0)))
+    return {"T_match_query": np.round(T, 6).tolist(), "relative_m": round(float(np.linalg.norm(T[:3, 3])), 4),
+            "relative_deg": round(float(angle), 3)}
+
+
 def loop_json(loop: LoopEvent) -> dict:
     """An accepted loop as ``run.json``'s ``loop_closures`` lists it (poses left out)."""
     return {"timestamp": loop.timestamp, "match_timestamp": loop.match_timestamp, "map": loop.map_id,
             "match_map": loop.match_map, "agent": loop.agent, "match_agent": loop.match_agent,
             "frame_index": loop.frame_index, "match_frame_index": loop.match_frame_index,
-            "scores": loop.scores}
+            "T_match_query": loop.scores.get("T_match_query"),
+            "scores": {k: v for k, v in loop.scores.items() if k != "T_match_query"}}
 
 
 @dataclass
@@ -149,6 +161,8 @@ class LoopCloser:
                       "match_frame_index": match_kf.frame_index, "match_timestamp": match_kf.timestamp,
                       "similarity": round(float(cand.similarity), 4), "threshold": round(float(cand.threshold), 4),
                       **result.scores(), "verified": result.accepted, "accepted": result.accepted}
+            if result.T_map_query is not None:
+                record.update(measured_relative_pose(_np(match_kf.T_map_cam), result.T_map_query))
             if result.accepted:
                 assert result.T_map_query is not None
                 self.keyframe_loops.append(KeyframeLoop(
