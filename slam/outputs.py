@@ -4,11 +4,20 @@ Every frame is recorded in the frame of the map it was tracked against; its worl
 composed at the end with that map's final ``T_world_map`` (so loop closure moves it with its
 map), then moved by bundle adjustment's correction of its latest keyframe, and frames whose
 tracking failed are interpolated between their well-tracked neighbours.
+
+While the run goes on, ``write_progress`` rewrites the trajectories so far (the poses as
+tracked, each placed by its map's newest pose) and a ``run.json`` whose ``status`` is
+``running`` at every keyframe (``slam.runtime``), so a killed run leaves the poses up to its
+last keyframe. Every file here is written atomically (a temporary dot-file, then
+``os.replace``): a reader, or a run killed mid-write, never sees half a file. They are not
+fsynced: a killed process loses nothing the kernel has, a power cut may.
 """
 
 from __future__ import annotations
 
 import json
+import os
+import re
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -151,20 +160,96 @@ def _agent_joined(agent: int, stats: "MapperStats | None") -> bool:
     return any(stats.map_groups.get(m) == world for m, a in stats.map_agents.items() if a == agent)
 
 
+def write_text_atomic(path: Path, text: str) -> None:
+    """Replace ``path`` by ``text`` in one step (a dot-file next to it, then ``os.replace``)."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        tmp.write_text(text)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def write_json_atomic(path: Path, data: dict) -> None:
+    write_text_atomic(path, json.dumps(data, indent=2))
+
+
+def read_run_json(out: Path) -> dict | None:
+    """``out/run.json`` as a dict, None when it is missing or unreadable."""
+    try:
+        data = json.loads((Path(out) / "run.json").read_text())
+    except (OSError, ValueError):
+        return None
+    return data if isinstance(data, dict) else None
+
+
+_AGENT_TRAJECTORY = re.compile(r"^trajectory_(\d+)\.txt$")
+
+
+def trajectory_frames(out: Path) -> int:
+    """Poses in a run's trajectory files: every ``trajectory_<k>.txt`` (several agents), else
+    ``trajectory.txt``; 0 when there is none (as ``run.json``'s ``frames`` counts them)."""
+    out = Path(out)
+    files = [p for p in out.glob("trajectory_*.txt") if _AGENT_TRAJECTORY.match(p.name)] or [out / "trajectory.txt"]
+    frames = 0
+    for path in files:
+        try:
+            text = path.read_text()
+        except OSError:
+            continue
+        frames += sum(1 for line in text.splitlines() if line.strip() and not line.lstrip().startswith("#"))
+    return frames
+
+
+def _write_trajectories(out: Path, trajectories: list[AgentTrajectory], several: bool) -> None:
+    """``trajectory.txt`` (agent 0) and with ``several`` agents ``trajectory_<k>.txt`` each."""
+    from .eval.trajectory import Trajectory, format_tum
+
+    for traj in trajectories:
+        text = format_tum(Trajectory(traj.timestamps, traj.poses))
+        if traj.agent == 0:
+            write_text_atomic(out / "trajectory.txt", text)
+        if several:
+            write_text_atomic(out / f"trajectory_{traj.agent}.txt", text)
+
+
+def write_progress(out: Path, config: SLAMConfig, tracks: list["AgentTrack"], map_poses: dict[int, np.ndarray],
+                   *, keyframes: int, maps: int, loops: int, total: int | None, elapsed: float,
+                   last_keyframe: tuple[int, int] | None = None) -> int:
+    """The run so far (module doc): each agent's trajectory as tracked, then a ``run.json``
+    with ``status`` ``running``, the frames in those trajectories, ``keyframes`` seen so far
+    and ``last_keyframe`` (agent, frame index). Returns the frames written."""
+    trajectories = [agent_trajectory(t, None, map_poses, True) for t in tracks if t.records]
+    several = len(tracks) > 1
+    _write_trajectories(out, trajectories, several)
+    frames = sum(len(t.poses) for t in trajectories)
+    write_json_atomic(out / "run.json", {
+        "status": "running",
+        "error": None,
+        "partial": True,
+        "config": config.to_dict(),
+        "frames": frames,
+        "frames_total": total,
+        "keyframes": keyframes,
+        "last_keyframe": None if last_keyframe is None else {"agent": last_keyframe[0], "frame": last_keyframe[1]},
+        "maps": maps,
+        "loops": loops,
+        "agents": [{"agent": t.agent, "frames": len(t.poses),
+                    "trajectory": f"trajectory_{t.agent}.txt" if several else "trajectory.txt"} for t in trajectories],
+        "timings_s": {"wall": elapsed},
+    })
+    return frames
+
+
 def write_outputs(out: Path, config: SLAMConfig, tracks: list["AgentTrack"], stats: "MapperStats | None",
                   status: str, error: str | None, elapsed: float, total: int | None, tracking_busy: float,
                   use_gt_poses: bool, map_poses: dict[int, np.ndarray] | None = None,
                   map_waits: tuple[int, float] = (0, 0.0)) -> "RunResult":
-    from .eval.trajectory import Trajectory, write_tum
     from .runtime import RunResult
 
     trajectories = [agent_trajectory(t, stats, map_poses or {}, use_gt_poses) for t in tracks if t.records]
-    for traj in trajectories:
-        tum = Trajectory(traj.timestamps, traj.poses)
-        if traj.agent == 0:
-            write_tum(out / "trajectory.txt", tum)
-        if len(tracks) > 1:
-            write_tum(out / f"trajectory_{traj.agent}.txt", tum)
+    _write_trajectories(out, trajectories, len(tracks) > 1)
     agents = [{
         "agent": t.agent, "frames": len(t.poses), "trajectory": "trajectory.txt" if len(tracks) == 1 else f"trajectory_{t.agent}.txt",
         "ate_rmse_m": _ate([t]), "joined": _agent_joined(t.agent, stats),
@@ -222,6 +307,6 @@ def write_outputs(out: Path, config: SLAMConfig, tracks: list["AgentTrack"], sta
         "fps": fps,
         "ate_rmse_m": ate_rmse,
     }
-    (out / "run.json").write_text(json.dumps(info, indent=2))
+    write_json_atomic(out / "run.json", info)
     return RunResult(status, error, frames, info["keyframes"], info["maps"], len(closures), fps, out, ate_rmse,
                      agents=max(len(tracks), 1))

@@ -20,8 +20,14 @@ they were tracked against: when a loop moves maps, each frame moves with its map
 frame of the map it integrated the frame into, and that replaces the tracked one.
 
 Outputs in ``out_dir`` (``slam.outputs``): ``trajectory.txt`` (agent 0; and
-``trajectory_<k>.txt`` per agent when there are several), ``mesh.ply``, ``map.pt``
-(rewritten atomically every few keyframes while running), ``run.json``.
+``trajectory_<k>.txt`` per agent when there are several), ``mesh.ply``, ``map.pt``, ``run.json``.
+While running, the trajectories so far and a ``run.json`` that says ``running`` are rewritten
+atomically at every keyframe (before its KeyframeEvent goes out, so whoever counted a keyframe
+finds its poses on disk), and again as soon as a stop or a failure ends the loop (before the
+mapper's final checkpoint and mesh); ``map.pt`` is rewritten atomically every
+``runtime.checkpoint_every_keyframes`` keyframes (10) by the mapping process. A run killed
+outright (SIGKILL) thus leaves every pose tracked up to its last keyframe and the map of at
+most ten keyframes before.
 """
 
 from __future__ import annotations
@@ -39,13 +45,13 @@ import torch
 from .config import SLAMConfig
 from .data.frame import Frame
 from .data.io import resize_rgbd
-from .events import Event, FinishedEvent, PhaseEvent, PoseEvent, StatsEvent, SubmapEvent
+from .events import Event, FinishedEvent, KeyframeEvent, PhaseEvent, PoseEvent, StatsEvent, SubmapEvent
 from .features import FeatureOdometry
 from .frames import prepare_frame
 from .mapping import MapSnapshot
 from .mapping_process import FrameMessage, FramePose, InlineMapper, MapperFailed, MapperStats, ProcessMapper
 from .mapping_process import set_threads as _set_threads
-from .outputs import FrameRecord, refine_with_keyframes, running_ate, write_outputs
+from .outputs import FrameRecord, refine_with_keyframes, running_ate, write_outputs, write_progress
 from .loop.keyframe_graph import frame_covariance
 from .tracking import FrozenMap, Tracker, constant_velocity_guess
 
@@ -141,6 +147,12 @@ class _TrackingSide:
     frames_integrated: int = 0
     map_waits: int = 0
     map_wait_seconds: float = 0.0
+    keyframes_seen: int = 0
+    """KeyframeEvents the mapper has sent so far."""
+    last_keyframe: tuple[int, int] | None = None
+    """(agent, frame index) of the newest of them."""
+    on_keyframe: Callable[[], None] | None = None
+    """Called for each KeyframeEvent before it is emitted (``run_slam`` writes the progress)."""
 
     def frozen_map(self, map_id: int) -> FrozenMap:
         """The tracker's copy of a map, rebuilt only when a newer snapshot arrived, placed
@@ -220,6 +232,11 @@ def _handle_replies(replies: list[tuple[str, object]], side: _TrackingSide, emit
         elif kind == "event":
             if isinstance(payload, LoopEvent):
                 side.loops += 1
+            elif isinstance(payload, KeyframeEvent):
+                side.keyframes_seen += 1
+                side.last_keyframe = (int(payload.agent), int(payload.frame_index))
+                if side.on_keyframe is not None:
+                    side.on_keyframe()
             emit(payload)  # type: ignore[arg-type]
         elif kind == "done":
             side.mapper_stats = payload  # type: ignore[assignment]
@@ -428,6 +445,7 @@ def run_slam(sources: list[Iterable[Frame]], config: SLAMConfig, out_dir: str | 
         mapper_cls = ProcessMapper if processes else InlineMapper
         channel = mapper_cls(config, device, out, on_event is not None, config.runtime.seed)
         side = _TrackingSide(config, device, Tracker(config, device, seed=config.runtime.seed))
+        side.on_keyframe = lambda: _write_progress(out, side, total, started)
         emit(PhaseEvent("tracking"))
         for agent, raw in _interleave(sources):
             if stop is not None and stop.is_set():
@@ -466,6 +484,10 @@ def run_slam(sources: list[Iterable[Frame]], config: SLAMConfig, out_dir: str | 
         # A source that ends because of the stop (a live stream) is a stop, not the end of the
         # input: skip the final refinement, which would hold up the stop for minutes.
         status = "cancelled"
+    if status != "finished" and side is not None:
+        # Stopped (a server's SIGTERM, a cancel) or failed: the poses first, in milliseconds,
+        # before the mapper's checkpoint and mesh, which may not finish before a kill.
+        _write_progress(out, side, total, started)
     if channel is not None:
         try:
             if side is not None and (status != "failed" or side.snapshots):
@@ -494,6 +516,18 @@ def run_slam(sources: list[Iterable[Frame]], config: SLAMConfig, out_dir: str | 
         emit(_stats_event(side, total, result.fps, started, done, ate=result.ate_rmse))
     emit(FinishedEvent(status, error))
     return result
+
+
+def _write_progress(out: Path, side: _TrackingSide, total: int | None, started: float) -> None:
+    """The trajectories so far and a ``running`` run.json (``slam.outputs.write_progress``);
+    a write that fails is said on stderr and the run goes on."""
+    tracks = sorted(side.agents.values(), key=lambda t: t.agent)
+    try:
+        write_progress(out, side.config, tracks, side.map_poses, keyframes=side.keyframes_seen,
+                       maps=max(side.next_map_id, 1), loops=side.loops, total=total,
+                       elapsed=time.perf_counter() - started, last_keyframe=side.last_keyframe)
+    except OSError as error:
+        print(f"voxfusion: cannot write the progress to {out}: {error}", file=sys.stderr, flush=True)
 
 
 def describe_refinement(refinement) -> str:
