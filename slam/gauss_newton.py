@@ -308,7 +308,7 @@ def _assemble(rendered: RenderedJacobians, rgb_gt, depth_gt, ray_weight, lw: Los
 
 def damped_step(lin: Linearisation, damping: float) -> torch.Tensor:
     """The Levenberg-Marquardt step (6,): -(H + damping * diag(H))^-1 g."""
-    H = lin.H + damping * torch.diag(torch.diagonal(lin.H)) + 1e-9 * torch.eye(6, dtype=lin.H.dtype)
+    H = lin.H + damping * torch.diag(torch.diagonal(lin.H)) + 1e-9 * torch.eye(6, dtype=lin.H.dtype, device=lin.H.device)
     return -torch.linalg.solve(H, lin.g)
 
 

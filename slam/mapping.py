@@ -43,6 +43,7 @@ from .frames import (
 from .geometry import se3_exp, se3_inverse
 from .losses import LossWeights, Losses, compute_losses
 from .maps import Keyframe, MapSet, SubMap
+from .profiling import MAPPING_ITERATION, scope
 from .render import TrainingThinning, render_rays
 from .voxels import grow_adam_state, lookup_sorted, morton_encode, voxel_coords_of
 
@@ -371,44 +372,45 @@ class Mapper:
         losses: Losses | None = None
         self.last_iterations = 0
         for _ in range(iterations):
-            tq = time.perf_counter()
-            if (deadline is not None and tq > deadline) or (interrupted is not None and interrupted()):
-                break
-            self.last_iterations += 1
-            batch = self._sample(sources, stack, rays_per_frame)
-            T = T_start
-            if free:
-                xi = torch.zeros(len(sources), 6, device=self.device).index_copy(0, free_rows, twists)
-                T = T_start @ se3_exp(xi)
-            dirs_cam = batch.dirs_cam.reshape(len(sources), rays_per_frame, 3)
-            d = (dirs_cam @ T[:, :3, :3].transpose(1, 2)).reshape(-1, 3)
-            o = T[:, None, :3, 3].expand(-1, rays_per_frame, 3).reshape(-1, 3)
-            c_gt, d_gt = batch.rgb, batch.depth
-            n = o.shape[0]
-            thinning = None
-            if m.thin_samples:
-                phase = torch.randint(m.free_space_stride, (n,), generator=self._gen).to(self.device)
-                thinning = TrainingThinning(d_gt, r.truncation, r.max_distance, m.free_space_stride, phase)
-            out = render_rays(o, d, submap.view(), submap.decoder,
-                              near=torch.full((n,), 0.05, device=self.device),
-                              far=training_far(d_gt, r.truncation, r.max_distance),
-                              step=r.step_ratio * submap.voxels.voxel_size, truncation=r.truncation,
-                              max_hits=r.max_hits, offsets=torch.rand(n, generator=self._gen).to(self.device),
-                              mask_in_front=r.mask_in_front, thinning=thinning,
-                              color_weight_eps=m.color_weight_eps, renormalise_color=True)
-            losses = compute_losses(out, c_gt, d_gt, r.truncation, weights, max_depth=r.max_distance,
-                                    normalisation=self.config.loss.normalisation)
-            tb = time.perf_counter()
-            optimizer.zero_grad(set_to_none=True)
-            if pose_opt is not None:
-                pose_opt.zero_grad(set_to_none=True)
-            losses.total.backward()
-            self._count_corner_updates(submap)
-            optimizer.step()
-            if pose_opt is not None:
-                pose_opt.step()
-            self.timer.add("render", tb - tq)
-            self.timer.add("backward", time.perf_counter() - tb)
+            with scope(MAPPING_ITERATION):
+                tq = time.perf_counter()
+                if (deadline is not None and tq > deadline) or (interrupted is not None and interrupted()):
+                    break
+                self.last_iterations += 1
+                batch = self._sample(sources, stack, rays_per_frame)
+                T = T_start
+                if free:
+                    xi = torch.zeros(len(sources), 6, device=self.device).index_copy(0, free_rows, twists)
+                    T = T_start @ se3_exp(xi)
+                dirs_cam = batch.dirs_cam.reshape(len(sources), rays_per_frame, 3)
+                d = (dirs_cam @ T[:, :3, :3].transpose(1, 2)).reshape(-1, 3)
+                o = T[:, None, :3, 3].expand(-1, rays_per_frame, 3).reshape(-1, 3)
+                c_gt, d_gt = batch.rgb, batch.depth
+                n = o.shape[0]
+                thinning = None
+                if m.thin_samples:
+                    phase = torch.randint(m.free_space_stride, (n,), generator=self._gen).to(self.device)
+                    thinning = TrainingThinning(d_gt, r.truncation, r.max_distance, m.free_space_stride, phase)
+                out = render_rays(o, d, submap.view(), submap.decoder,
+                                  near=torch.full((n,), 0.05, device=self.device),
+                                  far=training_far(d_gt, r.truncation, r.max_distance),
+                                  step=r.step_ratio * submap.voxels.voxel_size, truncation=r.truncation,
+                                  max_hits=r.max_hits, offsets=torch.rand(n, generator=self._gen).to(self.device),
+                                  mask_in_front=r.mask_in_front, thinning=thinning,
+                                  color_weight_eps=m.color_weight_eps, renormalise_color=True)
+                losses = compute_losses(out, c_gt, d_gt, r.truncation, weights, max_depth=r.max_distance,
+                                        normalisation=self.config.loss.normalisation)
+                tb = time.perf_counter()
+                optimizer.zero_grad(set_to_none=True)
+                if pose_opt is not None:
+                    pose_opt.zero_grad(set_to_none=True)
+                losses.total.backward()
+                self._count_corner_updates(submap)
+                optimizer.step()
+                if pose_opt is not None:
+                    pose_opt.step()
+                self.timer.add("render", tb - tq)
+                self.timer.add("backward", time.perf_counter() - tb)
         frame_poses = [T for _, T in fixed]
         if free:
             with torch.no_grad():

@@ -40,6 +40,7 @@ from .geometry import se3_exp, se3_inverse, se3_log
 from .losses import LossWeights, compute_losses
 from .mapping import MapSnapshot, training_far
 from .maps import optimised_voxel_mask
+from .profiling import TRACKING_ITERATION, scope
 from .render import MapView, render_rays
 from .voxels import lookup_sorted, morton_encode, voxel_coords_of
 
@@ -145,7 +146,8 @@ def interior_rays(T_map_cam: torch.Tensor, dirs_cam: torch.Tensor, depth: torch.
     decides the pose, and the camera lags behind its true motion frame after frame.
     """
     p = (dirs_cam * depth[:, None]) @ T_map_cam[:3, :3].T + T_map_cam[:3, 3]
-    shifts = torch.cat([torch.zeros(1, 3), torch.eye(3) * margin, -torch.eye(3) * margin]).to(p)
+    eye = torch.eye(3, dtype=p.dtype, device=p.device)
+    shifts = torch.cat([torch.zeros_like(eye[:1]), eye * margin, -eye * margin])
     codes = morton_encode(voxel_coords_of((p[:, None, :] + shifts).reshape(-1, 3), view.voxel_size))
     return (lookup_sorted(view.voxel_codes, codes) >= 0).reshape(-1, shifts.shape[0]).all(1)
 
@@ -256,28 +258,29 @@ class Tracker:
         start = linearise_at(T0_map, inlier, rendered0)
         if c.motion_prior > 0:
             prior = MotionPrior.scaled_to(start, c.motion_prior)
-            start = prior.added_to(start, torch.zeros(6, dtype=T0_map.dtype))
+            start = prior.added_to(start, torch.zeros(6, dtype=T0_map.dtype, device=T0_map.device))
         T, best = T0_map, start
         damping = c.lm_damping
         it = 0
         for it in range(1, c.iterations + 1):
-            delta = limit_step(damped_step(best, damping), c.max_step_m, c.max_step_rad)
-            if not bool(torch.isfinite(delta).all()):
-                break
-            if float(delta.norm()) < c.convergence_tol:
-                # Converged: a step this small would change the pose by less than the
-                # tolerance whether it is accepted or not, so it is not worth a render (on
-                # fr1/rpy the third step is 1e-7-1e-5 and changes the loss by < 1e-5).
-                break
-            T_new = T @ se3_exp(delta)
-            cand = linearise_at(T_new, inlier)
-            if cand.cost < best.cost:
-                T, best = T_new, cand
-                damping = max(damping / 3.0, 1e-7)
-            else:
-                damping *= 10.0
-                if damping > 1e3:
+            with scope(TRACKING_ITERATION):
+                delta = limit_step(damped_step(best, damping), c.max_step_m, c.max_step_rad)
+                if not bool(torch.isfinite(delta).all()):
                     break
+                if float(delta.norm()) < c.convergence_tol:
+                    # Converged: a step this small would change the pose by less than the
+                    # tolerance whether it is accepted or not, so it is not worth a render (on
+                    # fr1/rpy the third step is 1e-7-1e-5 and changes the loss by < 1e-5).
+                    break
+                T_new = T @ se3_exp(delta)
+                cand = linearise_at(T_new, inlier)
+                if cand.cost < best.cost:
+                    T, best = T_new, cand
+                    damping = max(damping / 3.0, 1e-7)
+                else:
+                    damping *= 10.0
+                    if damping > 1e3:
+                        break
         hit_ratio = float(best.hit.float().mean())
         residual_med = float(best.residual[best.hit].median()) if bool(best.hit.any()) else float("inf")
         H = best.H if prior is None else best.H - torch.diag(2 * prior.w).to(best.H.dtype)
@@ -299,37 +302,38 @@ class Tracker:
         batch = sample_pixels(frame, c.num_rays, self._gen)
         near, far = tracking_bounds(batch.depth, r.truncation, c.sample_band, r.max_distance)
         for it in range(1, c.iterations + 1):
-            T = T0_map @ se3_exp(torch.cat([rho, phi]))
-            if c.resample_rays and it > 1:
-                batch = sample_pixels(frame, c.num_rays, self._gen)
-                near, far = tracking_bounds(batch.depth, r.truncation, c.sample_band, r.max_distance)
-            n = batch.depth.shape[0]
-            dirs = batch.dirs_cam @ T[:3, :3].T
-            origins = T[:3, 3].expand(n, 3)
-            out = render_rays(origins, dirs, fmap.view, fmap.decoder, near=near, far=far,
-                              step=step, truncation=r.truncation, max_hits=r.max_hits,
-                              color_weight_eps=c.color_weight_eps, mask_in_front=r.mask_in_front,
-                              renormalise_color=True)
-            residual = (out.depth.detach() - batch.depth).abs()
-            hit = out.hit & (out.weight_sum.detach() > 1e-3)
-            hit_ratio = float(hit.float().mean())
-            if not bool(hit.any()):
-                break
-            med = residual[hit].median()
-            inlier = hit & (residual <= c.outlier_factor * med + 1e-6)
-            losses = compute_losses(out, batch.rgb, batch.depth, r.truncation, self.weights,
-                                    ray_weight=inlier.float(), max_depth=r.max_distance)
-            total = losses.total if sparse is None else losses.total + sparse.cost(T)
-            loss = float(total.detach())
-            if loss < best[0]:
-                best = (loss, T.detach().clone(), hit_ratio, float(med))
-            opt.zero_grad(set_to_none=True)
-            total.backward()
-            prev = torch.cat([rho, phi]).detach().clone()
-            opt.step()
-            sched.step()
-            if float((torch.cat([rho, phi]).detach() - prev).norm()) < c.convergence_tol:
-                break
+            with scope(TRACKING_ITERATION):
+                T = T0_map @ se3_exp(torch.cat([rho, phi]))
+                if c.resample_rays and it > 1:
+                    batch = sample_pixels(frame, c.num_rays, self._gen)
+                    near, far = tracking_bounds(batch.depth, r.truncation, c.sample_band, r.max_distance)
+                n = batch.depth.shape[0]
+                dirs = batch.dirs_cam @ T[:3, :3].T
+                origins = T[:3, 3].expand(n, 3)
+                out = render_rays(origins, dirs, fmap.view, fmap.decoder, near=near, far=far,
+                                  step=step, truncation=r.truncation, max_hits=r.max_hits,
+                                  color_weight_eps=c.color_weight_eps, mask_in_front=r.mask_in_front,
+                                  renormalise_color=True)
+                residual = (out.depth.detach() - batch.depth).abs()
+                hit = out.hit & (out.weight_sum.detach() > 1e-3)
+                hit_ratio = float(hit.float().mean())
+                if not bool(hit.any()):
+                    break
+                med = residual[hit].median()
+                inlier = hit & (residual <= c.outlier_factor * med + 1e-6)
+                losses = compute_losses(out, batch.rgb, batch.depth, r.truncation, self.weights,
+                                        ray_weight=inlier.float(), max_depth=r.max_distance)
+                total = losses.total if sparse is None else losses.total + sparse.cost(T)
+                loss = float(total.detach())
+                if loss < best[0]:
+                    best = (loss, T.detach().clone(), hit_ratio, float(med))
+                opt.zero_grad(set_to_none=True)
+                total.backward()
+                prev = torch.cat([rho, phi]).detach().clone()
+                opt.step()
+                sched.step()
+                if float((torch.cat([rho, phi]).detach() - prev).norm()) < c.convergence_tol:
+                    break
         if not c.keep_best_iterate and np.isfinite(best[0]):
             # The release's choice: the pose after the last step (its loss and ray statistics
             # are those of the last evaluated iterate, one step before).

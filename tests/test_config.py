@@ -183,3 +183,33 @@ def test_issue_21_switches_take_the_measured_winners_and_validate():
         apply_overrides(preset("cpu"), {"render": {"mask_in_front": 1}})
     with pytest.raises(ConfigError, match=r"mapping\.optimize_current_pose must be true or false"):
         dataclasses.replace(preset("cpu").mapping, optimize_current_pose="yes")
+
+
+def shrunk(config: SLAMConfig) -> SLAMConfig:
+    """``config`` cut to a few rays and iterations at 80 px wide, its decoder, tracker and
+    losses kept: a smoke run of a preset's code paths in seconds."""
+    r = dataclasses.replace
+    return r(config,
+             tracking=r(config.tracking, num_rays=min(config.tracking.num_rays, 96),
+                        iterations=min(config.tracking.iterations, 3), feature_count=min(config.tracking.feature_count, 300),
+                        feature_min_inliers=min(config.tracking.feature_min_inliers, 8)),
+             mapping=r(config.mapping, num_rays=min(config.mapping.num_rays, 64), iterations=2,
+                       first_frame_iterations=5, final_iterations=min(config.mapping.final_iterations, 2),
+                       final_rays=min(config.mapping.final_rays, 128)),
+             loop=r(config.loop, geometry_rays=64, inter_map_iterations=2, intra_map_iterations=0),
+             mesh=r(config.mesh, resolution=2, update_every_keyframes=100),
+             runtime=r(config.runtime, input_width=80, processes=False))
+
+
+@pytest.mark.parametrize("name", sorted(PRESETS))
+def test_every_preset_shrunk_runs_on_the_cpu(tmp_path, name):
+    """Each preset's decoder, tracker and mapping step run end to end (issue 40: the ``gpu``
+    preset too, which no test here can run on its GPU)."""
+    from slam.data import open_sequence
+    from slam.runtime import run_slam
+
+    config = shrunk(preset(name))
+    config = dataclasses.replace(config, runtime=dataclasses.replace(config.runtime, device="cpu"))
+    result = run_slam([open_sequence("synthetic:walk?frames=4&width=160&height=120")], config, tmp_path)
+    assert result.status == "finished", result.error
+    assert result.frames == 4

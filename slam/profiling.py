@@ -1,0 +1,132 @@
+"""Counting what the inner loops ask of the device (issue 40).
+
+The tracker's and the mapper's iterations run inside named scopes (``scope``): a profiler
+range (``torch.profiler.record_function``, about a microsecond when no profiler runs) and a
+thread-local name that ``HostReadCounter`` reads. Two counts, both taken on the CPU, so that
+no change ever adds a host sync unnoticed even where no GPU is at hand:
+
+* ``aten_counts``: from a ``torch.profiler`` trace, the aten operators and the device-to-host
+  reads among them (``aten::_local_scalar_dense``, under ``float()``, ``bool()``, ``.item()``;
+  ``aten::nonzero``, under boolean indexing and ``torch.nonzero``), per scope and in all;
+* ``HostReadCounter``: Python-level reads of a tensor's values into the host (``bool``,
+  ``float``, ``int``, ``.item()``, ``.tolist()``, ``.numpy()``, ``.cpu()``, ``__array__``),
+  which on a CPU tensor dispatch no aten operator a profiler could see (``.tolist()``,
+  ``.numpy()``, ``.cpu()``) but copy and synchronise on a GPU.
+
+``benchmarks/bench_syncs.py`` reports both per iteration and per frame; ``tests/test_syncs.py``
+holds the device path's iterations at zero.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import threading
+from collections import Counter
+from dataclasses import dataclass, field
+from typing import Iterator
+
+import torch
+from torch.overrides import TorchFunctionMode
+
+TRACKING_ITERATION = "voxfusion.tracking.iteration"
+"""One step of the tracker's optimiser (Adam or Levenberg-Marquardt)."""
+MAPPING_ITERATION = "voxfusion.mapping.iteration"
+"""One step of the joint optimisation of the mapper (window or global bundle adjustment)."""
+
+SYNC_OPS = ("aten::_local_scalar_dense", "aten::nonzero")
+"""The aten operators that read device memory into the host (``aten::item`` calls the first;
+it is listed by ``aten_counts`` but not added again)."""
+
+HOST_READS = frozenset({"__bool__", "__float__", "__int__", "__index__", "__complex__", "item", "tolist",
+                        "numpy", "cpu", "__array__"})
+"""Tensor methods that bring its values to the host."""
+
+_local = threading.local()
+
+
+def current_scope() -> str | None:
+    """The innermost ``scope`` this thread is in (None: none)."""
+    stack = getattr(_local, "stack", None)
+    return stack[-1] if stack else None
+
+
+@contextlib.contextmanager
+def scope(name: str) -> Iterator[None]:
+    """A profiler range named ``name`` that ``HostReadCounter`` also sees."""
+    stack = getattr(_local, "stack", None)
+    if stack is None:
+        stack = _local.stack = []
+    stack.append(name)
+    try:
+        with torch.profiler.record_function(name):
+            yield
+    finally:
+        stack.pop()
+
+
+@dataclass
+class ScopeCounts:
+    """Operators counted inside the ranges of one name (or in all, ``scope=None``)."""
+
+    ranges: int = 0
+    aten_ops: int = 0
+    syncs: int = 0
+    """``SYNC_OPS`` summed."""
+    by_op: Counter = field(default_factory=Counter)
+    """Every sync-like operator (``SYNC_OPS`` and ``aten::item``) by name."""
+
+    def per_range(self) -> dict[str, float]:
+        n = max(self.ranges, 1)
+        return {"ranges": self.ranges, "aten_ops": self.aten_ops / n, "syncs": self.syncs / n}
+
+
+def aten_counts(events, names: tuple[str, ...] = (TRACKING_ITERATION, MAPPING_ITERATION)) -> dict[str | None, ScopeCounts]:
+    """Aten operators and device-to-host reads of a profiler trace (``prof.events()``), in all
+    (key None) and inside the ranges of each of ``names`` (an operator counts for the
+    innermost named range around it)."""
+    out: dict[str | None, ScopeCounts] = {None: ScopeCounts()}
+    out.update({n: ScopeCounts() for n in names})
+    for ev in events:
+        name = ev.name
+        if name in out and name is not None:
+            out[name].ranges += 1
+            continue
+        if not name.startswith("aten::"):
+            continue
+        targets = [out[None]]
+        parent = ev.cpu_parent
+        while parent is not None:
+            if parent.name in out:
+                targets.append(out[parent.name])
+                break
+            parent = parent.cpu_parent
+        sync = name in SYNC_OPS
+        for counts in targets:
+            counts.aten_ops += 1
+            if sync:
+                counts.syncs += 1
+            if sync or name == "aten::item":
+                counts.by_op[name] += 1
+    return out
+
+
+class HostReadCounter(TorchFunctionMode):
+    """Counts ``HOST_READS`` calls, in all and by the ``scope`` they happen in.
+
+    ``reads[None]`` is the total; ``reads[name]`` those inside ``scope(name)``;
+    ``where[name]`` the method names seen there (for a failing test's message)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.reads: Counter = Counter()
+        self.where: dict[str | None, Counter] = {}
+
+    def __torch_function__(self, func, types, args=(), kwargs=None):
+        name = getattr(func, "__name__", "")
+        if name in HOST_READS:
+            where = current_scope()
+            self.reads[None] += 1
+            if where is not None:
+                self.reads[where] += 1
+                self.where.setdefault(where, Counter())[name] += 1
+        return func(*args, **(kwargs or {}))
