@@ -24,7 +24,7 @@ from server.decoding import shared_helper
 from server.errors import error_text, validation_message
 from server.rendering import MapCache, MeshFiles, NoMapYet
 from server.routes_pages import STATIC_DIR
-from server.sessions import SessionConflict, SessionManager, SessionNotFound
+from server.sessions import SessionConflict, SessionManager, SessionNotFound, register_error_handlers
 from server.settings import Settings, settings_from_env
 from server.upload import UploadError
 from server.viewer import ViewerAdapter
@@ -107,6 +107,7 @@ def _error_handlers(app: FastAPI) -> None:
     app.add_exception_handler(SessionNotFound, detail(404))
     app.add_exception_handler(SessionConflict, detail(409))
     app.add_exception_handler(NoMapYet, detail(409))
+    register_error_handlers(app)  # QueueFull -> 429 with Retry-After
 
 
 _BODY_ERRORS = {"400": "the body cannot be parsed (not JSON, not UTF-8, nested too deeply, a broken form)",

@@ -244,7 +244,11 @@ def _json_spec(body: SessionCreateJSON) -> tuple[list[SourceSpec], str]:
 @router.post("", status_code=status.HTTP_201_CREATED, response_model=SessionCreated,
              openapi_extra=_CREATE_OPENAPI,
              responses={400: {"model": ErrorOut}, 413: {"model": ErrorOut}, 415: {"model": ErrorOut},
-                        422: {"model": ErrorOut}},
+                        422: {"model": ErrorOut},
+                        429: {"model": ErrorOut, "description": "the queue of sessions waiting to start is full "
+                                                                "(VOXFUSION_MAX_QUEUED); retry after Retry-After seconds",
+                              "headers": {"Retry-After": {"schema": {"type": "integer"},
+                                                          "description": "seconds to wait"}}}},
              summary="Create a session from a dataset zip, the synthetic source or a stream")
 async def create_session(request: Request, manager: SessionManager = Depends(get_manager),
                          settings: Settings = Depends(get_settings)) -> SessionCreated:
@@ -254,6 +258,7 @@ async def create_session(request: Request, manager: SessionManager = Depends(get
     part in the order given; a JSON ``spec`` list is one synthetic agent per spec. Every zip is
     validated and its first frame read before the session is queued; every problem is a 4xx
     that says what is wrong (and which part)."""
+    manager.check_queue_room()  # 429 before a large upload is read, not after
     content_type = request.headers.get("content-type", "")
     session_id = new_session_id()
     if content_type.startswith("multipart/form-data"):

@@ -11,6 +11,11 @@ not care which. One supervisor thread in the API process
 * kills the process group of a cancelled worker that outlives the grace period,
 * starts queued sessions while fewer than ``max_sessions`` run.
 
+The queue holds at most ``max_queued`` sessions (``VOXFUSION_MAX_QUEUED``): ``create`` raises
+:class:`QueueFull` beyond (429 with ``Retry-After``, ``register_error_handlers``). A queued
+session holds no descriptor: its execution (the worker's queues and pipes) is made when it
+starts; a queued stream's frames wait in its ``StreamInput``'s buffer until then.
+
 Outputs live in ``DATA_DIR/sessions/<id>/`` (``session.json`` metadata, ``input/``, and the
 runtime's ``trajectory.txt``, ``mesh.ply``, ``map.pt``, ``run.json``), so finished sessions are
 listed again after a restart. A session that was queued or running when the server went away
@@ -18,6 +23,17 @@ listed again after a restart. A session that was queued or running when the serv
 so a user can tell it from a session they cancelled; ``worker.pid`` in the folder names the
 worker's process group while it runs, so that a restart can end a worker that outlived its
 server (a worker also ends itself when its server is gone: ``server.worker``).
+
+Once a session has ended (and for an interrupted one, at the restart) the status is settled
+against the folder (``_settle_outputs``): ``frames_done`` is the number of poses in its
+trajectory files, ``keyframes``/``maps``/``loops`` are ``run.json``'s, and ``run.json`` gets the
+session's ``status`` and ``error`` (it is written when the run left none), so the three agree.
+The runtime rewrites the trajectory and a ``run.json`` that says ``running`` atomically at each
+keyframe, so a SIGKILL loses at most the frames tracked after the last keyframe.
+
+``request_shutdown`` (called from the server's SIGTERM/SIGINT handler, ``server.cli``) asks
+every running session to stop at once, before uvicorn has drained its connections; ``stop``
+then waits for them until ``grace_s`` after that request and kills the rest.
 
 ``phase`` refines ``running``: ``tracking`` (frames are read), ``refining`` (the final bundle
 adjustment and mesh), ``writing`` (trajectories, ``run.json``); ``queued`` before and ``done``
@@ -94,6 +110,30 @@ class SessionConflict(RuntimeError):
     """The session is in a state where the request makes no sense (409)."""
 
 
+QUEUE_RETRY_AFTER_S = 30
+"""The ``Retry-After`` of a 429 for a full queue (a queued session waits minutes, not seconds)."""
+
+
+class QueueFull(RuntimeError):
+    """``max_queued`` sessions wait already: 429 with ``Retry-After`` (``register_error_handlers``)."""
+
+    def __init__(self, message: str, retry_after_s: int = QUEUE_RETRY_AFTER_S) -> None:
+        super().__init__(message)
+        self.retry_after_s = retry_after_s
+
+
+def register_error_handlers(app) -> None:
+    """Add the manager's own HTTP answers to a FastAPI ``app``: :class:`QueueFull` -> 429
+    ``{"detail": ...}`` with ``Retry-After`` (``server.main`` calls this with its handlers)."""
+    from fastapi.responses import JSONResponse
+
+    async def queue_full(request, error: QueueFull) -> JSONResponse:
+        return JSONResponse({"detail": str(error)}, status_code=429,
+                            headers={"Retry-After": str(error.retry_after_s)})
+
+    app.add_exception_handler(QueueFull, queue_full)
+
+
 @dataclass(frozen=True)
 class SessionStatus:
     """What the API reports for a session (also the content of ``session.json``)."""
@@ -162,7 +202,8 @@ class _Session:
     directory: Path
     job: WorkerJob
     execution: Execution | None = None
-    """Made when the session is queued, dropped once it ended (``_release_ipc``)."""
+    """Made when the session starts (none while queued: no pipes), dropped once it ended
+    (``_release_ipc``)."""
     active: bool = False
     """Its execution was started and has not been reaped yet."""
     stream: StreamInput | None = None
@@ -195,7 +236,8 @@ class _Session:
 
     @property
     def frame_queue(self):
-        return None if self.execution is None else self.execution.frame_queue
+        """Where a stream's frames go now: the worker's queue, or the buffer while queued."""
+        return None if self.stream is None else self.stream.frame_queue
 
 
 def new_session_id() -> str:
@@ -235,6 +277,10 @@ class SessionManager:
         """Deleted sessions whose workers are still stopping (no longer listed)."""
         self._thread: threading.Thread | None = None
         self._stopping = threading.Event()
+        self._shutdown = threading.Event()
+        """Set by ``request_shutdown`` (a signal handler): the supervisor stops every session."""
+        self._shutdown_at: float | None = None
+        self._shutdown_done = False
 
     # -- lifecycle ---------------------------------------------------------------------------
 
@@ -245,23 +291,42 @@ class SessionManager:
         self._thread = threading.Thread(target=self._supervise, name="session-supervisor", daemon=True)
         self._thread.start()
 
+    def request_shutdown(self) -> None:
+        """The server is going to stop (SIGTERM): stop every session now, so that workers write
+        their outputs while uvicorn still drains connections. Safe in a signal handler (it only
+        sets an event; the supervisor does the rest within a tick)."""
+        if self._shutdown_at is None:
+            self._shutdown_at = time.monotonic()
+        self._shutdown.set()
+
+    def _interrupt_all(self) -> list[_Session]:
+        """Ask every running session to stop as interrupted and fail the queued ones (under
+        the lock); returns the sessions whose workers are stopping."""
+        self._shutdown_done = True
+        running = [s for s in self._sessions.values() if s.active] + self._stopping_sessions
+        for session in running:
+            # A worker that already reported its end keeps it; a user's cancel stays one.
+            if session.end_reason is None and session.cancel_requested_at is None and session.done is None:
+                waiting = session.status.status == "queued"  # handed to Ray, no node yet
+                session.end_reason = ("failed", INTERRUPTED_QUEUED if waiting else INTERRUPTED_RUNNING)
+            self._request_stop(session, "the server is stopping")
+        for session_id in list(self._queue):
+            session = self._sessions[session_id]
+            self._set_status(session, "failed", INTERRUPTED_QUEUED)
+            if session.stream is not None:
+                session.stream.end("failed", INTERRUPTED_QUEUED)
+            self._release_ipc(session)
+        self._queue.clear()
+        return running
+
     def stop(self, grace_s: float = 5.0) -> None:
         """Stop running sessions (they end as ``failed``, "interrupted: ...", with what they
-        wrote so far: not ``cancelled``, which is a user's doing), wait up to ``grace_s``,
-        kill the rest; queued ones are failed the same way."""
+        wrote so far: not ``cancelled``, which is a user's doing), wait for them until
+        ``grace_s`` after ``request_shutdown`` (or after now), kill the rest; queued ones are
+        failed the same way."""
         with self._lock:
-            running = [s for s in self._sessions.values() if s.active] + self._stopping_sessions
-            for session in running:
-                # A worker that already reported its end keeps it; a user's cancel stays one.
-                if session.end_reason is None and session.cancel_requested_at is None and session.done is None:
-                    waiting = session.status.status == "queued"  # handed to Ray, no node yet
-                    session.end_reason = ("failed", INTERRUPTED_QUEUED if waiting else INTERRUPTED_RUNNING)
-                self._request_stop(session)
-            for session_id in list(self._queue):
-                self._set_status(self._sessions[session_id], "failed", INTERRUPTED_QUEUED)
-                self._release_ipc(self._sessions[session_id])
-            self._queue.clear()
-        deadline = time.monotonic() + grace_s
+            running = self._interrupt_all()
+        deadline = (self._shutdown_at if self._shutdown_at is not None else time.monotonic()) + grace_s
         while time.monotonic() < deadline and any(s.active for s in running):
             time.sleep(_SUPERVISOR_TICK_S)
         self._stopping.set()
@@ -285,13 +350,16 @@ class SessionManager:
             except (OSError, ValueError, TypeError, KeyError) as error:
                 print(f"voxfusion: skipping unreadable {meta}: {error}")
                 continue
-            if status.status not in ENDED:
+            interrupted = status.status not in ENDED
+            if interrupted:
                 end_orphaned_worker(meta.parent)
                 status = replace(status, status="failed", phase="done",
                                  error=INTERRUPTED_QUEUED if status.status == "queued" else INTERRUPTED_RUNNING)
             job = WorkerJob(session_id=status.id, sources=status.sources, preset=status.preset,
                             out_dir=str(meta.parent))
             session = _Session(status=status, directory=meta.parent, job=job)
+            if interrupted:
+                self._settle_outputs(session)
             self._sessions[status.id] = session
             self._persist(session)
 
@@ -300,12 +368,32 @@ class SessionManager:
     def session_dir(self, session_id: str) -> Path:
         return self.settings.sessions_dir / check_session_id(session_id)
 
+    def check_queue_room(self) -> None:
+        """Raise QueueFull when ``max_queued`` sessions wait already (``create`` checks it too;
+        a route may call it before it reads a large upload)."""
+        with self._lock:
+            waiting = len(self._queue)
+        if waiting >= self.settings.max_queued:
+            raise QueueFull(f"the queue is full: {waiting} sessions are waiting to start "
+                            f"(VOXFUSION_MAX_QUEUED={self.settings.max_queued}); retry later")
+
     def create(self, session_id: str, spec: SourceSpec | Sequence[SourceSpec], preset: str) -> SessionStatus:
         """Register and queue a session whose folder (with ``input/`` for uploads) exists.
 
-        ``spec``: one source, or one per agent (agent k = k-th) for a collaborative session."""
+        ``spec``: one source, or one per agent (agent k = k-th) for a collaborative session.
+        Raises QueueFull when ``max_queued`` sessions wait already; the folder made for this
+        one is removed then. Nothing that holds a descriptor is made here (``_start_queued``)."""
         specs = (spec,) if isinstance(spec, SourceSpec) else tuple(spec)
         directory = self.session_dir(session_id)
+        with self._lock:
+            try:
+                self.check_queue_room()
+            except QueueFull:
+                if session_id not in self._sessions:
+                    import shutil
+
+                    shutil.rmtree(directory, ignore_errors=True)
+                raise
         job = WorkerJob(session_id=session_id, sources=specs, preset=preset, out_dir=str(directory))
         spec = specs[0]
         directory.mkdir(parents=True, exist_ok=True)
@@ -314,12 +402,14 @@ class SessionManager:
                                preset=preset, spec=spec, specs=specs if len(specs) > 1 else (), agents=len(specs),
                                phase_started=created)
         session = _Session(status=status, directory=directory, job=job)
-        session.execution = self._executor.prepare(job, directory, stream=spec.kind == "stream")
         if spec.kind == "stream":
-            session.stream = StreamInput(session.frame_queue, directory / "input", intrinsics=spec.intrinsics,
+            # No worker queue yet: frames wait in the input's buffer until the session starts.
+            session.stream = StreamInput(None, directory / "input", intrinsics=spec.intrinsics,
                                          depth_scale=spec.depth_scale,
-                                         put_timeout_s=self.settings.stream_put_timeout_s)
+                                         put_timeout_s=self.settings.stream_put_timeout_s,
+                                         buffer_frames=self.settings.stream_queue_frames)
         with self._lock:
+            self.check_queue_room()  # again: another create may have taken the last place meanwhile
             self._sessions[session_id] = session
             self._queue.append(session_id)
             self._persist(session)
@@ -410,7 +500,7 @@ class SessionManager:
                 self._close_inputs(session, "the session was cancelled")
                 self._release_ipc(session)
             elif session.active:  # running, or handed to an executor that has not placed it yet
-                self._request_stop(session)
+                self._request_stop(session, "the session was cancelled")
             return session.status
 
     def delete(self, session_id: str) -> None:
@@ -423,7 +513,7 @@ class SessionManager:
             self._close_inputs(session, "the session was deleted")
             if session.active:
                 session.delete_when_stopped = True
-                self._request_stop(session)
+                self._request_stop(session, "the session was deleted")
                 self._stopping_sessions.append(session)
             else:
                 self._release_ipc(session)
@@ -431,12 +521,13 @@ class SessionManager:
         for hook in self._removal_hooks:
             hook(session_id)
 
-    def _request_stop(self, session: _Session) -> None:
+    def _request_stop(self, session: _Session, reason: str) -> None:
+        """Ask the worker to stop; a stream refuses frames from now on, saying ``reason``."""
         if session.cancel_requested_at is None:
             session.cancel_requested_at = time.monotonic()
             if session.execution is not None:
                 session.execution.request_stop()
-            self._close_inputs(session, "the session was cancelled")
+            self._close_inputs(session, reason)
 
     def _close_inputs(self, session: _Session, reason: str) -> None:
         if session.stream is not None:
@@ -469,6 +560,9 @@ class SessionManager:
             time.sleep(_SUPERVISOR_TICK_S)
 
     def _tick(self) -> None:
+        if self._shutdown.is_set() and not self._shutdown_done:
+            with self._lock:
+                self._interrupt_all()
         with self._lock:
             active = [s for s in self._sessions.values() if s.active]
             active += self._stopping_sessions
@@ -499,8 +593,9 @@ class SessionManager:
             return
         setting = f"{timeout:g} s (VOXFUSION_STREAM_IDLE_S)"
         if stream.frames_received == 0:
-            session.end_reason = ("failed", f"the stream received no frame within {setting}")
-            self._request_stop(session)
+            error = f"the stream received no frame within {setting}"
+            session.end_reason = ("failed", error)
+            self._request_stop(session, f"the session failed: {error}")
         elif stream.finish_if_idle(f"the stream was finished after no frame for {setting}"):
             print(f"voxfusion: session {session.status.id}: no frame for {setting}; finishing with "
                   f"{stream.frames_received} frames", flush=True)
@@ -638,7 +733,8 @@ class SessionManager:
         execution.finish(session.worker_pid)
         session.active = False
         (session.directory / WORKER_PID_FILE).unlink(missing_ok=True)
-        self._close_inputs(session, f"the session {status}")
+        if session.stream is not None:
+            session.stream.end(status, error)
         self._release_ipc(session)
         session.live_meshes.clear()
         if session.delete_when_stopped:
@@ -651,14 +747,22 @@ class SessionManager:
 
     def _start_queued(self) -> None:
         running = sum(1 for s in self._sessions.values() if s.active)
-        while self._queue and running < self.settings.max_sessions and not self._stopping.is_set():
+        while (self._queue and running < self.settings.max_sessions and not self._stopping.is_set()
+               and not self._shutdown.is_set()):
             session = self._sessions[self._queue.popleft()]
             try:
+                # The IPC is made now, not while queued (module doc).
+                session.execution = self._executor.prepare(session.job, session.directory,
+                                                           stream=session.stream is not None)
+                if session.stream is not None:
+                    session.stream.attach(session.execution.frame_queue)
                 worker = session.execution.start()
-            except ExecutorError as error:
-                self._close_inputs(session, "the session failed")
+            except (ExecutorError, OSError) as error:
+                message = str(error) if isinstance(error, ExecutorError) else f"could not start the worker: {error}"
+                if session.stream is not None:
+                    session.stream.end("failed", message)
                 self._release_ipc(session)
-                self._set_status(session, "failed", str(error))
+                self._set_status(session, "failed", message)
                 continue
             session.active = True
             session.started_at = time.monotonic()
@@ -673,14 +777,52 @@ class SessionManager:
     # -- status on disk ----------------------------------------------------------------------
 
     def _set_status(self, session: _Session, status: str, error: str | None) -> None:
+        """Set and persist the status; a session that ends now is settled against its folder."""
         phase = "done" if status in ENDED else session.status.phase
         if status == "running" and phase == "queued":
             phase = "tracking"
         same = phase == session.status.phase
+        ends = status in ENDED and session.status.status not in ENDED
         session.status = replace(session.status, status=status, error=error, phase=phase,
                                  phase_started=session.status.phase_started if same else _now_iso(),
                                  phase_budget_s=session.status.phase_budget_s if same else None)
+        if ends:
+            self._settle_outputs(session)
         self._persist(session)
+
+    def _settle_outputs(self, session: _Session) -> None:
+        """An ended session's status against its folder (module doc): ``frames_done`` the poses
+        in its trajectory files, ``keyframes``/``maps``/``loops`` from ``run.json``, whose
+        ``status`` and ``error`` become the session's (a minimal ``run.json`` is written when
+        there is none). Never raises: a folder it cannot read or write is said in the log."""
+        from slam.outputs import read_run_json, trajectory_frames, write_json_atomic
+
+        directory = session.directory
+        if not directory.is_dir():
+            return
+        state = session.status
+        frames = trajectory_frames(directory)
+        run = read_run_json(directory)
+        if run is not None:
+            counts = {key: int(run[key]) for key in ("keyframes", "maps", "loops")
+                      if isinstance(run.get(key), (int, float)) and not isinstance(run.get(key), bool)}
+        elif frames:
+            counts = {"keyframes": state.keyframes, "maps": state.maps, "loops": state.loops}
+        else:
+            counts = {"keyframes": 0, "maps": 0, "loops": 0}
+        session.status = replace(state, frames_done=frames, **counts)
+        wanted = {"status": state.status, "error": state.error, "frames": frames}
+        if run is not None and all(run.get(k) == v for k, v in wanted.items()):
+            return
+        if run is None:
+            run = {"frames_total": state.frames_total, **counts, "preset": state.preset}
+        elif run.get("status") not in (state.status, "running"):
+            run["run_status"] = run.get("status")  # what the runtime said (a stop reads "cancelled")
+        run.update(wanted)
+        try:
+            write_json_atomic(directory / "run.json", run)
+        except OSError as error:
+            print(f"voxfusion: cannot write {directory / 'run.json'}: {error}")
 
     def _write_progress(self, session: _Session) -> None:
         """Keep the frames/s history of an ended session for the page's plot after a restart."""

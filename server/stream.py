@@ -2,6 +2,12 @@
 bounded queue (back-pressure instead of unbounded memory), and keep a copy of the raw bytes in
 the session folder so that the frames can be shown again later (AR ``frame:N`` backgrounds).
 
+A queued session has no worker queue yet (the executor makes its pipes only when the session
+starts, so a queue of waiting sessions holds no descriptors): until then frames wait in an
+in-process buffer of the same size, with the same back-pressure (a frame that finds it full
+waits up to ``put_timeout_s``, then 503), and ``attach`` moves them, in order, to the worker's
+queue when the session starts.
+
 A stream may carry several agents (cameras of one collaborative session): each frame names
 its ``agent`` (default 0). Frame indices, intrinsics and depth scale are per agent: each
 agent's frames count from 0, and each agent gives its camera on its first frame unless the
@@ -65,12 +71,22 @@ class RecordedFrame:
     timestamp: float
 
 
+PUT_POLL_S = 0.02
+"""How often a frame that finds the queue full looks again."""
+
+
 class StreamInput:
-    """Frames of one streamed session, in order; thread-safe (one frame is handled at a time)."""
+    """Frames of one streamed session, in order; thread-safe (one frame is handled at a time).
+
+    ``frame_queue``: the worker's queue, or None while the session is queued (frames then wait
+    in a buffer of ``buffer_frames`` until ``attach``; module doc)."""
 
     def __init__(self, frame_queue, input_dir: Path, *, intrinsics: tuple[float, ...] | None,
-                 depth_scale: float | None, put_timeout_s: float) -> None:
-        self._queue = frame_queue
+                 depth_scale: float | None, put_timeout_s: float, buffer_frames: int = 16) -> None:
+        self._queue = frame_queue if frame_queue is not None else queue.Queue(maxsize=max(1, buffer_frames))
+        self._queue_lock = threading.Lock()
+        """Held to swap ``_queue`` (``attach``) and around each put, so no frame lands in the
+        buffer after it was moved."""
         self._input_dir = input_dir
         self._session_K = None if intrinsics is None else intrinsics_matrix(*intrinsics[:4])
         self._session_depth_scale = depth_scale
@@ -82,6 +98,10 @@ class StreamInput:
         self._count = 0
         self._agent_counts: dict[int, int] = {}
         self._closed_reason: str | None = None
+        self._finish_reason: str | None = None
+        """Why the input ended normally (``finish``, or finished after idling)."""
+        self._ended: str | None = None
+        """Set once the session has ended (``end``): "the session has ended (failed: ...)"."""
         self._last_frame_at: float | None = None
         (input_dir / "color").mkdir(parents=True, exist_ok=True)
         (input_dir / "depth").mkdir(parents=True, exist_ok=True)
@@ -101,7 +121,22 @@ class StreamInput:
 
     @property
     def finished(self) -> bool:
+        """No more frames are accepted (the input was finished, or the session stops or ended)."""
         return self._closed_reason is not None
+
+    @property
+    def closed_reason(self) -> str | None:
+        """Why no more frames are accepted (None while they are): once the session has ended,
+        "the session has ended (<status>[: <error>])", followed by how the input was finished
+        when it was."""
+        if self._ended is not None:
+            return self._ended if self._finish_reason is None else f"{self._ended}; {self._finish_reason}"
+        return self._closed_reason
+
+    @property
+    def frame_queue(self):
+        """Where frames go now: the worker's queue once attached, the buffer before, None after release."""
+        return self._queue
 
     @property
     def last_frame_at(self) -> float | None:
@@ -143,7 +178,7 @@ class StreamInput:
             if self._closed_reason is None:
                 if not self._put(END_OF_STREAM):
                     raise UploadError("the session's frame buffer stayed full; finish again later", status=503)
-                self._closed_reason = "the stream was finished"
+                self._closed_reason = self._finish_reason = "the stream was finished"
             return self._count
 
     def finish_if_idle(self, reason: str) -> bool:
@@ -154,48 +189,76 @@ class StreamInput:
         if not self._lock.acquire(blocking=False):
             return False
         try:
-            frame_queue = self._queue
-            if self._closed_reason is not None or frame_queue is None or not frame_queue.empty():
-                return False
-            try:
-                frame_queue.put_nowait(END_OF_STREAM)
-            except queue.Full:
-                return False
-            self._closed_reason = reason
+            with self._queue_lock:
+                frame_queue = self._queue
+                if self._closed_reason is not None or frame_queue is None or not frame_queue.empty():
+                    return False
+                try:
+                    frame_queue.put_nowait(END_OF_STREAM)
+                except queue.Full:
+                    return False
+            self._closed_reason = self._finish_reason = reason
             return True
         finally:
             self._lock.release()
 
+    def attach(self, frame_queue) -> None:
+        """The session starts: move the buffered frames (in order) to the worker's
+        ``frame_queue`` and send the later ones there. It must hold at least the buffer's
+        size (the executors make it ``stream_queue_frames`` long, as the buffer). Nothing
+        happens after ``release``."""
+        with self._queue_lock:
+            buffered = self._queue
+            if buffered is None or buffered is frame_queue:
+                return
+            while True:
+                try:
+                    item = buffered.get_nowait()
+                except queue.Empty:
+                    break
+                frame_queue.put_nowait(item)
+            self._queue = frame_queue
+
     def close(self, reason: str) -> None:
-        """Refuse further frames (the session ended or was cancelled). Does not wait for a
+        """Refuse further frames (the session stops or was cancelled). Does not wait for a
         frame that is waiting for room in the queue: that one gives up within a poll."""
         if self._closed_reason is None:
             self._closed_reason = reason
 
+    def end(self, status: str, error: str | None = None) -> None:
+        """The session has ended (``status``, ``error``): refuse frames, saying so."""
+        self.close(f"the session {status}")
+        self._ended = f"the session has ended ({status}{': ' + error if error else ''})"
+
     def release(self, reason: str) -> None:
         """Close, and let go of the queue (its worker is gone) so its OS resources are freed."""
         self.close(reason)
-        self._queue = None
+        with self._queue_lock:
+            self._queue = None
 
     def _check_open(self) -> None:
-        if self._closed_reason is not None:
-            raise StreamClosed(f"the stream does not accept frames: {self._closed_reason}")
+        reason = self.closed_reason
+        if reason is not None:
+            raise StreamClosed(f"the stream does not accept frames: {reason}")
 
-    def _put(self, item, poll_s: float = 0.25) -> bool:
+    def _put(self, item, poll_s: float = PUT_POLL_S) -> bool:
         """Queue ``item``, waiting up to put_timeout_s for room; False on timeout.
         Raises StreamClosed if the stream is closed meanwhile."""
         deadline = time.monotonic() + self._put_timeout_s
         while True:
             self._check_open()
-            frame_queue = self._queue
-            if frame_queue is None:
-                raise StreamClosed("the stream does not accept frames: the session ended")
-            try:
-                frame_queue.put(item, timeout=poll_s)
-                return True
-            except queue.Full:
-                if time.monotonic() > deadline:
-                    return False
+            with self._queue_lock:
+                frame_queue = self._queue
+                if frame_queue is None:
+                    raise StreamClosed("the stream does not accept frames: the session has ended")
+                try:
+                    frame_queue.put_nowait(item)
+                    return True
+                except queue.Full:
+                    pass
+            if time.monotonic() > deadline:
+                return False
+            time.sleep(poll_s)
 
     def _resolve_intrinsics(self, intrinsics: str | list | None, agent: int) -> np.ndarray:
         # The session's camera applies to every agent; without one, each agent's first frame names its own.
