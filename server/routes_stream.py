@@ -19,10 +19,19 @@ WebSocket protocol at ``/api/sessions/{id}/stream`` (token as ``?token=`` when o
    503 means the session is behind: resend later).
 3. ``{"type": "finish"}`` ends the input; the server answers ``{"type": "finished", "frames": n}``
    and closes. Closing without it leaves the stream open (reconnect, or POST ``/finish``).
+
+When the stream stops accepting frames otherwise (its session failed or was cancelled, it idled
+out, the server stops, another client finished it) the server sends
+``{"type": "error", "status": 409, "detail": "the stream does not accept frames: <why>"}`` and
+closes the socket with code :data:`WS_STREAM_CLOSED` (4409) and the reason in the close frame
+(cut to the 123 bytes a close frame holds); it notices within :data:`CLOSED_POLL_S`, whether or
+not the client is sending. A socket opened on such a session gets the same at once. HTTP frames
+get the same detail with a 409.
 """
 
 from __future__ import annotations
 
+import asyncio
 import base64
 import binascii
 import json
@@ -34,13 +43,18 @@ from starlette.concurrency import run_in_threadpool
 from server.deps import get_manager, require_token, token_ok
 from server.schemas import ErrorOut, FrameAccepted, StreamFinished
 from server.sessions import SessionConflict, SessionManager, SessionNotFound, check_session_id
-from server.stream import StreamInput
+from server.stream import StreamClosed, StreamInput
 from server.upload import MAX_AGENTS, UploadError, parse_agent
 
 router = APIRouter(prefix="/api/sessions", tags=["streaming"],
                    responses={401: {"model": ErrorOut}, 404: {"model": ErrorOut}})
 
 BINARY_PREFIX = struct.Struct("<dI")
+WS_STREAM_CLOSED = 4409
+"""Close code of a socket whose stream accepts no more frames (an application code, after HTTP's 409)."""
+CLOSED_POLL_S = 0.25
+"""How often a socket waiting for the client looks whether its stream still accepts frames."""
+MAX_CLOSE_REASON_BYTES = 123
 
 
 @router.post("/{session_id}/frames", response_model=FrameAccepted, dependencies=[Depends(require_token)],
@@ -125,7 +139,10 @@ async def stream_socket(websocket: WebSocket, session_id: str) -> None:
         return
     await websocket.accept()
     try:
-        header = await _read_header(websocket)
+        if stream.finished:  # its session ended: say so at once
+            await _close_stream_ended(websocket, stream)
+            return
+        header = await _read_header(websocket, stream)
         if header is None:
             return
         await _serve_frames(websocket, stream, header)
@@ -133,10 +150,48 @@ async def stream_socket(websocket: WebSocket, session_id: str) -> None:
         return
 
 
-async def _read_header(websocket: WebSocket) -> dict | None:
-    text = await websocket.receive_text()
+def _close_reason(text: str) -> str:
+    """``text`` cut to what a close frame holds (123 bytes of UTF-8)."""
+    data = text.encode()
+    if len(data) <= MAX_CLOSE_REASON_BYTES:
+        return text
+    return data[:MAX_CLOSE_REASON_BYTES - 3].decode(errors="ignore") + "..."
+
+
+async def _close_stream_ended(websocket: WebSocket, stream: StreamInput) -> None:
+    """The stream accepts no more frames: one error that says why, then close (module doc)."""
+    reason = stream.closed_reason or "the session has ended"
+    await websocket.send_json({"type": "error", "status": 409, "detail": f"the stream does not accept frames: {reason}"})
+    await websocket.close(code=WS_STREAM_CLOSED, reason=_close_reason(reason))
+
+
+async def _receive(websocket: WebSocket, stream: StreamInput) -> dict | None:
+    """The client's next message, or None as soon as the stream stops accepting frames (looked
+    at every CLOSED_POLL_S while the client is quiet)."""
+    receiving = asyncio.ensure_future(websocket.receive())
     try:
-        header = json.loads(text)
+        while True:
+            done, _ = await asyncio.wait({receiving}, timeout=CLOSED_POLL_S)
+            if done:
+                return receiving.result()
+            if stream.finished:
+                return None
+    finally:
+        if not receiving.done():
+            receiving.cancel()
+
+
+async def _read_header(websocket: WebSocket, stream: StreamInput) -> dict | None:
+    message = await _receive(websocket, stream)
+    if message is None:
+        await _close_stream_ended(websocket, stream)
+        return None
+    if message["type"] == "websocket.disconnect":
+        raise WebSocketDisconnect(message.get("code", 1000))
+    try:
+        if message.get("text") is None:
+            raise ValueError("a binary message")
+        header = json.loads(message["text"])
         if not isinstance(header, dict):
             raise ValueError("not an object")
     except ValueError as error:
@@ -162,7 +217,10 @@ async def _read_header(websocket: WebSocket) -> dict | None:
 async def _serve_frames(websocket: WebSocket, stream: StreamInput, options: dict) -> None:
     await websocket.send_json({"type": "ready", "frames_received": stream.frames_received})
     while True:
-        message = await websocket.receive()
+        message = await _receive(websocket, stream)
+        if message is None:
+            await _close_stream_ended(websocket, stream)
+            return
         if message["type"] == "websocket.disconnect":
             return
         try:
@@ -189,5 +247,8 @@ async def _serve_frames(websocket: WebSocket, stream: StreamInput, options: dict
                                       {"type": "ack", "index": index, "agent": agent})
         except json.JSONDecodeError as error:
             await _send_error(websocket, UploadError(f"frame: not valid JSON ({error})", status=400))
+        except StreamClosed:
+            await _close_stream_ended(websocket, stream)
+            return
         except UploadError as error:
             await _send_error(websocket, error)

@@ -166,6 +166,50 @@ def test_an_idle_stream_finishes_with_its_frames_or_fails_without_any(tmp_path):
         assert late.status_code == 409 and "no frame for 3 s" in late.json()["detail"]
 
 
+@needs_runtime
+def test_a_stream_socket_is_closed_once_its_session_fails_on_the_idle_timeout(tmp_path):
+    """The socket used to stay open and answer every frame with an error after its session had
+    failed on VOXFUSION_STREAM_IDLE_S; now it gets one error that says why and is closed
+    (code 4409, the reason in the close frame), and HTTP frames get 409 saying it ended."""
+    import websockets.sync.client as ws_client
+    from websockets.exceptions import ConnectionClosed
+
+    from server.main import create_app
+    from server.settings import Settings
+    from tests.live_server import start_uvicorn
+
+    frames = encoded_frames(1)
+    live = start_uvicorn(create_app(Settings(data_dir=tmp_path, viewer_port=-1, stream_idle_timeout_s=2.0)))
+    try:
+        with httpx.Client(base_url=live.url, timeout=30) as client:
+            session_id = start_stream(client, frames, 0)
+            ws_url = live.url.replace("http://", "ws://") + f"/api/sessions/{session_id}/stream"
+            with ws_client.connect(ws_url, open_timeout=10, close_timeout=5) as socket:
+                socket.send(json.dumps({}))
+                assert json.loads(socket.recv(timeout=10))["type"] == "ready"
+                error = json.loads(socket.recv(timeout=120))  # the worker starts, then idles 2 s
+                assert error["type"] == "error" and error["status"] == 409, error
+                assert "no frame within 2 s" in error["detail"], error
+                with pytest.raises(ConnectionClosed) as closed:
+                    socket.recv(timeout=10)
+                assert closed.value.rcvd is not None and closed.value.rcvd.code == 4409
+                assert "no frame within 2 s" in closed.value.rcvd.reason
+            deadline = time.monotonic() + 60
+            while client.get(f"/api/sessions/{session_id}").json()["status"] != "failed":
+                assert time.monotonic() < deadline, "the session did not end"
+                time.sleep(0.2)
+            late = post_frame(client, session_id, 1.0, frames[0][1], frames[0][2])
+            assert late.status_code == 409 and "has ended (failed: " in late.json()["detail"], late.text
+            with ws_client.connect(ws_url, open_timeout=10, close_timeout=5) as socket:
+                again = json.loads(socket.recv(timeout=10))  # at once, before any header
+                assert again["status"] == 409 and "has ended" in again["detail"], again
+                with pytest.raises(ConnectionClosed) as closed:
+                    socket.recv(timeout=10)
+                assert closed.value.rcvd.code == 4409
+    finally:
+        live.stop()
+
+
 def serve(data_dir: Path, port: int, log: Path) -> subprocess.Popen:
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")]))}
     with open(log, "ab") as out:
@@ -190,17 +234,22 @@ def wait_until_up(process: subprocess.Popen, url: str, timeout: float = 90.0) ->
 @pytest.mark.skipif(not Path("/proc/self/stat").is_file(), reason="needs Linux /proc")
 def test_a_killed_server_leaves_no_worker_behind(tmp_path):
     """SIGKILL the server while a session runs: its worker and mapping process notice and end
-    (their parent's pipe closes), and the next start lists the session as interrupted."""
-    frames = encoded_frames(1)
+    (their parent's pipe closes), what it had written at its last keyframe is there (the
+    trajectory and a run.json), and the next start lists the session as interrupted with a
+    status that agrees with those files."""
+    frames = encoded_frames(3)
     port = free_port()
     url = f"http://127.0.0.1:{port}"
     server = serve(tmp_path, port, tmp_path / "server.log")
     try:
         wait_until_up(server, url)
         with httpx.Client(base_url=url, timeout=30) as client:
-            session_id = start_stream(client, frames, 1)
+            session_id = start_stream(client, frames, 3)
             deadline = time.monotonic() + 120
-            while client.get(f"/api/sessions/{session_id}").json()["frames_done"] < 1:
+            while True:
+                reported = client.get(f"/api/sessions/{session_id}").json()
+                if reported["frames_done"] >= 3 and reported["keyframes"] >= 1:
+                    break
                 assert time.monotonic() < deadline, "the session did not start"
                 time.sleep(0.3)
         workers = descendants(server.pid)
@@ -212,6 +261,9 @@ def test_a_killed_server_leaves_no_worker_behind(tmp_path):
     finally:
         if server.poll() is None:
             server.kill()
+    folder = tmp_path / "sessions" / session_id
+    rows = [line for line in (folder / "trajectory.txt").read_text().splitlines() if line and line[0] != "#"]
+    assert 1 <= len(rows) <= 3, "the poses up to the last keyframe were on disk before the kill"
     port = free_port()
     again = serve(tmp_path, port, tmp_path / "server.log")
     try:
@@ -221,3 +273,7 @@ def test_a_killed_server_leaves_no_worker_behind(tmp_path):
     finally:
         again.terminate()
         again.wait(timeout=60)
+    run = json.loads((folder / "run.json").read_text())
+    assert state["frames_done"] == run["frames"] == len(rows), (state, run)
+    assert (run["status"], run["error"]) == (state["status"], state["error"])
+    assert state["outputs"]["trajectory"] and state["outputs"]["map"] == (folder / "map.pt").is_file()
