@@ -58,7 +58,8 @@ class Execution(Protocol):
     """One session's work, as the session manager drives it (see the module doc)."""
 
     frame_queue: object | None
-    """Where a stream session's frames go (``put``, ``put_nowait``, ``empty``), else None."""
+    """Where a stream session's frames go (``put``, ``put_nowait``, ``empty``), else None;
+    ``StreamInput.attach`` moves the frames buffered while the session was queued there."""
 
     def start(self) -> WorkerInfo | None:
         """Hand the work over. Returns where it runs, or None when that is known only once a
@@ -91,7 +92,9 @@ class Executor(Protocol):
     name: str
 
     def prepare(self, job: WorkerJob, directory: Path, stream: bool) -> Execution:
-        """The execution of one session (queues made, nothing started yet)."""
+        """The execution of one session (queues made, nothing started yet). The manager calls
+        it when the session is about to start, not while it is queued, since the queues hold
+        pipes (descriptors); a stream's ``frame_queue`` must hold ``stream_queue_frames``."""
 
     def close(self) -> None:
         """The server stops: let go of what the executor holds."""
