@@ -377,14 +377,8 @@ class SessionManager:
             raise QueueFull(f"the queue is full: {waiting} sessions are waiting to start "
                             f"(VOXFUSION_MAX_QUEUED={self.settings.max_queued}); retry later")
 
-    def create(self, session_id: str, spec: SourceSpec | Sequence[SourceSpec], preset: str) -> SessionStatus:
-        """Register and queue a session whose folder (with ``input/`` for uploads) exists.
-
-        ``spec``: one source, or one per agent (agent k = k-th) for a collaborative session.
-        Raises QueueFull when ``max_queued`` sessions wait already; the folder made for this
-        one is removed then. Nothing that holds a descriptor is made here (``_start_queued``)."""
-        specs = (spec,) if isinstance(spec, SourceSpec) else tuple(spec)
-        directory = self.session_dir(session_id)
+    def _refuse_when_full(self, session_id: str, directory: Path) -> None:
+        """QueueFull when the queue is full, after removing the folder made for this new session."""
         with self._lock:
             try:
                 self.check_queue_room()
@@ -394,6 +388,16 @@ class SessionManager:
 
                     shutil.rmtree(directory, ignore_errors=True)
                 raise
+
+    def create(self, session_id: str, spec: SourceSpec | Sequence[SourceSpec], preset: str) -> SessionStatus:
+        """Register and queue a session whose folder (with ``input/`` for uploads) exists.
+
+        ``spec``: one source, or one per agent (agent k = k-th) for a collaborative session.
+        Raises QueueFull when ``max_queued`` sessions wait already; the folder made for this
+        one is removed then. Nothing that holds a descriptor is made here (``_start_queued``)."""
+        specs = (spec,) if isinstance(spec, SourceSpec) else tuple(spec)
+        directory = self.session_dir(session_id)
+        self._refuse_when_full(session_id, directory)  # before anything is made for it
         job = WorkerJob(session_id=session_id, sources=specs, preset=preset, out_dir=str(directory))
         spec = specs[0]
         directory.mkdir(parents=True, exist_ok=True)
@@ -409,7 +413,8 @@ class SessionManager:
                                          put_timeout_s=self.settings.stream_put_timeout_s,
                                          buffer_frames=self.settings.stream_queue_frames)
         with self._lock:
-            self.check_queue_room()  # again: another create may have taken the last place meanwhile
+            # Again, under the same lock as the append: another create may have taken the last place.
+            self._refuse_when_full(session_id, directory)
             self._sessions[session_id] = session
             self._queue.append(session_id)
             self._persist(session)
@@ -497,7 +502,8 @@ class SessionManager:
             if session.status.status == "queued" and not session.active:
                 self._queue.remove(session_id)
                 self._set_status(session, "cancelled", None)
-                self._close_inputs(session, "the session was cancelled")
+                if session.stream is not None:
+                    session.stream.end("cancelled")
                 self._release_ipc(session)
             elif session.active:  # running, or handed to an executor that has not placed it yet
                 self._request_stop(session, "the session was cancelled")

@@ -23,11 +23,12 @@ Outputs in ``out_dir`` (``slam.outputs``): ``trajectory.txt`` (agent 0; and
 ``trajectory_<k>.txt`` per agent when there are several), ``mesh.ply``, ``map.pt``, ``run.json``.
 While running, the trajectories so far and a ``run.json`` that says ``running`` are rewritten
 atomically at every keyframe (before its KeyframeEvent goes out, so whoever counted a keyframe
-finds its poses on disk), and again as soon as a stop or a failure ends the loop (before the
-mapper's final checkpoint and mesh); ``map.pt`` is rewritten atomically every
-``runtime.checkpoint_every_keyframes`` keyframes (10) by the mapping process. A run killed
-outright (SIGKILL) thus leaves every pose tracked up to its last keyframe and the map of at
-most ten keyframes before.
+finds its poses on disk), and again as soon as tracking ends (the input's end, a stop or a
+failure), before the final refinement or a stop's checkpoint and mesh. ``map.pt`` is
+rewritten atomically every ``runtime.checkpoint_every_keyframes`` keyframes (10) by the mapping
+process. A run killed outright (SIGKILL) thus leaves every pose tracked up to its last
+keyframe (all of them once tracking has ended) and a map that lacks at most its last 9
+keyframes.
 """
 
 from __future__ import annotations
@@ -484,9 +485,10 @@ def run_slam(sources: list[Iterable[Frame]], config: SLAMConfig, out_dir: str | 
         # A source that ends because of the stop (a live stream) is a stop, not the end of the
         # input: skip the final refinement, which would hold up the stop for minutes.
         status = "cancelled"
-    if status != "finished" and side is not None:
-        # Stopped (a server's SIGTERM, a cancel) or failed: the poses first, in milliseconds,
-        # before the mapper's checkpoint and mesh, which may not finish before a kill.
+    if side is not None:
+        # Tracking is over (the input ended, a stop, a failure): every pose on disk first, in
+        # milliseconds, before the final refinement (minutes) or a stop's checkpoint and mesh,
+        # which a kill may cut short.
         _write_progress(out, side, total, started)
     if channel is not None:
         try:
