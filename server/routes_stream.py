@@ -25,8 +25,8 @@ out, the server stops, another client finished it) the server sends
 ``{"type": "error", "status": 409, "detail": "the stream does not accept frames: <why>"}`` and
 closes the socket with code :data:`WS_STREAM_CLOSED` (4409) and the reason in the close frame
 (cut to the 123 bytes a close frame holds); it notices within :data:`CLOSED_POLL_S`, whether or
-not the client is sending. A socket opened on such a session gets the same at once. HTTP frames
-get the same detail with a 409.
+not the client is sending. A socket opened on such a session gets the same in answer to its
+header (or after :data:`CLOSED_POLL_S` without one). HTTP frames get the same detail with a 409.
 """
 
 from __future__ import annotations
@@ -139,11 +139,13 @@ async def stream_socket(websocket: WebSocket, session_id: str) -> None:
         return
     await websocket.accept()
     try:
-        if stream.finished:  # its session ended: say so at once
-            await _close_stream_ended(websocket, stream)
-            return
+        # On a stream that takes no more frames the header is still read when it comes within a
+        # poll (a client sends it first and then reads the answer: the error, not a broken pipe).
         header = await _read_header(websocket, stream)
         if header is None:
+            return
+        if stream.finished:
+            await _close_stream_ended(websocket, stream)
             return
         await _serve_frames(websocket, stream, header)
     except WebSocketDisconnect:

@@ -201,7 +201,8 @@ def test_a_stream_socket_is_closed_once_its_session_fails_on_the_idle_timeout(tm
             late = post_frame(client, session_id, 1.0, frames[0][1], frames[0][2])
             assert late.status_code == 409 and "has ended (failed: " in late.json()["detail"], late.text
             with ws_client.connect(ws_url, open_timeout=10, close_timeout=5) as socket:
-                again = json.loads(socket.recv(timeout=10))  # at once, before any header
+                socket.send(json.dumps({}))  # the header is read, then answered with the error
+                again = json.loads(socket.recv(timeout=10))
                 assert again["status"] == 409 and "has ended" in again["detail"], again
                 with pytest.raises(ConnectionClosed) as closed:
                     socket.recv(timeout=10)
