@@ -139,6 +139,7 @@ def read_run(folder: Path) -> dict:
 
 @needs_runtime
 @needs_proc
+@pytest.mark.slow
 def test_sigterm_with_a_slow_request_writes_the_outputs_and_exits_in_time(tmp_path):
     """``docker stop`` gives 10 s between SIGTERM and SIGKILL: a client trickling a body must
     not hold the server past it, and running sessions write their trajectory and run.json at
