@@ -14,8 +14,9 @@ as one more variant.
 
 Sequences: ``../shared/data`` (TUM fr1/rpy 150 frames, fr1/desk, Replica room0) and every
 dataset folder in the cache ``$VOXFUSION_DATA_CACHE`` (default ``~/.cache/voxfusion/data``;
-how it was filled: ``benchmarks/README.md``, "Real data"). Benchmarks may read the cache;
-tests never need it.
+how it was filled: ``benchmarks/README.md``, "Real data"). With the whole fr1/rpy there, its
+frames 150-449 and 450-722 (which no setting was tuned on) become two more sequences, made
+once as folders of hard links. Benchmarks may read the cache; tests never need it.
 
 Per sequence and variant: ATE RMSE (cm) mean, sample standard deviation, min-max; frames/s
 mean. Per sequence and variant other than the baseline, the verdict of ``benchmarks/README.md``'s
@@ -87,11 +88,45 @@ def sequences(max_frames: int | None) -> list[RealSequence]:
         if path.is_dir():
             found.append(RealSequence(name, path, frames if max_frames is None else min(frames or max_frames,
                                                                                          max_frames)))
+    full_rpy = CACHE / "rgbd_dataset_freiburg1_rpy_full"
+    if (full_rpy / "rgb.txt").is_file():
+        # Frames 0-149 are the shared fr1/rpy the presets were tuned on; the rest is unseen.
+        make_window(full_rpy, 150, 450, "rgbd_dataset_freiburg1_rpy_150-449")
+        make_window(full_rpy, 450, 723, "rgbd_dataset_freiburg1_rpy_450-722")
     if CACHE.is_dir():
-        for path in sorted(p for p in CACHE.iterdir() if p.is_dir()):
+        for path in sorted(p for p in CACHE.iterdir() if p.is_dir() and not p.name.endswith(".tmp")):
             if (path / "rgb.txt").is_file() or (path / "results").is_dir():
                 found.append(RealSequence(path.name.removeprefix("rgbd_dataset_"), path, max_frames))
     return found
+
+
+def make_window(source: Path, start: int, stop: int, name: str) -> Path:
+    """A TUM folder in the cache holding frames [start, stop) of ``source`` (hard links to its
+    images, the lists cut to the window, the whole ground truth): a stretch of a long sequence
+    that nothing was tuned on, as its own sequence. Made once; returns its folder."""
+    dest = CACHE / name
+    if (dest / "rgb.txt").is_file():
+        return dest
+    from slam.data.tum import MAX_TIME_DIFFERENCE, associate, read_tum_list
+
+    rgb = read_tum_list(source / "rgb.txt", columns=1)
+    depth = read_tum_list(source / "depth.txt", columns=1)
+    pairs = associate([t for t, _ in rgb], [t for t, _ in depth], MAX_TIME_DIFFERENCE)[start:stop]
+    tmp = dest.with_name(dest.name + ".tmp")
+    for folder in ("rgb", "depth"):
+        (tmp / folder).mkdir(parents=True, exist_ok=True)
+    lines = {"rgb": [], "depth": []}
+    for i, j in pairs:
+        for kind, (stamp, fields) in (("rgb", rgb[i]), ("depth", depth[j])):
+            target = tmp / fields[0]
+            if not target.exists():
+                os.link(source / fields[0], target)
+            lines[kind].append(f"{stamp:.6f} {fields[0]}\n")
+    for kind, rows in lines.items():
+        (tmp / f"{kind}.txt").write_text("".join(rows))
+    (tmp / "groundtruth.txt").write_bytes((source / "groundtruth.txt").read_bytes())
+    tmp.rename(dest)
+    return dest
 
 
 def parse_variant(text: str) -> Variant:
