@@ -540,11 +540,12 @@ class SessionManager:
             session.stream.close(reason)
 
     def _release_ipc(self, session: _Session) -> None:
-        """Free the execution's queues and events (pipes, semaphores, Ray handles)."""
-        if session.execution is not None:
-            session.execution.release()
+        """Free the execution's queues and events (pipes, semaphores, Ray handles). The stream
+        lets go of its queue first, so no frame is put into a queue that is closed."""
         if session.stream is not None:
             session.stream.release("the session ended")
+        if session.execution is not None:
+            session.execution.release()
         session.execution = None
 
     def _remove_files(self, session: _Session) -> None:
