@@ -147,6 +147,9 @@ class SessionOut(BaseModel):
     fps: float = Field(examples=[3.5], description="frames tracked (all agents) per second of the tracking phase; "
                                                   "fixed once tracking ends (run.json's fps counts the whole run)")
     keyframes: int
+    frames_skipped: int = Field(0, examples=[0], description="input frames left out because they could not be read "
+                                                           "(an upload's corrupt frames, a stream's refused ones); "
+                                                           "counted once the session has ended")
     maps: int = Field(examples=[2], description="maps (submaps) of all agents")
     loops: int = Field(examples=[1], description="accepted loop closures")
     agents: int = Field(1, examples=[1], description="agents (cameras): an upload's file parts, or the agents "

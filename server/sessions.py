@@ -161,6 +161,9 @@ class SessionStatus:
     follows), None when it has no time cap (``refinement_budget_s``)."""
     ate_rmse_m: float | None = None
     """Agent 0's ATE RMSE in metres (so far while running, final after); None without ground truth."""
+    frames_skipped: int = 0
+    """Input frames left out because they could not be read (an upload's corrupt frames, a
+    stream's refused ones); known once the session has ended."""
     error: str | None = None
     spec: SourceSpec = field(default_factory=lambda: SourceSpec(kind="synthetic"))
     """The (first agent's) source."""
@@ -817,7 +820,9 @@ class SessionManager:
             counts = {"keyframes": state.keyframes, "maps": state.maps, "loops": state.loops}
         else:
             counts = {"keyframes": 0, "maps": 0, "loops": 0}
-        session.status = replace(state, frames_done=frames, **counts)
+        skipped = session.stream.frames_refused if session.stream is not None else int(
+            (run or {}).get("frames_skipped") or 0)
+        session.status = replace(state, frames_done=frames, frames_skipped=skipped, **counts)
         wanted = {"status": state.status, "error": state.error, "frames": frames}
         if run is not None and all(run.get(k) == v for k, v in wanted.items()):
             return

@@ -32,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
+from server.budget import MAX_STREAM_FRAMES
 from server.upload import (
     PNG_SIGNATURE,
     StreamFrame,
@@ -96,6 +97,7 @@ class StreamInput:
         self._put_timeout_s = put_timeout_s
         self._lock = threading.Lock()
         self._count = 0
+        self._refused = 0
         self._agent_counts: dict[int, int] = {}
         self._closed_reason: str | None = None
         self._finish_reason: str | None = None
@@ -110,6 +112,11 @@ class StreamInput:
     def frames_received(self) -> int:
         """Frames of all agents together."""
         return self._count
+
+    @property
+    def frames_refused(self) -> int:
+        """Frames refused as bad (422/413: corrupt, too large, inconsistent): skipped, counted."""
+        return self._refused
 
     @property
     def agent_count(self) -> int:
@@ -155,11 +162,18 @@ class StreamInput:
         agent = 0 if agent in (None, "") else parse_agent(agent)
         with self._lock:
             self._check_open()
-            K = self._resolve_intrinsics(intrinsics, agent)
-            scale = self._resolve_depth_scale(depth_scale, agent)
-            index = self._agent_counts.get(agent, 0)
-            stamp = index / DEFAULT_FPS if timestamp in (None, "") else _parse_timestamp(timestamp)
-            frame = decode_stream_frame(color, depth, stamp, scale, K, agent=agent)
+            if self._count >= MAX_STREAM_FRAMES:
+                raise UploadError(f"the session has received {self._count} frames, the most one stream session "
+                                  f"takes; finish it and start another", status=413)
+            try:
+                K = self._resolve_intrinsics(intrinsics, agent)
+                scale = self._resolve_depth_scale(depth_scale, agent)
+                index = self._agent_counts.get(agent, 0)
+                stamp = index / DEFAULT_FPS if timestamp in (None, "") else _parse_timestamp(timestamp)
+                frame = decode_stream_frame(color, depth, stamp, scale, K, agent=agent)
+            except UploadError:
+                self._refused += 1  # the frame is skipped; the stream goes on
+                raise
             if not self._put(frame):
                 raise UploadError(f"the session has not taken a frame for {self._put_timeout_s:.0f} s "
                                   f"(its buffer is full); retry later", status=503)

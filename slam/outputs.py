@@ -242,10 +242,14 @@ def write_progress(out: Path, config: SLAMConfig, tracks: list["AgentTrack"], ma
     return frames
 
 
+MAX_LISTED_SKIPPED = 100
+"""Skipped frames listed in run.json by index and reason (all are counted)."""
+
+
 def write_outputs(out: Path, config: SLAMConfig, tracks: list["AgentTrack"], stats: "MapperStats | None",
                   status: str, error: str | None, elapsed: float, total: int | None, tracking_busy: float,
                   use_gt_poses: bool, map_poses: dict[int, np.ndarray] | None = None,
-                  map_waits: tuple[int, float] = (0, 0.0)) -> "RunResult":
+                  map_waits: tuple[int, float] = (0, 0.0), frames_skipped: list[dict] | None = None) -> "RunResult":
     from .runtime import RunResult
 
     trajectories = [agent_trajectory(t, stats, map_poses or {}, use_gt_poses) for t in tracks if t.records]
@@ -291,6 +295,8 @@ def write_outputs(out: Path, config: SLAMConfig, tracks: list["AgentTrack"], sta
                                     if stats and stats.refinement else None),
         "keyframe_graph": stats.keyframe_graph if stats else None,
         "tracking_failures": sum(t.tracking_failures for t in tracks),
+        "frames_skipped": len(frames_skipped or ()),
+        "skipped_frames": (frames_skipped or [])[:MAX_LISTED_SKIPPED],
         "map_waits": map_waits[0],
         "frames_interpolated": sum(t.interpolated for t in trajectories),
         "timings_s": {

@@ -403,6 +403,13 @@ def _interleave(sources: list[Iterable[Frame]]) -> Iterator[tuple[int, Frame]]:
                 alive.remove(k)
 
 
+def _skipped_frames(sources: list[Iterable[Frame]]) -> list[dict]:
+    """Frames the sources left out because they could not be read (``FileSequence.skipped``):
+    agent, index and why, for ``run.json``."""
+    return [{"agent": agent, "index": skipped.index, "reason": skipped.reason}
+            for agent, source in enumerate(sources) for skipped in getattr(source, "skipped", ())]
+
+
 def _total_frames(sources: list[Iterable[Frame]]) -> int | None:
     try:
         return sum(len(s) for s in sources)  # type: ignore[arg-type]
@@ -513,7 +520,8 @@ def run_slam(sources: list[Iterable[Frame]], config: SLAMConfig, out_dir: str | 
     tracks = sorted(side.agents.values(), key=lambda t: t.agent) if side is not None else []
     result = write_outputs(out, config, tracks, side.mapper_stats if side else None, status, error, elapsed, total,
                            side.busy if side else 0.0, use_gt_poses, side.map_poses if side else None,
-                           (side.map_waits, side.map_wait_seconds) if side else (0, 0.0))
+                           (side.map_waits, side.map_wait_seconds) if side else (0, 0.0),
+                           frames_skipped=_skipped_frames(sources))
     if side is not None:
         emit(_stats_event(side, total, result.fps, started, done, ate=result.ate_rmse))
     emit(FinishedEvent(status, error))

@@ -78,14 +78,10 @@ def rss_mb() -> float:
 
 @pytest.fixture(scope="module")
 def client(tmp_path_factory) -> Iterator[TestClient]:
-    # No session runs here: every request is refused before one starts, or only queued.
-    from server.sessions import SessionManager
-
-    patch = pytest.MonkeyPatch()
-    patch.setattr(SessionManager, "_start_queued", lambda self: None)
+    # No session of this app runs: every request is refused before one starts, or only queued.
     with running_app(tmp_path_factory.mktemp("abuse-data"), max_upload_mb=64) as client:
+        client.app.state.manager._start_queued = lambda: None
         yield client
-    patch.undo()
 
 
 # --- 1. uploads that name files outside themselves ---------------------------------------------
@@ -355,3 +351,69 @@ def _cube_obj() -> bytes:
              (1, 3, 7), (1, 7, 5), (2, 6, 8), (2, 8, 4)]
     return ("".join(f"v {x} {y} {z}\n" for x, y, z in corners)
             + "".join(f"f {a} {b} {c}\n" for a, b, c in faces)).encode()
+
+
+# --- 7. a bad frame in the middle is skipped and counted, not the end of the run ---------------
+
+
+@pytest.fixture(scope="module")
+def running(tmp_path_factory) -> Iterator[TestClient]:
+    """An app whose sessions run (test preset, tiny frames)."""
+    with running_app(tmp_path_factory.mktemp("abuse-running"), max_sessions=2) as client:
+        yield client
+
+
+def synthetic_tum_zip(frames: int, corrupt: int | None = None) -> bytes:
+    """A TUM folder of ``frames`` synthetic 160x120 frames; frame ``corrupt``'s colour truncated."""
+    from tests.test_server_stream import encoded_frames, k_text
+
+    top = "room/"
+    encoded = encoded_frames(frames)
+    entries = {top + "intrinsics.txt": k_text(encoded[0][3]).replace(",", " ").encode(),
+               top + "rgb.txt": "".join(f"{t:.6f} rgb/{k}.png\n" for k, (t, *_) in enumerate(encoded)).encode(),
+               top + "depth.txt": "".join(f"{t:.6f} depth/{k}.png\n" for k, (t, *_) in enumerate(encoded)).encode()}
+    for k, (_, color, depth, _) in enumerate(encoded):
+        entries[top + f"rgb/{k}.png"] = color[:60] if k == corrupt else color
+        entries[top + f"depth/{k}.png"] = depth
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w") as archive:
+        for name, data in entries.items():
+            archive.writestr(name, data)
+    return buffer.getvalue()
+
+
+def test_a_corrupt_frame_mid_upload_is_skipped_and_counted(running):
+    from tests.test_server_api import wait_for
+
+    response = running.post("/api/sessions", files={"file": ("room.zip", synthetic_tum_zip(5, corrupt=2))},
+                            data={"preset": "test", "depth_scale": "5000"})
+    assert response.status_code == 201, response.text
+    state = wait_for(running, response.json()["id"])
+    assert state["status"] == "finished", state
+    assert state["frames_done"] == 4 and state["frames_skipped"] == 1
+    run = (running.app.state.manager.session_dir(state["id"]) / "run.json").read_text()
+    skipped = __import__("json").loads(run)["skipped_frames"]
+    assert [s["index"] for s in skipped] == [2] and "cannot decode" in skipped[0]["reason"]
+
+
+def test_a_stream_counts_the_frames_it_refused_and_caps_the_rest(running, monkeypatch):
+    from server import stream
+    from tests.test_server_api import wait_for
+    from tests.test_server_stream import DEPTH_SCALE, encoded_frames, k_text
+
+    frames = encoded_frames(3)
+    session = running.post("/api/sessions", json={"source": "stream", "preset": "test", "depth_scale": DEPTH_SCALE,
+                                                  "intrinsics": k_text(frames[0][3])}).json()["id"]
+
+    def send(color, depth):
+        return running.post(f"/api/sessions/{session}/frames", files={"color": ("c.png", color), "depth": ("d.png", depth)})
+
+    assert send(frames[0][1], frames[0][2]).status_code == 200
+    assert send(frames[1][1][:60], frames[1][2]).status_code == 422
+    monkeypatch.setattr(stream, "MAX_STREAM_FRAMES", 2)
+    assert send(frames[1][1], frames[1][2]).status_code == 200
+    capped = send(frames[2][1], frames[2][2])
+    assert capped.status_code == 413 and "the most one stream session takes" in capped.json()["detail"]
+    assert running.post(f"/api/sessions/{session}/finish").status_code == 200
+    state = wait_for(running, session)
+    assert state["frames_done"] == 2 and state["frames_skipped"] == 1, "the bad frame; the capped one was not sent"
