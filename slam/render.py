@@ -81,6 +81,8 @@ class RaySamples:
     grid_counts: torch.Tensor | None = None
     """After ``thin_training_samples``: (R,) int64, each ray's sample count before thinning
     (the ``slots`` normalisation's padded width)."""
+    valid: torch.Tensor | None = None
+    """Padded samples (``slam.padded``): (S,) bool, which slots hold a sample (None: all)."""
 
 
 @dataclass(frozen=True)

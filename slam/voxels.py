@@ -60,7 +60,13 @@ def morton_encode(ijk: torch.Tensor) -> torch.Tensor:
     ijk = ijk.to(torch.int64)
     if ijk.numel() and (int(ijk.min()) < _COORD_MIN or int(ijk.max()) > _COORD_MAX):
         raise ValueError(f"voxel coordinate outside the Morton range [{_COORD_MIN}, {_COORD_MAX}]")
-    u = ijk + MORTON_OFFSET
+    return morton_encode_unchecked(ijk)
+
+
+def morton_encode_unchecked(ijk: torch.Tensor) -> torch.Tensor:
+    """``morton_encode`` without the range check, which reads the device: for coordinates
+    already clamped to [-2^20, 2^20) (the renderers' lookups). (N, 3) int64 -> (N,) int64."""
+    u = ijk.to(torch.int64) + MORTON_OFFSET
     return _dilate(u[:, 0]) | (_dilate(u[:, 1]) << 1) | (_dilate(u[:, 2]) << 2)
 
 
