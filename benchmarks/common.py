@@ -308,20 +308,20 @@ def pipeline_frame(frame, width: int | None):
 
 
 def map_with_gt_poses(frames: Sequence, config, *, extra_iterations: int = 0,
-                      on_frame: Callable[[int, object], None] | None = None):
+                      on_frame: Callable[[int, object], None] | None = None, device=None):
     """Map ``frames`` (already at pipeline size) with their GT poses as ``--gt-poses`` runs do:
     ``Mapper.process`` on every frame with keyframe poses fixed, then the end-of-sequence global
     bundle adjustment (``mapping.final_iterations``). ``extra_iterations`` adds more iterations
     of the windowed optimisation, in rounds of ``mapping.iterations`` over a fresh random
-    keyframe window each. ``on_frame(i, mapper)`` runs after frame i is mapped. Returns the
-    ``Mapper``."""
+    keyframe window each. ``on_frame(i, mapper)`` runs after frame i is mapped. ``device``:
+    where to map (default the CPU). Returns the ``Mapper``."""
     import torch
 
     from slam.frames import prepare_frame
     from slam.mapping import Mapper, TrackedFrame
     from slam.runtime import with_given_poses
 
-    device = torch.device("cpu")
+    device = torch.device("cpu" if device is None else device)
     config = with_given_poses(config)
     torch.manual_seed(config.runtime.seed)
     mapper = Mapper(config, device, seed=config.runtime.seed)
@@ -329,7 +329,7 @@ def map_with_gt_poses(frames: Sequence, config, *, extra_iterations: int = 0,
         if frame.T_world_cam is None:
             raise ValueError(f"frame {frame.index} has no ground-truth pose to map with")
         tf = prepare_frame(frame, None, device, config.voxel.max_depth)
-        mapper.process(TrackedFrame(tf, torch.as_tensor(frame.T_world_cam, dtype=torch.float32)))
+        mapper.process(TrackedFrame(tf, torch.as_tensor(frame.T_world_cam, dtype=torch.float32, device=device)))
         if on_frame is not None:
             on_frame(i, mapper)
     m = config.mapping

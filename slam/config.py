@@ -73,11 +73,30 @@ class RenderConfig:
     too). Every renderer follows it: mapping, both trackers, views, loop verification.
     Issue 21 item 4 (``benchmarks/bench_fidelity.py``)."""
 
+    static_shapes: str = "auto"
+    """Tracking and mapping iterations on padded samples of a fixed count per ray
+    (``slam.padded``): nothing in an iteration is read back from the device, so a GPU never
+    waits on the host (issue 40). ``auto``: on CUDA devices; ``on``; ``off``: the flat
+    samples of ``slam.render`` (its exact sample set, and the CPU's numba kernels, the faster
+    there: a CPU does not wait for itself)."""
+
     def __post_init__(self) -> None:
         if not isinstance(self.mask_in_front, bool):
             raise ConfigError(f"render.mask_in_front must be true or false, got {self.mask_in_front!r}")
+        if self.static_shapes not in STATIC_SHAPES:
+            raise ConfigError(f"render.static_shapes must be one of {', '.join(map(repr, STATIC_SHAPES))}, "
+                              f"got {self.static_shapes!r}")
+
+    def uses_static_shapes(self, device) -> bool:
+        """Whether the tracker and the mapper render padded samples on ``device``."""
+        import torch
+
+        if self.static_shapes == "auto":
+            return torch.device(device).type == "cuda"
+        return self.static_shapes == "on"
 
 
+STATIC_SHAPES = ("auto", "on", "off")
 LOSS_NORMALISATIONS = ("ray", "slots")
 
 
@@ -160,6 +179,11 @@ class TrackingConfig:
     convergence_tol: float = 1e-5
     """Stop early when the next pose update (the twist's norm, m and rad together) falls
     below this: Gauss-Newton stops before rendering it, Adam after taking it."""
+    check_every: int = 1
+    """With static shapes (``render.static_shapes``), the stop conditions are kept on the
+    device and the host reads them between iterations every this many iterations (0: never;
+    the iterations after a stop are no-ops): each read is a sync on a GPU, each skipped one
+    may cost an iteration that changes nothing."""
     min_valid_ratio: float = 0.3
     """Tracking fails when fewer than this share of sampled rays hit the map."""
     max_depth_residual: float = 0.2
@@ -194,6 +218,8 @@ class TrackingConfig:
             raise ConfigError("tracking.feature_count and feature_weight must be >= 0 and feature_huber_px > 0")
         if self.motion_prior < 0:
             raise ConfigError("tracking.motion_prior must be >= 0")
+        if self.check_every < 0:
+            raise ConfigError("tracking.check_every must be >= 0")
         if self.optimizer not in ("adam", "gauss_newton"):
             raise ConfigError(f"tracking.optimizer must be 'adam' or 'gauss_newton', got {self.optimizer!r}")
 

@@ -22,19 +22,32 @@ a **mix** (a host 0-dim tensor is allowed, as CUDA allows it; so are index tenso
 ``t[index]`` and the source of ``copy_``, which CUDA moves). Each mix is recorded with the
 innermost frames of ``slam/`` or ``ar/`` that made the call; ``check()`` raises with them.
 
+It also counts, by ``slam.profiling.scope``, the transfers a GPU would make: **reads**
+(a device tensor's value brought to the host: ``bool``, ``float``, ``int``, ``.item()``,
+``.tolist()``, ``.numpy()``, ``.cpu()``, ``.to("cpu")``: a sync each) and **uploads** (a
+host tensor moved to the device, or ``torch.tensor``/``torch.as_tensor`` of host data with
+``device=``: from pageable memory, a copy that waits for the device's queue). Reads of host
+tensors (an optimiser's step count) are free on any machine and not counted.
+
 Run the code under test with ``VOXFUSION_KERNELS=torch``: the numba kernels only ever see
-CPU tensors and make host tensors by design.
+CPU tensors and make host tensors by design (their hand-offs count as reads).
+
+A test tool (``tests/test_devices.py``, ``tests/test_syncs.py``,
+``benchmarks/bench_syncs.py``); nothing in the pipeline imports it.
 """
 
 from __future__ import annotations
 
 import os
 import traceback
+from collections import Counter
 from dataclasses import dataclass, field
 
 import torch
 from torch.overrides import TorchFunctionMode
 from torch.utils._pytree import tree_flatten
+
+from .profiling import current_scope
 
 _ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 _ATTR = "_voxfusion_place"
@@ -52,6 +65,8 @@ _NO_MIX = {"copy_", "_has_compatible_shallow_copy_type", "to", "cpu", "cuda", "_
            "__bool__", "__float__", "__int__", "__index__", "__len__", "__array__", "__get__", "__set__",
            "size", "dim", "numel", "data_ptr", "is_contiguous", "element_size", "stride", "storage_offset"}
 _INDEXING = {"__getitem__", "__setitem__"}
+_READS = {"__bool__", "__float__", "__int__", "__index__", "__complex__", "item", "tolist", "numpy", "cpu", "__array__"}
+_UPLOADING_FACTORIES = {torch.tensor, torch.as_tensor}
 
 
 def place(t: torch.Tensor) -> str | None:
@@ -82,6 +97,15 @@ def _device_arg_of_to(args, kwargs):
     return None
 
 
+def _to_target(args, kwargs) -> str | None:
+    """``HOST`` or ``DEVICE``: where ``Tensor.to(...)`` moves its tensor (None: it only
+    changes the dtype)."""
+    device = _device_arg_of_to(args, kwargs)
+    if device in (HOST, DEVICE):
+        return device
+    return _explicit_place(device)
+
+
 @dataclass
 class Mix:
     op: str
@@ -95,6 +119,18 @@ class Mix:
 @dataclass
 class DeviceMixChecker(TorchFunctionMode):
     mixes: list[Mix] = field(default_factory=list)
+    reads: Counter = field(default_factory=Counter)
+    """Device-to-host reads by scope name (None: outside every scope; ``total()`` for all)."""
+    uploads: Counter = field(default_factory=Counter)
+    """Host-to-device copies by scope name."""
+    sites: dict = field(default_factory=dict)
+    """scope -> Counter of ``kind op at file:line`` for every read and upload (messages)."""
+
+    def _transfer(self, kind: str, name: str) -> None:
+        where = current_scope()
+        (self.reads if kind == "read" else self.uploads)[where] += 1
+        site = (_where() or ["?"])[0]
+        self.sites.setdefault(where, Counter())[f"{kind} {name} at {site}"] += 1
 
     def __post_init__(self) -> None:
         super().__init__()
@@ -121,6 +157,15 @@ class DeviceMixChecker(TorchFunctionMode):
     def __torch_function__(self, func, types, args=(), kwargs=None):
         kwargs = kwargs or {}
         name = getattr(func, "__name__", "")
+        first = args[0] if args and isinstance(args[0], torch.Tensor) else None
+        target = _to_target(args, kwargs) if name == "to" else None
+        if first is not None and place(first) == DEVICE and (name in _READS or target == HOST):
+            self._transfer("read", name)
+        elif first is not None and place(first) == HOST and (name == "cuda" or target == DEVICE):
+            self._transfer("upload", name)
+        elif func in _UPLOADING_FACTORIES and _explicit_place(kwargs.get("device")) == DEVICE and not (
+                args and isinstance(args[0], torch.Tensor) and place(args[0]) == DEVICE):
+            self._transfer("upload", name)
         out = func(*args, **kwargs)
         descriptor = getattr(getattr(func, "__self__", None), "__name__", None)
         if name == "__get__" and descriptor == "device" and args and place(args[0]) == DEVICE:
@@ -155,11 +200,9 @@ class DeviceMixChecker(TorchFunctionMode):
         if name == "cuda":
             return DEVICE
         if name == "to":
-            device = _device_arg_of_to(args, kwargs)
-            if device in (HOST, DEVICE):
-                return device
-            if device is not None:
-                return _explicit_place(device)
+            target = _to_target(args, kwargs)
+            if target is not None:
+                return target
             return place(args[0]) if isinstance(args[0], torch.Tensor) else None
         checked = list(args)
         if name in _INDEXING and len(checked) > 1:

@@ -156,8 +156,16 @@ def _angular_scale(K: torch.Tensor) -> torch.Tensor:
     return 1000.0 / torch.stack([K[0, 0], K[1, 1]])
 
 
+def huber_threshold(K: np.ndarray, huber_px: float) -> float:
+    """The Huber threshold in milliradians of ``huber_px`` pixels for intrinsics K (3, 3) held
+    on the host (``reprojection_cost``'s ``delta``, without reading K from the device)."""
+    K = np.asarray(K, np.float64)
+    return float(huber_px * np.mean([1000.0 / K[0, 0], 1000.0 / K[1, 1]]))
+
+
 def reprojection_cost(T_map_cam: torch.Tensor, points_map: torch.Tensor, pixels: torch.Tensor,
-                      sigmas: torch.Tensor, K: torch.Tensor, weight: float, huber_px: float) -> torch.Tensor:
+                      sigmas: torch.Tensor, K: torch.Tensor, weight: float, huber_px: float,
+                      delta: float | None = None) -> torch.Tensor:
     """``weight`` times the summed Huber cost of the reprojection errors of map points (M, 3)
     observed at pixels (M, 2), each divided by its expected error sigmas (M,); differentiable in T_map_cam (the Adam tracker's term and the
     reference of ``reprojection_terms``). A sum, not a mean: each match is an observation, and
@@ -170,20 +178,28 @@ def reprojection_cost(T_map_cam: torch.Tensor, points_map: torch.Tensor, pixels:
     scale = _angular_scale(K)
     uv, _ = project(T_map_cam, points_map, K)
     e = ((uv - pixels) * scale / sigmas[:, None]).norm(dim=-1)
-    return weight * huber(e, huber_px * float(scale.mean())).sum()
+    if delta is None:
+        delta = huber_px * float(scale.mean())
+    return weight * huber(e, delta).sum()
 
 
 def reprojection_terms(T_map_cam: torch.Tensor, points_map: torch.Tensor, pixels: torch.Tensor,
-                       sigmas: torch.Tensor, K: torch.Tensor, weight: float, huber_px: float) -> tuple[float, torch.Tensor, torch.Tensor]:
+                       sigmas: torch.Tensor, K: torch.Tensor, weight: float, huber_px: float,
+                       delta: float | None = None,
+                       tensor_cost: bool = False) -> tuple[float | torch.Tensor, torch.Tensor, torch.Tensor]:
     """``reprojection_cost`` and its Gauss-Newton model (H (6, 6), g (6,)) for the twist
     ``xi = (rho, phi)`` of ``T_map_cam exp(xi)``, in ``slam.gauss_newton``'s convention
     (the cost is ``sum omega r^2`` near the current pose, H = sum omega J^T J, g = sum omega J^T r).
 
     A camera-frame point moves as ``x' = exp(-xi) x ~ x - rho + [x]_x phi``; the Huber cost is
     handled by iteratively reweighted least squares (omega falls as delta / e outside delta).
+    ``delta``: the Huber threshold in milliradians (``huber_threshold``; None: from K, read
+    from the device); ``tensor_cost``: the cost as a 0-dim float64 tensor instead of a float
+    (nothing read back from the device).
     """
     scale = _angular_scale(K)
-    delta = huber_px * float(scale.mean())
+    if delta is None:
+        delta = huber_px * float(scale.mean())
     uv, x = project(T_map_cam, points_map, K)
     r = (uv - pixels) * scale / sigmas[:, None]  # (M, 2) milliradians per unit of sigma
     e = r.norm(dim=-1)
@@ -203,8 +219,8 @@ def reprojection_terms(T_map_cam: torch.Tensor, points_map: torch.Tensor, pixels
     Jw = J * omega[:, None, None]
     H = torch.einsum("mki,mkj->ij", Jw, J)
     g = torch.einsum("mki,mk->i", Jw, r)
-    cost = float(weight * huber(e, delta).sum())
-    return cost, H, g
+    cost = (weight * huber(e, delta).sum()).to(torch.float64)
+    return (cost if tensor_cost else float(cost)), H, g
 
 
 class FeatureOdometry:

@@ -28,6 +28,9 @@ class TensorFrame:
     K: torch.Tensor
     valid: torch.Tensor
     T_world_cam_gt: np.ndarray | None = None
+    depth_max: float | None = None
+    """The largest valid depth (metres), known on the host when the frame was prepared (the
+    static-shape renderers size their sample grid with it); None: unknown."""
 
     @property
     def height(self) -> int:
@@ -54,6 +57,7 @@ def prepare_frame(frame: Frame, width: int | None, device: torch.device, max_dep
         K=torch.as_tensor(K, dtype=torch.float32).to(device),
         valid=valid,
         T_world_cam_gt=None if frame.T_world_cam is None else np.asarray(frame.T_world_cam, np.float64),
+        depth_max=float(depth.max()) if depth.size else 0.0,
     )
 
 
@@ -66,11 +70,21 @@ class PixelBatch:
     depth: torch.Tensor
 
 
+def draw_device(generator: torch.Generator | None, device: torch.device) -> torch.device | None:
+    """Where to draw random numbers for tensors on ``device``: there, when ``generator`` is of
+    its kind (a CUDA generator draws on the GPU: no upload, which would wait for the queue);
+    else the generator's own device (None: torch's default CPU generator)."""
+    if generator is None:
+        return None
+    return device if generator.device.type == torch.device(device).type else generator.device
+
+
 def sample_pixels(frame: TensorFrame, num: int, generator: torch.Generator | None = None) -> PixelBatch:
     """``num`` pixels drawn uniformly (with replacement) among those with valid depth."""
     if frame.valid.numel() == 0:
         raise ValueError(f"frame {frame.index} has no valid depth")
-    pick = torch.randint(0, frame.valid.numel(), (num,), generator=generator).to(frame.valid.device)
+    pick = torch.randint(0, frame.valid.numel(), (num,), generator=generator,
+                         device=draw_device(generator, frame.valid.device)).to(frame.valid.device)
     flat = frame.valid[pick]
     return pixels_at(frame, flat)
 
@@ -131,7 +145,7 @@ def sample_stacked_pixels(stack: FrameStack, num: int, generator: torch.Generato
     instead of F calls of ``sample_pixels`` (global bundle adjustment: 60 keyframes cost
     10 ms a step in Python overhead)."""
     F = stack.num_frames
-    u01 = torch.rand(F, num, generator=generator).to(stack.valid.device)
+    u01 = torch.rand(F, num, generator=generator, device=draw_device(generator, stack.valid.device)).to(stack.valid.device)
     # min(): u01 * count can round up to count in float32.
     pick = torch.minimum((u01 * stack.valid_count[:, None]).long(), stack.valid_count[:, None] - 1)
     pick = pick + stack.valid_start[:, None]

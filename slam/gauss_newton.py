@@ -28,6 +28,7 @@ from dataclasses import dataclass, replace
 import torch
 
 from .losses import LossWeights
+from .padded import PaddedSamples, color_window, grid_samples, pack_samples, sdf_weights_padded
 from .render import (
     MapView,
     RaySamples,
@@ -45,7 +46,8 @@ from .render import (
 class Linearisation:
     """The tracking loss at one pose and its Gauss-Newton model.
 
-    cost: the paper's weighted loss (float). H (6, 6), g (6,): normal equations of the
+    cost: the paper's weighted loss (float; a 0-dim float64 tensor from the padded path,
+    which reads nothing back from the device). H (6, 6), g (6,): normal equations of the
     reweighted least-squares model, so the step is ``-(H + damping)^-1 g``.
     depth (R,) rendered depth, hit (R,) rays with weight, residual (R,) |depth error|.
     """
@@ -172,6 +174,9 @@ class RenderedJacobians:
     s: torch.Tensor
     J_s: torch.Tensor
     truncation: float
+    valid: torch.Tensor | None = None
+    """Padded samples (``render_with_jacobians_padded``): (S,) bool, the slots that hold a
+    sample (None: every sample is one)."""
 
 
 @torch.no_grad()
@@ -239,6 +244,69 @@ def render_with_jacobians(T: torch.Tensor, dirs_cam: torch.Tensor, view: MapView
     return RenderedJacobians(T, depth, W, color, hit, J_depth, J_color, r, t, s, J_s, tr)
 
 
+@torch.no_grad()
+def render_with_jacobians_padded(T: torch.Tensor, dirs_cam: torch.Tensor, view: MapView, decoder, *,
+                                 near: torch.Tensor, far: torch.Tensor, step: float, truncation: float,
+                                 max_hits: int, grid: int, slots: int, color_slots: int,
+                                 color_weight_eps: float = 1e-5, mask_in_front: bool = True,
+                                 jacobians: bool = True, renormalise_color: bool = False) -> RenderedJacobians:
+    """``render_with_jacobians`` on padded samples (``slam.padded``): R rays of ``grid`` grid
+    points packed into ``slots`` slots, the colour on a window of ``color_slots`` slots, and
+    nothing read back from the device. dirs_cam (R, 3) with z = 1, T (4, 4), near, far (R,).
+    The per-sample fields (S = R * slots) carry ``valid``; ``linearise_rendered`` reads it."""
+    tr = truncation
+    R_, o = T[:3, :3], T[:3, 3]
+    R = dirs_cam.shape[0]
+    dirs = dirs_cam @ R_.T
+    origins = o.expand(R, 3)
+    samples: PaddedSamples = pack_samples(grid_samples(origins, dirs, near, far, step, view, grid,
+                                                      max_hits=max_hits), slots)
+    N = samples.slots
+    t = samples.t                                                          # (R, N)
+    valid = samples.valid
+    x_cam = t[..., None] * dirs_cam[:, None, :]                            # (R, N, 3)
+    points = (origins[:, None, :] + t[..., None] * dirs[:, None, :]).reshape(-1, 3)
+    voxel = samples.voxel_index.reshape(-1)
+    r = torch.arange(R, device=t.device)[:, None].expand(R, N).reshape(-1)
+    if jacobians:
+        field = field_with_gradients(points, voxel, view, decoder)
+        s = field.sdf.view(R, N)
+    else:
+        sdf, hidden = decode_samples(points, voxel, view, decoder)
+        s = sdf.view(R, N)
+    w, dw_ds = sdf_weights_padded(s, t, valid, tr, mask_in_front)
+    C = min(int(color_slots), N)
+    index, active = color_window(w, color_weight_eps, C)                 # (R, C)
+    flat_index = (torch.arange(R, device=t.device)[:, None] * N + index).reshape(-1)
+    if jacobians:
+        rgb, grad_rgb = color_with_gradients(field, decoder, flat_index)
+    else:
+        rgb = color_of_hidden(decoder, hidden[flat_index])
+    rgb = rgb.view(R, C, 3)
+    wc = w.gather(1, index) * active
+    W = w.sum(1)
+    inv_W = 1.0 / (W + 1e-8)
+    depth = (w * t).sum(1) * inv_W
+    inv_Wc = 1.0 / (wc.sum(1) + 1e-8) if renormalise_color else inv_W
+    color = (wc[..., None] * rgb).sum(1) * inv_Wc[:, None]
+    hit = valid.any(1)
+    flat_t, flat_s, flat_valid = t.reshape(-1), s.reshape(-1), valid.reshape(-1)
+    if not jacobians:
+        return RenderedJacobians(T, depth, W, color, hit, W.new_zeros(R, 6), W.new_zeros(R, 3, 6),
+                                 r, flat_t, flat_s, flat_t.new_zeros(R * N, 6), tr, flat_valid)
+    J_s = twist_rows(field.grad_sdf, x_cam.reshape(-1, 3), R_)            # (S, 6)
+    a = (t - depth[:, None]) * inv_W[:, None] * dw_ds                     # (R, N)
+    J_depth = (a[..., None] * J_s.view(R, N, 6)).sum(1)
+    x_win = x_cam.gather(1, index[..., None].expand(R, C, 3)).reshape(-1, 3)
+    J_rgb_c = twist_rows(grad_rgb, x_win[:, None, :], R_).view(R, C, 3, 6)
+    dw_win = dw_ds.gather(1, index) * active
+    b = (rgb - color[:, None, :]) * (inv_Wc[:, None] * dw_win)[..., None]   # (R, C, 3)
+    J_s_win = J_s.view(R, N, 6).gather(1, index[..., None].expand(R, C, 6))
+    per_sample = b[..., None] * J_s_win[:, :, None, :] + (wc * inv_Wc[:, None])[..., None, None] * J_rgb_c
+    J_color = per_sample.sum(1)                                            # (R, 3, 6)
+    return RenderedJacobians(T, depth, W, color, hit, J_depth, J_color, r, flat_t, flat_s, J_s, tr, flat_valid)
+
+
 def linearise_rendered(rendered: RenderedJacobians, rgb_gt: torch.Tensor, depth_gt: torch.Tensor,
                        ray_weight: torch.Tensor | None, *, weights: LossWeights, max_depth: float = 10.0,
                        eps_depth: float = 5e-3, eps_color: float = 1e-2,
@@ -246,6 +314,9 @@ def linearise_rendered(rendered: RenderedJacobians, rgb_gt: torch.Tensor, depth_
     """``linearise`` from a render at its pose: the loss against rgb_gt (R, 3), depth_gt (R,)
     over the rays ray_weight (R,) keeps (None: all), and its Gauss-Newton model."""
     with torch.no_grad():
+        if rendered.valid is not None:
+            return _assemble_padded(rendered, rgb_gt, depth_gt, ray_weight, weights, max_depth, eps_depth,
+                                    eps_color, miss_cost)
         return _assemble(rendered, rgb_gt, depth_gt, ray_weight, weights, max_depth, eps_depth, eps_color, miss_cost)
 
 
@@ -306,10 +377,81 @@ def _assemble(rendered: RenderedJacobians, rgb_gt, depth_gt, ray_weight, lw: Los
     return Linearisation(cost, H, g, depth, hit & (W > 1e-3), residual)
 
 
+def _assemble_padded(rendered: RenderedJacobians, rgb_gt, depth_gt, ray_weight, lw: LossWeights, max_depth,
+                     eps_depth, eps_color, miss_cost) -> Linearisation:
+    """``_assemble`` with masks instead of boolean indexing and every count and the cost kept
+    as tensors (the cost in float64, as ``_assemble`` sums it in Python floats): the same
+    numbers up to the order of float32 sums, and nothing read back from the device."""
+    T, depth, W, color, hit = rendered.T, rendered.depth, rendered.W, rendered.color, rendered.hit
+    J_depth, J_color, r, t, s, J_s = (rendered.J_depth, rendered.J_color, rendered.r, rendered.t,
+                                      rendered.s, rendered.J_s)
+    tr = rendered.truncation
+    num_rays = depth.shape[0]
+    f64 = torch.float64
+    use = hit if ray_weight is None else hit & (ray_weight > 0)
+    in_range = (depth_gt > 0.01) & (depth_gt < max_depth)
+    valid = use & in_range
+    n_use, n_valid = use.sum().to(f64), valid.sum().to(f64)
+    den_use, den_valid = n_use, n_valid
+    cost = torch.zeros((), dtype=f64, device=depth.device)
+    if miss_cost is not None:
+        in_set = torch.ones_like(hit) if ray_weight is None else ray_weight > 0
+        den_use = in_set.sum().to(f64).clamp(min=1.0)
+        den_valid = (in_set & in_range).sum().to(f64).clamp(min=1.0)
+        cost = cost + miss_cost * (in_set & ~hit).sum().to(f64) / den_use
+    den_use_c, den_valid_c = den_use.clamp(min=1.0), den_valid.clamp(min=1.0)
+    H = T.new_zeros(6, 6)
+    g = T.new_zeros(6)
+
+    def add(J: torch.Tensor, res: torch.Tensor, omega: torch.Tensor) -> None:
+        nonlocal H, g
+        H = H + (J * omega[:, None]).T @ J
+        g = g + (J * (omega * res)[:, None]).sum(0)
+
+    use_f = use.to(depth.dtype)
+    res_c = (color - rgb_gt) * use_f[:, None]                                     # (R, 3)
+    cost = cost + lw.rgb * res_c.abs().sum().to(f64) / (3 * den_use_c)
+    omega = (lw.rgb / (3 * den_use_c * 2.0 * res_c.abs().clamp(min=eps_color))).to(depth.dtype) * use_f[:, None]
+    add(J_color.reshape(-1, 6), res_c.reshape(-1), omega.reshape(-1))
+    valid_f = valid.to(depth.dtype)
+    res_d = (depth - depth_gt) * valid_f
+    cost = cost + lw.depth * res_d.abs().sum().to(f64) / den_valid_c
+    omega = (lw.depth / (den_valid_c * 2.0 * res_d.abs().clamp(min=eps_depth))).to(depth.dtype) * valid_f
+    add(J_depth, res_d, omega)
+
+    d = depth_gt[r]
+    ok = valid[r] & rendered.valid
+    for mask, res, J, lam in (
+        (ok & (t < d - tr), s - 1.0, J_s, lw.fs),
+        (ok & ((t - d).abs() <= tr), t + s * tr - d, tr * J_s, lw.sdf),
+    ):
+        m = mask.to(t.dtype)
+        counts = torch.zeros(num_rays, dtype=t.dtype, device=t.device).index_add(0, r, m)
+        rays_with = (counts > 0).sum().to(f64) if miss_cost is None else den_valid
+        per = counts[r]
+        omega = (lam / (rays_with.clamp(min=1.0) * torch.where(mask, per, torch.ones_like(per)))).to(t.dtype) * m
+        res = res * m
+        cost = cost + (omega * res ** 2).sum().to(f64)
+        add(J, res, omega)
+    residual = (depth - depth_gt).abs()
+    return Linearisation(cost, H, g, depth, hit & (W > 1e-3), residual)
+
+
 def damped_step(lin: Linearisation, damping: float) -> torch.Tensor:
     """The Levenberg-Marquardt step (6,): -(H + damping * diag(H))^-1 g."""
     H = lin.H + damping * torch.diag(torch.diagonal(lin.H)) + 1e-9 * torch.eye(6, dtype=lin.H.dtype, device=lin.H.device)
     return -torch.linalg.solve(H, lin.g)
+
+
+def damped_step_tensor(lin: Linearisation, damping: torch.Tensor) -> torch.Tensor:
+    """``damped_step`` with a 0-dim tensor ``damping``, solved by Cholesky and two triangular
+    solves: the system is symmetric positive definite, and these read nothing back from the
+    device (LU's solve checks its pivots on the host). A system that is not gives a
+    non-finite step."""
+    H = lin.H + damping * torch.diag(torch.diagonal(lin.H)) + 1e-9 * torch.eye(6, dtype=lin.H.dtype, device=lin.H.device)
+    L = torch.linalg.cholesky_ex(H)[0]
+    y = torch.linalg.solve_triangular(L, lin.g[:, None], upper=False)
+    return -torch.linalg.solve_triangular(L.T, y, upper=True)[:, 0]
 
 
 @dataclass(frozen=True)
@@ -332,8 +474,11 @@ class MotionPrior:
 
     def added_to(self, lin: Linearisation, xi: torch.Tensor) -> Linearisation:
         """``lin`` with the prior at twist ``xi`` (6,) added: the step is taken on the right
-        of the current pose, and for the small twists of one frame d log / d step ~ I."""
-        return replace(lin, cost=lin.cost + self.cost(xi), H=lin.H + torch.diag(2 * self.w).to(lin.H.dtype),
+        of the current pose, and for the small twists of one frame d log / d step ~ I.
+        A tensor ``lin.cost`` (the padded path) stays a tensor."""
+        prior = (self.w * xi * xi).sum()
+        cost = lin.cost + prior.to(lin.cost.dtype) if torch.is_tensor(lin.cost) else lin.cost + float(prior)
+        return replace(lin, cost=cost, H=lin.H + torch.diag(2 * self.w).to(lin.H.dtype),
                        g=lin.g + (2 * self.w * xi).to(lin.g.dtype))
 
 
@@ -343,3 +488,9 @@ def limit_step(delta: torch.Tensor, max_m: float, max_rad: float) -> torch.Tenso
     where the linear model is wrong lands where the map cannot say so)."""
     scale = min(1.0, max_m / max(float(delta[:3].norm()), 1e-12), max_rad / max(float(delta[3:].norm()), 1e-12))
     return delta * scale
+
+
+def limit_step_tensor(delta: torch.Tensor, max_m: float, max_rad: float) -> torch.Tensor:
+    """``limit_step`` in tensor operations only (nothing read back from the device)."""
+    scale = torch.minimum(max_m / delta[:3].norm().clamp(min=1e-12), max_rad / delta[3:].norm().clamp(min=1e-12))
+    return delta * scale.clamp(max=1.0)

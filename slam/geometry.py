@@ -67,21 +67,21 @@ def so3_log(R: torch.Tensor) -> torch.Tensor:
     # General and small-angle branches: omega = theta / (2 sin theta) * vee.
     factor = torch.where(small, 0.5 + theta * theta / 12, theta / (2 * torch.where(small, 1.0, sin)))
     omega = factor[..., None] * vee
-    # Near-pi branch.
+    # Near-pi branch, computed for every entry and selected (a test of whether any entry is
+    # near pi would read the device back in the trackers' loops).
     near_pi = theta > np.pi - 1e-2
-    if bool(near_pi.any()):
-        sym = (R + R.transpose(-1, -2)) / 2
-        eye = torch.eye(3, dtype=R.dtype, device=R.device)
-        # sym = cos I + (1 - cos) n n^T exactly; the clamp only guards batch entries not near pi.
-        nn = (sym - cos[..., None, None] * eye) / torch.clamp(1 - cos, min=1.0)[..., None, None]
-        diag = torch.diagonal(nn, dim1=-2, dim2=-1)
-        col = diag.argmax(-1)
-        n = torch.gather(nn, -1, col[..., None, None].expand(*nn.shape[:-1], 1)).squeeze(-1)
-        n = n / torch.clamp(n.norm(dim=-1, keepdim=True), min=_EPS)
-        # Pick the sign that agrees with the (small) antisymmetric part.
-        sign = torch.where((n * vee).sum(-1) < 0, -1.0, 1.0).to(R.dtype)
-        omega_pi = n * (theta * sign)[..., None]
-        omega = torch.where(near_pi[..., None], omega_pi, omega)
+    sym = (R + R.transpose(-1, -2)) / 2
+    eye = torch.eye(3, dtype=R.dtype, device=R.device)
+    # sym = cos I + (1 - cos) n n^T exactly; the clamp only guards batch entries not near pi.
+    nn = (sym - cos[..., None, None] * eye) / torch.clamp(1 - cos, min=1.0)[..., None, None]
+    diag = torch.diagonal(nn, dim1=-2, dim2=-1)
+    col = diag.argmax(-1)
+    n = torch.gather(nn, -1, col[..., None, None].expand(*nn.shape[:-1], 1)).squeeze(-1)
+    n = n / torch.clamp(n.norm(dim=-1, keepdim=True), min=_EPS)
+    # Pick the sign that agrees with the (small) antisymmetric part.
+    sign = torch.where((n * vee).sum(-1) < 0, -1.0, 1.0).to(R.dtype)
+    omega_pi = n * (theta * sign)[..., None]
+    omega = torch.where(near_pi[..., None], omega_pi, omega)
     return omega
 
 

@@ -33,6 +33,7 @@ import torch
 from .config import SLAMConfig
 from .frames import (
     FrameStack,
+    draw_device,
     PixelBatch,
     TensorFrame,
     backproject,
@@ -43,6 +44,7 @@ from .frames import (
 from .geometry import se3_exp, se3_inverse
 from .losses import LossWeights, Losses, compute_losses
 from .maps import Keyframe, MapSet, SubMap
+from .padded import color_slots, grid_samples, grid_size, pack_samples, render_padded, round_up
 from .profiling import MAPPING_ITERATION, scope
 from .render import TrainingThinning, render_rays
 from .voxels import grow_adam_state, lookup_sorted, morton_encode, voxel_coords_of
@@ -149,7 +151,11 @@ class Mapper:
         self.active: dict[int, SubMap] = {}
         """agent -> the map it is mapping into."""
         self._rng = random.Random(seed)
-        self._gen = torch.Generator().manual_seed(seed)
+        # On the device: rays and offsets are drawn where they are used (on a GPU: no upload,
+        # which would wait for the queue); on the CPU it is the generator it always was.
+        self._gen = torch.Generator(device=device).manual_seed(seed)
+        self.static = config.render.uses_static_shapes(device)
+        """Iterations render padded samples (``slam.padded``; ``render.static_shapes``)."""
         self._optimizers: dict[int, torch.optim.Optimizer] = {}
         """map id -> Adam over its embeddings and decoder (active maps only)."""
         self._seed = seed
@@ -371,6 +377,17 @@ class Mapper:
         stack = stack_frames(sources)
         losses: Losses | None = None
         self.last_iterations = 0
+        view = submap.view()  # the map does not change inside the loop (no allocation)
+        step = r.step_ratio * submap.voxels.voxel_size
+        gen_device = draw_device(self._gen, self.device)
+        shape = self._sample_shape(sources, stack, rays_per_frame, T_start, view) if self.static else None
+
+        def rays(batch: PixelBatch, T: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+            dirs_cam = batch.dirs_cam.reshape(len(sources), rays_per_frame, 3)
+            d = (dirs_cam @ T[:, :3, :3].transpose(1, 2)).reshape(-1, 3)
+            o = T[:, None, :3, 3].expand(-1, rays_per_frame, 3).reshape(-1, 3)
+            return o, d
+
         for _ in range(iterations):
             with scope(MAPPING_ITERATION):
                 tq = time.perf_counter()
@@ -382,22 +399,31 @@ class Mapper:
                 if free:
                     xi = torch.zeros(len(sources), 6, device=self.device).index_copy(0, free_rows, twists)
                     T = T_start @ se3_exp(xi)
-                dirs_cam = batch.dirs_cam.reshape(len(sources), rays_per_frame, 3)
-                d = (dirs_cam @ T[:, :3, :3].transpose(1, 2)).reshape(-1, 3)
-                o = T[:, None, :3, 3].expand(-1, rays_per_frame, 3).reshape(-1, 3)
+                o, d = rays(batch, T)
                 c_gt, d_gt = batch.rgb, batch.depth
                 n = o.shape[0]
                 thinning = None
                 if m.thin_samples:
-                    phase = torch.randint(m.free_space_stride, (n,), generator=self._gen).to(self.device)
+                    phase = torch.randint(m.free_space_stride, (n,), generator=self._gen, device=gen_device).to(self.device)
                     thinning = TrainingThinning(d_gt, r.truncation, r.max_distance, m.free_space_stride, phase)
-                out = render_rays(o, d, submap.view(), submap.decoder,
-                                  near=torch.full((n,), 0.05, device=self.device),
-                                  far=training_far(d_gt, r.truncation, r.max_distance),
-                                  step=r.step_ratio * submap.voxels.voxel_size, truncation=r.truncation,
-                                  max_hits=r.max_hits, offsets=torch.rand(n, generator=self._gen).to(self.device),
-                                  mask_in_front=r.mask_in_front, thinning=thinning,
-                                  color_weight_eps=m.color_weight_eps, renormalise_color=True)
+                near = torch.full((n,), 0.05, device=self.device)
+                far = training_far(d_gt, r.truncation, r.max_distance)
+                offsets = torch.rand(n, generator=self._gen, device=gen_device).to(self.device)
+                if shape is not None:
+                    grid, slots, colour = shape
+                    with torch.no_grad():
+                        samples = pack_samples(grid_samples(o.detach(), d.detach(), near, far, step, view, grid,
+                                                            max_hits=r.max_hits, offsets=offsets,
+                                                            thinning=thinning), slots)
+                    out = render_padded(o, d, view, submap.decoder, samples, truncation=r.truncation,
+                                        color_weight_eps=m.color_weight_eps, color_slots=colour,
+                                        mask_in_front=r.mask_in_front, renormalise_color=True)
+                else:
+                    out = render_rays(o, d, view, submap.decoder, near=near, far=far,
+                                      step=step, truncation=r.truncation,
+                                      max_hits=r.max_hits, offsets=offsets,
+                                      mask_in_front=r.mask_in_front, thinning=thinning,
+                                      color_weight_eps=m.color_weight_eps, renormalise_color=True)
                 losses = compute_losses(out, c_gt, d_gt, r.truncation, weights, max_depth=r.max_distance,
                                         normalisation=self.config.loss.normalisation)
                 tb = time.perf_counter()
@@ -421,6 +447,28 @@ class Mapper:
                     else:
                         frame_poses[i - len(keyframes)] = T_new
         return ({} if losses is None else {k: float(v) for k, v in losses.as_floats().items()}), frame_poses
+
+    def _sample_shape(self, sources: list[TensorFrame], stack: FrameStack | None, rays_per_frame: int,
+                      T_start: torch.Tensor, view) -> tuple[int, int, int]:
+        """(grid points G, slots N, colour slots C) of a window's padded samples: G covers
+        the sources' deepest ray, N is the most samples a ray of one batch drawn for it holds
+        (before thinning: an upper bound), with a quarter more for the batches to come. One
+        read of the device per window, outside the iterations."""
+        r = self.config.render
+        step = r.step_ratio * view.voxel_size
+        depth_max = max(f.depth_max if f.depth_max is not None else float(f.depth.max()) for f in sources)
+        G = grid_size(0.05, min(depth_max + 2.0 * r.truncation, r.max_distance), step)
+        with torch.no_grad():
+            batch = self._sample(sources, stack, rays_per_frame)
+            dirs_cam = batch.dirs_cam.reshape(len(sources), rays_per_frame, 3)
+            d = (dirs_cam @ T_start[:, :3, :3].transpose(1, 2)).reshape(-1, 3)
+            o = T_start[:, None, :3, 3].expand(-1, rays_per_frame, 3).reshape(-1, 3)
+            n = o.shape[0]
+            grid = grid_samples(o, d, torch.full((n,), 0.05, device=self.device),
+                                training_far(batch.depth, r.truncation, r.max_distance), step, view, G,
+                                max_hits=r.max_hits)
+            N = min(G, round_up(1.25 * int(grid.counts().max())))
+        return G, N, color_slots(r.truncation, step, N, r.mask_in_front)
 
     def _sample(self, sources: list[TensorFrame], stack: FrameStack | None, num: int) -> PixelBatch:
         """``num`` pixels of each source frame, frame by frame."""

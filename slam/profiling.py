@@ -2,16 +2,16 @@
 
 The tracker's and the mapper's iterations run inside named scopes (``scope``): a profiler
 range (``torch.profiler.record_function``, about a microsecond when no profiler runs) and a
-thread-local name that ``HostReadCounter`` reads. Two counts, both taken on the CPU, so that
+thread-local name that ``slam.devicecheck`` reads. Two counts, both taken on the CPU, so that
 no change ever adds a host sync unnoticed even where no GPU is at hand:
 
 * ``aten_counts``: from a ``torch.profiler`` trace, the aten operators and the device-to-host
   reads among them (``aten::_local_scalar_dense``, under ``float()``, ``bool()``, ``.item()``;
   ``aten::nonzero``, under boolean indexing and ``torch.nonzero``), per scope and in all;
-* ``HostReadCounter``: Python-level reads of a tensor's values into the host (``bool``,
-  ``float``, ``int``, ``.item()``, ``.tolist()``, ``.numpy()``, ``.cpu()``, ``__array__``),
+* ``slam.devicecheck.DeviceMixChecker``: Python-level reads of a device tensor's values into
+  the host (``bool``, ``float``, ``int``, ``.item()``, ``.tolist()``, ``.numpy()``, ``.cpu()``),
   which on a CPU tensor dispatch no aten operator a profiler could see (``.tolist()``,
-  ``.numpy()``, ``.cpu()``) but copy and synchronise on a GPU.
+  ``.numpy()``, ``.cpu()``) but copy and synchronise on a GPU, and uploads of host data.
 
 ``benchmarks/bench_syncs.py`` reports both per iteration and per frame; ``tests/test_syncs.py``
 holds the device path's iterations at zero.
@@ -26,7 +26,6 @@ from dataclasses import dataclass, field
 from typing import Iterator
 
 import torch
-from torch.overrides import TorchFunctionMode
 
 TRACKING_ITERATION = "voxfusion.tracking.iteration"
 """One step of the tracker's optimiser (Adam or Levenberg-Marquardt)."""
@@ -36,10 +35,6 @@ MAPPING_ITERATION = "voxfusion.mapping.iteration"
 SYNC_OPS = ("aten::_local_scalar_dense", "aten::nonzero")
 """The aten operators that read device memory into the host (``aten::item`` calls the first;
 it is listed by ``aten_counts`` but not added again)."""
-
-HOST_READS = frozenset({"__bool__", "__float__", "__int__", "__index__", "__complex__", "item", "tolist",
-                        "numpy", "cpu", "__array__"})
-"""Tensor methods that bring its values to the host."""
 
 _local = threading.local()
 
@@ -52,7 +47,7 @@ def current_scope() -> str | None:
 
 @contextlib.contextmanager
 def scope(name: str) -> Iterator[None]:
-    """A profiler range named ``name`` that ``HostReadCounter`` also sees."""
+    """A profiler range named ``name`` that ``slam.devicecheck`` also sees."""
     stack = getattr(_local, "stack", None)
     if stack is None:
         stack = _local.stack = []
@@ -71,9 +66,12 @@ class ScopeCounts:
     ranges: int = 0
     aten_ops: int = 0
     syncs: int = 0
-    """``SYNC_OPS`` summed."""
+    """``SYNC_OPS`` summed, but for those inside a torch optimiser's step (``optimizer_reads``)."""
+    optimizer_reads: int = 0
+    """``SYNC_OPS`` inside ``Optimizer.step``: Adam reads its step counter, a CPU tensor
+    unless fused or capturable, so on a GPU these read host memory and wait for nothing."""
     by_op: Counter = field(default_factory=Counter)
-    """Every sync-like operator (``SYNC_OPS`` and ``aten::item``) by name."""
+    """The ``syncs`` by operator name."""
 
     def per_range(self) -> dict[str, float]:
         n = max(self.ranges, 1)
@@ -94,8 +92,10 @@ def aten_counts(events, names: tuple[str, ...] = (TRACKING_ITERATION, MAPPING_IT
         if not name.startswith("aten::"):
             continue
         targets = [out[None]]
+        in_optimizer = False
         parent = ev.cpu_parent
         while parent is not None:
+            in_optimizer = in_optimizer or parent.name.startswith("Optimizer.step#")
             if parent.name in out:
                 targets.append(out[parent.name])
                 break
@@ -103,30 +103,9 @@ def aten_counts(events, names: tuple[str, ...] = (TRACKING_ITERATION, MAPPING_IT
         sync = name in SYNC_OPS
         for counts in targets:
             counts.aten_ops += 1
-            if sync:
+            if sync and in_optimizer:
+                counts.optimizer_reads += 1
+            elif sync:
                 counts.syncs += 1
-            if sync or name == "aten::item":
                 counts.by_op[name] += 1
     return out
-
-
-class HostReadCounter(TorchFunctionMode):
-    """Counts ``HOST_READS`` calls, in all and by the ``scope`` they happen in.
-
-    ``reads[None]`` is the total; ``reads[name]`` those inside ``scope(name)``;
-    ``where[name]`` the method names seen there (for a failing test's message)."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.reads: Counter = Counter()
-        self.where: dict[str | None, Counter] = {}
-
-    def __torch_function__(self, func, types, args=(), kwargs=None):
-        name = getattr(func, "__name__", "")
-        if name in HOST_READS:
-            where = current_scope()
-            self.reads[None] += 1
-            if where is not None:
-                self.reads[where] += 1
-                self.where.setdefault(where, Counter())[name] += 1
-        return func(*args, **(kwargs or {}))

@@ -32,15 +32,17 @@ import torch
 
 from .config import SLAMConfig, TrackingConfig
 from .decoder import Decoder
-from .features import Correspondences, reprojection_cost, reprojection_terms
+from .features import Correspondences, huber_threshold, reprojection_cost, reprojection_terms
 from .frames import TensorFrame, sample_pixels
-from .gauss_newton import (Linearisation, MotionPrior, RenderedJacobians, damped_step, limit_step,
-                           linearise_rendered, render_with_jacobians)
+from .gauss_newton import (Linearisation, MotionPrior, RenderedJacobians, damped_step, damped_step_tensor, limit_step,
+                           limit_step_tensor, linearise_rendered, render_with_jacobians,
+                           render_with_jacobians_padded)
 from .geometry import se3_exp, se3_inverse, se3_log
 from .losses import LossWeights, compute_losses
 from .mapping import MapSnapshot, training_far
 from .maps import optimised_voxel_mask
 from .profiling import TRACKING_ITERATION, scope
+from .padded import band_grid_size, color_slots, grid_samples, grid_size, pack_samples, render_padded, round_up
 from .render import MapView, render_rays
 from .voxels import lookup_sorted, morton_encode, voxel_coords_of
 
@@ -96,6 +98,8 @@ class _SparseTerm:
     K: torch.Tensor
     weight: float
     huber_px: float
+    delta: float | None = None
+    """The Huber threshold in milliradians, from the host's K (``huber_threshold``)."""
 
     @staticmethod
     def in_map(matches: Correspondences, T_map_world: torch.Tensor, c: TrackingConfig) -> "_SparseTerm":
@@ -105,13 +109,16 @@ class _SparseTerm:
         return _SparseTerm(points, torch.as_tensor(matches.pixels, dtype=dtype, device=device),
                            torch.as_tensor(matches.sigmas, dtype=dtype, device=device),
                            torch.as_tensor(matches.K, dtype=dtype, device=device),
-                           c.feature_weight, c.feature_huber_px)
+                           c.feature_weight, c.feature_huber_px, huber_threshold(matches.K, c.feature_huber_px))
 
     def cost(self, T_map_cam: torch.Tensor) -> torch.Tensor:
-        return reprojection_cost(T_map_cam, self.points_map, self.pixels, self.sigmas, self.K, self.weight, self.huber_px)
+        return reprojection_cost(T_map_cam, self.points_map, self.pixels, self.sigmas, self.K, self.weight,
+                                 self.huber_px, self.delta)
 
     def added_to(self, lin: Linearisation, T_map_cam: torch.Tensor) -> Linearisation:
-        cost, H, g = reprojection_terms(T_map_cam, self.points_map, self.pixels, self.sigmas, self.K, self.weight, self.huber_px)
+        """``lin`` plus the features' terms; a tensor ``lin.cost`` (the padded path) stays one."""
+        cost, H, g = reprojection_terms(T_map_cam, self.points_map, self.pixels, self.sigmas, self.K, self.weight,
+                                        self.huber_px, self.delta, tensor_cost=torch.is_tensor(lin.cost))
         return replace(lin, cost=lin.cost + cost, H=lin.H + H, g=lin.g + g)
 
 
@@ -159,11 +166,34 @@ def constant_velocity_guess(previous: list[torch.Tensor], enabled: bool) -> torc
     return previous[-1].clone()
 
 
+def masked_median(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """``values[mask].median()`` (the lower median, as torch's) of values (R,) over mask (R,)
+    bool, inf where the mask is empty, as a 0-dim tensor: nothing read back from the device.
+    Example: values [3., 1., 2., 9.], mask [T, T, T, F] -> 2."""
+    inf = torch.full_like(values, float("inf"))
+    ordered = torch.sort(torch.where(mask, values, inf)).values
+    n = mask.sum()
+    k = torch.div((n - 1).clamp(min=0), 2, rounding_mode="floor")
+    return torch.where(n > 0, ordered.gather(0, k[None])[0], inf[0])
+
+
+def _select(take: torch.Tensor, a: Linearisation, b: Linearisation) -> Linearisation:
+    """``a`` where the 0-dim bool ``take`` holds, else ``b``, field by field, on the device."""
+    def pick(x, y):
+        return torch.where(take, x, y)
+
+    return Linearisation(pick(a.cost, b.cost), pick(a.H, b.H), pick(a.g, b.g), pick(a.depth, b.depth),
+                         pick(a.hit, b.hit), pick(a.residual, b.residual))
+
+
 class Tracker:
     def __init__(self, config: SLAMConfig, device: torch.device, seed: int = 0):
         self.config = config
         self.device = device
-        self._gen = torch.Generator().manual_seed(seed + 1)
+        # On the device: a CUDA generator draws the rays on the GPU (no upload, no sync); on
+        # the CPU it is the generator it always was.
+        self._gen = torch.Generator(device=device).manual_seed(seed + 1)
+        self.static = config.render.uses_static_shapes(device)
         c = config.tracking
         self.weights = LossWeights(c.rgb_weight, c.depth_weight, c.sdf_weight, c.fs_weight)
 
@@ -184,10 +214,12 @@ class Tracker:
         if self.config.tracking.optimizer == "gauss_newton":
             # The start may fall back from the PnP pose to the guess (feature_dense_check):
             # the jump test and a diverged estimate's fallback use the start it took.
-            it, loss, T_best_map, hit_ratio, residual_med, T0_map, information = self._levenberg_marquardt(
+            lm = self._levenberg_marquardt_static if self.static else self._levenberg_marquardt
+            it, loss, T_best_map, hit_ratio, residual_med, T0_map, information = lm(
                 frame, fmap, T0_map, sparse, T_guess_map if sparse is not None else None)
         else:
-            it, loss, T_best_map, hit_ratio, residual_med = self._adam(frame, fmap, T0_map, sparse)
+            adam = self._adam_static if self.static else self._adam
+            it, loss, T_best_map, hit_ratio, residual_med = adam(frame, fmap, T0_map, sparse)
             information = None
         result = self._result(fmap, T0_map, T_best_map, it, loss, hit_ratio, residual_med)
         return replace(result, information=information)
@@ -341,6 +373,180 @@ class Tracker:
             return it, loss, T_last, hit_ratio, float(med)
         loss, T_best_map, hit_ratio, residual_med = best
         return it, loss, T_best_map, hit_ratio, residual_med
+
+    # ------------------------------------------------------------- static shapes
+    def _sample_shape(self, frame: TensorFrame, fmap: FrozenMap, dirs_cam: torch.Tensor, near: torch.Tensor,
+                      far: torch.Tensor, T_map: torch.Tensor) -> tuple[int, int, int]:
+        """(grid points G, slots N, colour slots C) of this frame's padded samples
+        (``slam.padded``). Tracking's band needs no more slots than its grid; the whole ray
+        (``sample_band = 0``) is sized once per frame by the most samples a ray of the first
+        batch holds at ``T_map``, with a quarter more for the poses and rays to come (one
+        read of the device per frame, outside the iterations)."""
+        c, r = self.config.tracking, self.config.render
+        step = r.step_ratio * fmap.view.voxel_size
+        if c.sample_band > 0:
+            G = band_grid_size(c.sample_band, r.truncation, step)
+            N = G
+        else:
+            depth_max = frame.depth_max if frame.depth_max is not None else float(frame.depth.max())
+            G = grid_size(0.05, min(depth_max + 2.0 * r.truncation, r.max_distance), step)
+            with torch.no_grad():
+                dirs = dirs_cam @ T_map[:3, :3].T
+                grid = grid_samples(T_map[:3, 3].expand_as(dirs), dirs, near, far, step, fmap.view, G,
+                                    max_hits=r.max_hits)
+                N = min(G, round_up(1.25 * int(grid.counts().max())))
+        return G, N, color_slots(r.truncation, step, N, r.mask_in_front)
+
+    def _levenberg_marquardt_static(self, frame: TensorFrame, fmap: FrozenMap, T0_map: torch.Tensor,
+                                    sparse: _SparseTerm | None, T_guess_map: torch.Tensor | None = None):
+        """``_levenberg_marquardt`` on padded samples with its control on the device: the
+        step, its acceptance, the damping and the stop conditions are tensors, so an
+        iteration reads nothing back; the host reads the stop flag every
+        ``tracking.check_every`` iterations (an iteration after a stop changes nothing).
+        The reads before and after the loop are a few per frame."""
+        c, r = self.config.tracking, self.config.render
+        batch = sample_pixels(frame, c.num_rays, self._gen)
+        near, far = tracking_bounds(batch.depth, r.truncation, c.sample_band, r.max_distance)
+        G, N, C = self._sample_shape(frame, fmap, batch.dirs_cam, near, far, T0_map)
+        miss_cost = self.weights.depth * r.truncation + self.weights.sdf * r.truncation ** 2
+
+        def render_at(T: torch.Tensor, jacobians: bool = True) -> RenderedJacobians:
+            return render_with_jacobians_padded(T, batch.dirs_cam, fmap.view, fmap.decoder, near=near, far=far,
+                                                step=r.step_ratio * fmap.view.voxel_size, truncation=r.truncation,
+                                                max_hits=r.max_hits, grid=G, slots=N, color_slots=C,
+                                                color_weight_eps=c.color_weight_eps, mask_in_front=r.mask_in_front,
+                                                jacobians=jacobians, renormalise_color=True)
+
+        def dense_of(rendered: RenderedJacobians, ray_weight: torch.Tensor | None) -> Linearisation:
+            return linearise_rendered(rendered, batch.rgb, batch.depth, ray_weight, weights=self.weights,
+                                      max_depth=r.max_distance, miss_cost=miss_cost)
+
+        prior: MotionPrior | None = None
+
+        def linearise_at(T: torch.Tensor, ray_weight: torch.Tensor | None,
+                         rendered: RenderedJacobians | None = None) -> Linearisation:
+            lin = dense_of(rendered if rendered is not None else render_at(T), ray_weight)
+            if sparse is not None:
+                lin = sparse.added_to(lin, T)
+            return lin if prior is None else prior.added_to(lin, se3_log(se3_inverse(T0_map) @ T))
+
+        rendered0 = render_at(T0_map)
+        first = dense_of(rendered0, None)
+        if sparse is not None and T_guess_map is not None and c.feature_dense_check:
+            if bool(dense_of(render_at(T_guess_map, jacobians=False), None).cost < first.cost):
+                rendered0 = render_at(T_guess_map)
+                sparse, T0_map, first = None, T_guess_map, dense_of(rendered0, None)
+        if not bool(first.hit.any()):
+            return 0, float("inf"), T0_map, 0.0, float("inf"), T0_map, None
+        med = masked_median(first.residual, first.hit)
+        inlier = first.hit & (first.residual <= c.outlier_factor * med + 1e-6)
+        if c.border_margin > 0:
+            inner = inlier & interior_rays(T0_map, batch.dirs_cam, batch.depth, fmap.view, c.border_margin)
+            inlier = torch.where(inner.sum() >= c.min_valid_ratio * inlier.numel(), inner, inlier)
+        inlier = inlier.float()
+        start = linearise_at(T0_map, inlier, rendered0)
+        if c.motion_prior > 0:
+            prior = MotionPrior.scaled_to(start, c.motion_prior)
+            start = prior.added_to(start, torch.zeros(6, dtype=T0_map.dtype, device=T0_map.device))
+        T, best = T0_map, start
+        damping = torch.tensor(c.lm_damping, dtype=torch.float64, device=T0_map.device)
+        done = torch.zeros((), dtype=torch.bool, device=T0_map.device)
+        count = torch.zeros((), dtype=torch.int64, device=T0_map.device)
+        for it in range(1, c.iterations + 1):
+            with scope(TRACKING_ITERATION):
+                delta = limit_step_tensor(damped_step_tensor(best, damping), c.max_step_m, c.max_step_rad)
+                stop = done | ~torch.isfinite(delta).all() | (delta.norm() < c.convergence_tol)
+                count = count + (~done).long()
+                delta = torch.where(stop, torch.zeros_like(delta), delta)
+                T_new = T @ se3_exp(delta)
+                cand = linearise_at(T_new, inlier)
+                accept = ~stop & (cand.cost < best.cost)
+                T = torch.where(accept, T_new, T)
+                best = _select(accept, cand, best)
+                damping = torch.where(stop, damping, torch.where(accept, (damping / 3.0).clamp(min=1e-7), damping * 10.0))
+                done = stop | (~accept & (damping > 1e3))
+            if c.check_every > 0 and it % c.check_every == 0 and it < c.iterations and bool(done):
+                break
+        hit_ratio = float(best.hit.float().mean())
+        residual_med = float(masked_median(best.residual, best.hit))
+        H = best.H if prior is None else best.H - torch.diag(2 * prior.w).to(best.H.dtype)
+        return int(count), float(best.cost), T, hit_ratio, residual_med, T0_map, H.detach().cpu().numpy().astype(np.float64)
+
+    def _adam_static(self, frame: TensorFrame, fmap: FrozenMap, T0_map: torch.Tensor, sparse: _SparseTerm | None):
+        """``_adam`` on padded samples with its bookkeeping on the device: the lowest loss
+        and its pose, the last iterate's statistics and the stop conditions (no ray hits,
+        convergence) are tensors; an iteration after a stop leaves the pose where it was.
+        The host reads the stop flag every ``tracking.check_every`` iterations."""
+        c, r = self.config.tracking, self.config.render
+        device = T0_map.device
+        rho = torch.zeros(3, device=device, requires_grad=True)
+        phi = torch.zeros(3, device=device, requires_grad=True)
+        opt = torch.optim.Adam([{"params": [rho], "lr": c.lr_trans}, {"params": [phi], "lr": c.lr_rot}])
+        gamma = c.lr_decay ** (1.0 / max(c.iterations - 1, 1))
+        sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma)
+        step = r.step_ratio * fmap.view.voxel_size
+        batch = sample_pixels(frame, c.num_rays, self._gen)
+        near, far = tracking_bounds(batch.depth, r.truncation, c.sample_band, r.max_distance)
+        G, N, C = self._sample_shape(frame, fmap, batch.dirs_cam, near, far, T0_map)
+        f64 = dict(dtype=torch.float64, device=device)
+        inf = torch.full((), float("inf"), **f64)
+        best_loss, best_T = inf, T0_map.detach().clone()
+        best_hit, best_med = torch.zeros((), **f64), inf
+        last_loss, last_hit, last_med = inf, torch.zeros((), **f64), inf
+        alive = torch.ones((), dtype=torch.bool, device=device)
+        count = torch.zeros((), dtype=torch.int64, device=device)
+        for it in range(1, c.iterations + 1):
+            with scope(TRACKING_ITERATION):
+                count = count + alive.long()
+                T = T0_map @ se3_exp(torch.cat([rho, phi]))
+                if c.resample_rays and it > 1:
+                    batch = sample_pixels(frame, c.num_rays, self._gen)
+                    near, far = tracking_bounds(batch.depth, r.truncation, c.sample_band, r.max_distance)
+                n = batch.depth.shape[0]
+                dirs = batch.dirs_cam @ T[:3, :3].T
+                origins = T[:3, 3].expand(n, 3)
+                with torch.no_grad():
+                    samples = pack_samples(grid_samples(origins.detach(), dirs.detach(), near, far, step, fmap.view,
+                                                        G, max_hits=r.max_hits), N)
+                out = render_padded(origins, dirs, fmap.view, fmap.decoder, samples, truncation=r.truncation,
+                                    color_weight_eps=c.color_weight_eps, color_slots=C,
+                                    mask_in_front=r.mask_in_front, renormalise_color=True)
+                residual = (out.depth.detach() - batch.depth).abs()
+                hit = out.hit & (out.weight_sum.detach() > 1e-3)
+                hit_ratio = hit.to(torch.float64).mean()
+                live = alive & hit.any()
+                med = masked_median(residual, hit)
+                inlier = hit & (residual <= c.outlier_factor * med + 1e-6)
+                losses = compute_losses(out, batch.rgb, batch.depth, r.truncation, self.weights,
+                                        ray_weight=inlier.float(), max_depth=r.max_distance)
+                total = losses.total if sparse is None else losses.total + sparse.cost(T)
+                loss = total.detach().to(torch.float64)
+                better = live & (loss < best_loss)
+                best_loss = torch.where(better, loss, best_loss)
+                best_T = torch.where(better, T.detach(), best_T)
+                best_hit = torch.where(better, hit_ratio, best_hit)
+                best_med = torch.where(better, med.to(torch.float64), best_med)
+                last_loss = torch.where(live, loss, last_loss)
+                last_hit = torch.where(live, hit_ratio, last_hit)
+                last_med = torch.where(live, med.to(torch.float64), last_med)
+                opt.zero_grad(set_to_none=True)
+                total.backward()
+                prev = torch.cat([rho, phi]).detach().clone()
+                opt.step()
+                sched.step()
+                with torch.no_grad():
+                    # A stopped iteration (no ray hit, or after a stop) leaves the pose.
+                    rho.copy_(torch.where(live, rho, prev[:3]))
+                    phi.copy_(torch.where(live, phi, prev[3:]))
+                moved = (torch.cat([rho, phi]).detach() - prev).norm()
+                alive = live & ~(moved < c.convergence_tol)
+            if c.check_every > 0 and it % c.check_every == 0 and it < c.iterations and not bool(alive):
+                break
+        it = int(count)
+        if not c.keep_best_iterate and bool(torch.isfinite(best_loss)):
+            T_last = (T0_map @ se3_exp(torch.cat([rho, phi]))).detach()
+            return it, float(last_loss), T_last, float(last_hit), float(last_med)
+        return it, float(best_loss), best_T, float(best_hit), float(best_med)
 
     def _result(self, fmap: FrozenMap, T0_map: torch.Tensor, T_best_map: torch.Tensor, it: int,
                 loss: float, hit_ratio: float, residual_med: float) -> TrackingResult:

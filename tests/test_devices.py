@@ -1,6 +1,6 @@
 """Every preset runs on CUDA (issue 40 item 1): tensors are made on their inputs' device.
 
-Without a GPU, ``tests.device_mix.DeviceMixChecker`` replays CUDA's placement rules on the
+Without a GPU, ``slam.devicecheck.DeviceMixChecker`` replays CUDA's placement rules on the
 CPU: a tensor made without ``device=`` is on the host, one made with the pipeline's device
 is on the device, and an operator that meets both (beyond 0-dim host scalars) is where a
 CUDA run raises "Expected all tensors to be on the same device". The tracker (both
@@ -27,7 +27,7 @@ from slam.geometry import se3_exp
 from slam.mapping import Mapper, TrackedFrame
 from slam.tracking import FrozenMap, Tracker
 
-from .device_mix import PIPELINE_DEVICE, DeviceMixChecker, place
+from slam.devicecheck import PIPELINE_DEVICE, DeviceMixChecker, place
 
 SPEC = "synthetic:walk?frames=6&width=80&height=60"
 cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
@@ -42,9 +42,10 @@ def torch_kernels(monkeypatch):
     torch.set_num_threads(threads)
 
 
-def _config(**tracking):
+def _config(static="off", **tracking):
     base = preset("test")
     return replace(base, tracking=replace(base.tracking, **tracking),
+                   render=replace(base.render, static_shapes=static),
                    mapping=replace(base.mapping, thin_samples=True, optimize_current_pose=True))
 
 
@@ -101,8 +102,9 @@ def _mapped(frames, config, count=3):
     dict(optimizer="adam", iterations=3, resample_rays=True, keep_best_iterate=False, sample_band=0.0),
     dict(optimizer="adam", iterations=3, keep_best_iterate=True),
 ], ids=["gauss_newton", "adam_release", "adam_best"])
-def test_tracking_and_mapping_keep_to_the_device(frames, tracking):
-    config = _config(**tracking)
+@pytest.mark.parametrize("static", ["off", "on"], ids=["flat", "static"])
+def test_tracking_and_mapping_keep_to_the_device(frames, tracking, static):
+    config = _config(static, **tracking)
     dev = PIPELINE_DEVICE
     with DeviceMixChecker() as checker:
         mapper, tfs = _mapped(frames, config)
