@@ -90,7 +90,7 @@ def _row(counts, checker, name) -> dict:
     n = max(c.ranges, 1)
     return {"iterations": c.ranges, "aten_ops": c.aten_ops / n, "syncs": c.syncs / n,
             "optimizer_reads": c.optimizer_reads / n, "reads": checker.reads[name] / n,
-            "uploads": checker.uploads[name] / n, "sync_ops": dict(c.by_op),
+            "uploads": checker.uploads[name] / n, "shape_ops": checker.shapes[name] / n, "sync_ops": dict(c.by_op),
             "sites": dict(checker.sites.get(name, {}))}
 
 
@@ -98,6 +98,7 @@ def _whole(counts, checker) -> dict:
     c = counts[None]
     return {"aten_ops": c.aten_ops, "syncs": c.syncs, "optimizer_reads": c.optimizer_reads,
             "reads": sum(checker.reads.values()), "uploads": sum(checker.uploads.values()),
+            "shape_ops": sum(checker.shapes.values()),
             "mixes": len(checker.mixes)}
 
 

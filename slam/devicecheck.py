@@ -97,6 +97,22 @@ def _device_arg_of_to(args, kwargs):
     return None
 
 
+_SHAPE_OPS = {"nonzero", "unique", "unique_consecutive", "masked_select", "bincount", "argwhere", "nonzero_static"}
+
+
+def _data_dependent_shape(name: str, args, kwargs) -> bool:
+    """Whether the call's output size depends on tensor values (a device read on a GPU)."""
+    if name in _SHAPE_OPS - {"nonzero_static"}:
+        return True
+    if name == "repeat_interleave":
+        return isinstance(args[1] if len(args) > 1 else kwargs.get("repeats"), torch.Tensor) \
+            and kwargs.get("output_size") is None
+    if name in _INDEXING and len(args) > 1:
+        index = args[1] if isinstance(args[1], tuple) else (args[1],)
+        return any(isinstance(i, torch.Tensor) and i.dtype == torch.bool for i in index)
+    return False
+
+
 def _to_target(args, kwargs) -> str | None:
     """``HOST`` or ``DEVICE``: where ``Tensor.to(...)`` moves its tensor (None: it only
     changes the dtype)."""
@@ -123,12 +139,16 @@ class DeviceMixChecker(TorchFunctionMode):
     """Device-to-host reads by scope name (None: outside every scope; ``total()`` for all)."""
     uploads: Counter = field(default_factory=Counter)
     """Host-to-device copies by scope name."""
+    shapes: Counter = field(default_factory=Counter)
+    """Operators on device tensors whose output's size depends on their values (boolean
+    indexing, ``nonzero``, ``unique``, ``repeat_interleave`` without ``output_size``, ...):
+    each reads a count back from the device, by scope name."""
     sites: dict = field(default_factory=dict)
     """scope -> Counter of ``kind op at file:line`` for every read and upload (messages)."""
 
     def _transfer(self, kind: str, name: str) -> None:
         where = current_scope()
-        (self.reads if kind == "read" else self.uploads)[where] += 1
+        {"read": self.reads, "upload": self.uploads, "shape": self.shapes}[kind][where] += 1
         site = (_where() or ["?"])[0]
         self.sites.setdefault(where, Counter())[f"{kind} {name} at {site}"] += 1
 
@@ -166,6 +186,8 @@ class DeviceMixChecker(TorchFunctionMode):
         elif func in _UPLOADING_FACTORIES and _explicit_place(kwargs.get("device")) == DEVICE and not (
                 args and isinstance(args[0], torch.Tensor) and place(args[0]) == DEVICE):
             self._transfer("upload", name)
+        elif first is not None and place(first) == DEVICE and _data_dependent_shape(name, args, kwargs):
+            self._transfer("shape", name)
         out = func(*args, **kwargs)
         descriptor = getattr(getattr(func, "__self__", None), "__name__", None)
         if name == "__get__" and descriptor == "device" and args and place(args[0]) == DEVICE:

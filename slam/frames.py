@@ -48,7 +48,8 @@ def prepare_frame(frame: Frame, width: int | None, device: torch.device, max_dep
         rgb, depth, K = resize_rgbd(rgb, depth, K, width)
     depth = np.where((depth > 0) & (depth < max_depth), depth, 0).astype(np.float32)
     d = torch.from_numpy(np.ascontiguousarray(depth)).to(device)
-    valid = torch.nonzero(d.reshape(-1) > 0, as_tuple=True)[0]
+    # Found on the host, which has the depth: a nonzero on the device would read it back.
+    valid = torch.from_numpy(np.flatnonzero(depth.reshape(-1) > 0)).to(device)
     return TensorFrame(
         index=frame.index,
         timestamp=float(frame.timestamp),

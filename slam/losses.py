@@ -34,7 +34,10 @@ class Losses:
     sdf: torch.Tensor
 
     def as_floats(self) -> dict[str, float]:
-        return {k: float(getattr(self, k).detach()) for k in ("total", "rgb", "depth", "fs", "sdf")}
+        """The five terms as floats, in one read of the device."""
+        names = ("total", "rgb", "depth", "fs", "sdf")
+        values = torch.stack([getattr(self, k).detach().float() for k in names]).tolist()
+        return dict(zip(names, values))
 
 
 def _per_ray_mean(values: torch.Tensor, mask: torch.Tensor, ray_index: torch.Tensor,

@@ -47,6 +47,7 @@ from .maps import Keyframe, MapSet, SubMap
 from .padded import color_slots, grid_samples, grid_size, pack_samples, render_padded, round_up
 from .profiling import MAPPING_ITERATION, scope
 from .render import TrainingThinning, render_rays
+from .transfer import to_host
 from .voxels import grow_adam_state, lookup_sorted, morton_encode, voxel_coords_of
 
 
@@ -446,7 +447,7 @@ class Mapper:
                         keyframes[i].T_map_cam = T_new
                     else:
                         frame_poses[i - len(keyframes)] = T_new
-        return ({} if losses is None else {k: float(v) for k, v in losses.as_floats().items()}), frame_poses
+        return ({} if losses is None else losses.as_floats()), frame_poses
 
     def _sample_shape(self, sources: list[TensorFrame], stack: FrameStack | None, rays_per_frame: int,
                       T_start: torch.Tensor, view) -> tuple[int, int, int]:
@@ -490,19 +491,21 @@ class Mapper:
         submap = submap or self.current
         assert submap is not None, "no map yet"
         v = submap.voxels
-        def arr(t: torch.Tensor) -> np.ndarray:
-            return t.detach().cpu().numpy().copy()
-
+        # One read per dtype instead of one per tensor (``slam.transfer``).
+        decoder = {f"decoder.{k}": t for k, t in submap.decoder.state_dict().items()}
+        host = to_host({"T_world_map": submap.T_world_map, "voxel_codes": v.voxel_codes,
+                        "voxel_corners": v.voxel_corners, "embeddings": v.embeddings,
+                        "corner_updates": submap.updates(), **decoder})
         return MapSnapshot(
             version=self.version,
             map_id=submap.map_id,
-            T_world_map=arr(submap.T_world_map),
+            T_world_map=host["T_world_map"],
             voxel_size=v.voxel_size,
-            voxel_codes=arr(v.voxel_codes),
-            voxel_corners=arr(v.voxel_corners),
-            embeddings=arr(v.embeddings),
-            decoder_state={k: arr(t) for k, t in submap.decoder.state_dict().items()},
-            corner_updates=arr(submap.updates()),
+            voxel_codes=host["voxel_codes"],
+            voxel_corners=host["voxel_corners"],
+            embeddings=host["embeddings"],
+            decoder_state={k[len("decoder."):]: a for k, a in host.items() if k.startswith("decoder.")},
+            corner_updates=host["corner_updates"],
         )
 
     def refine_map(self, submap: SubMap, iterations: int, num_rays: int) -> dict[str, float]:

@@ -27,6 +27,7 @@ import trimesh
 from skimage import measure
 
 from .render import MapView, trilinear_weights
+from .transfer import to_device
 from .voxels import lookup_sorted, morton_decode, morton_encode, voxel_coords_of
 
 MESH_FORMATS = ("ply", "glb", "obj")
@@ -65,32 +66,36 @@ def _embeddings_at(lattice: torch.Tensor, voxel_index: torch.Tensor, voxel_ijk: 
     return torch.einsum("sc,scd->sd", weights, corners)
 
 
-def _lattice_sdf(lattice_ids: torch.Tensor, voxel_index: torch.Tensor, view: MapView, decoder,
-                 resolution: int, chunk_points: int) -> torch.Tensor:
+def _lattice_sdf(lattice_ids: np.ndarray, voxel_index: np.ndarray, view: MapView, decoder,
+                 resolution: int, chunk_points: int) -> np.ndarray:
     """SDF at lattice points named by ``slot * P + p``: pattern point p of voxel ``voxel_index[slot]``.
 
-    lattice_ids (S,) sorted int64, voxel_index (n,) rows of ``view.voxel_codes`` -> (S,).
-    The (resolution + 1)^3 embeddings of a voxel are one small matmul of fixed trilinear
-    weights with its 8 corner embeddings (the numbers of ``interpolate_embeddings``), which
-    is much cheaper than gathering 8 corners per point; voxels go in chunks of about
-    ``chunk_points`` points, and every listed point is decoded once.
+    lattice_ids (S,) sorted int64, voxel_index (n,) rows of ``view.voxel_codes`` (both on the
+    host) -> (S,) float32 on the host. The (resolution + 1)^3 embeddings of a voxel are one
+    small matmul of fixed trilinear weights with its 8 corner embeddings (the numbers of
+    ``interpolate_embeddings``), which is much cheaper than gathering 8 corners per point;
+    voxels go in chunks of about ``chunk_points`` points, and every listed point is decoded
+    once. The chunks' bounds are found on the host; one upload of the ids and one read of
+    the values per call (``slam.transfer``).
     """
-    pattern = _lattice_pattern(resolution, voxel_index.device)
+    device = view.embeddings.device
+    pattern = _lattice_pattern(resolution, device)
     weights = trilinear_weights(pattern.to(torch.float32) / resolution)          # (P, 8)
     num_pattern = pattern.shape[0]
     slots = lattice_ids // num_pattern
     voxels_per_chunk = max(1, chunk_points // num_pattern)
-    out = torch.empty(lattice_ids.shape[0], dtype=torch.float32, device=lattice_ids.device)
+    moved = to_device({"ids": lattice_ids, "voxels": voxel_index}, device)
+    ids, voxels = moved["ids"], moved["voxels"]
+    out = torch.empty(lattice_ids.shape[0], dtype=torch.float32, device=device)
     for first in range(0, voxel_index.shape[0], voxels_per_chunk):
-        lo, hi = torch.searchsorted(slots, torch.tensor([first, first + voxels_per_chunk],
-                                                        device=slots.device)).tolist()
+        lo, hi = (int(i) for i in np.searchsorted(slots, [first, first + voxels_per_chunk]))
         if hi == lo:
             continue
-        rows = view.voxel_corners[voxel_index[first:first + voxels_per_chunk]]
+        rows = view.voxel_corners[voxels[first:first + voxels_per_chunk]]
         corners = torch.nn.functional.embedding(rows, view.embeddings)           # (m, 8, D)
         emb = torch.matmul(weights, corners).reshape(-1, corners.shape[-1])      # (m * P, D)
-        out[lo:hi] = decoder.sdf(emb[lattice_ids[lo:hi] - first * num_pattern])
-    return out
+        out[lo:hi] = decoder.sdf(emb[ids[lo:hi] - first * num_pattern])
+    return out.cpu().numpy()
 
 
 def _color_at(lattice: torch.Tensor, voxel_index: torch.Tensor, voxel_ijk: torch.Tensor,
@@ -106,13 +111,14 @@ def _color_at(lattice: torch.Tensor, voxel_index: torch.Tensor, voxel_ijk: torch
 
 
 # -------------------------------------------------------------------- blocks
-def _blocks_of(voxel_ijk: torch.Tensor, block_voxels: int) -> list[torch.Tensor]:
-    """Group (Nv, 3) voxel coordinates into cubic blocks -> list of index tensors into Nv."""
-    keys = torch.div(voxel_ijk, block_voxels, rounding_mode="floor")
-    _, inverse = torch.unique(keys, dim=0, return_inverse=True)
-    order = torch.argsort(inverse, stable=True)
-    counts = torch.bincount(inverse)
-    return list(torch.split(order, counts.tolist()))
+def _blocks_of(voxel_ijk: np.ndarray, block_voxels: int) -> list[np.ndarray]:
+    """Group (Nv, 3) voxel coordinates (host) into cubic blocks -> list of index arrays into Nv."""
+    keys = np.floor_divide(voxel_ijk, block_voxels)
+    _, inverse = np.unique(keys, axis=0, return_inverse=True)
+    inverse = inverse.reshape(-1)
+    order = np.argsort(inverse, kind="stable")
+    counts = np.bincount(inverse)
+    return np.split(order, np.cumsum(counts)[:-1])
 
 
 def _lattice_pattern(resolution: int, device: torch.device) -> torch.Tensor:
@@ -121,62 +127,63 @@ def _lattice_pattern(resolution: int, device: torch.device) -> torch.Tensor:
     return torch.stack(torch.meshgrid(a, a, a, indexing="ij"), -1).reshape(-1, 3)
 
 
-def _block_surface(voxel_index: torch.Tensor, all_ijk: torch.Tensor, view: MapView, decoder,
+def _block_surface(voxel_index: np.ndarray, all_ijk: np.ndarray, view: MapView, decoder,
                    resolution: int, chunk_points: int) -> _BlockSurface | None:
     """Marching cubes over one block of voxels; None when it holds no surface.
 
     voxel_index (n,) rows of ``view.voxel_codes`` in the block; all_ijk (Nv, 3) int64
-    coordinates of every voxel of the map.
+    coordinates of every voxel of the map. The block's grids are built on the host, where
+    marching cubes runs; only the decoding runs on the map's device (``_lattice_sdf``).
     """
-    device = all_ijk.device
     voxel_ijk = all_ijk[voxel_index]
-    lo = voxel_ijk.min(0).values
+    lo = voxel_ijk.min(0)
     local = voxel_ijk - lo                                            # (n, 3) voxels
-    dims = local.max(0).values + 1                                    # voxels per axis
+    dims = local.max(0) + 1                                           # voxels per axis
     lattice_dims = dims * resolution + 1
-    occupancy = torch.full(tuple(dims.tolist()), -1, dtype=torch.int64, device=device)
+    occupancy = np.full(tuple(dims), -1, dtype=np.int64)
     occupancy[local[:, 0], local[:, 1], local[:, 2]] = voxel_index
 
     # Every lattice point of every allocated voxel, each decoded once: a point shared by
     # neighbours takes one of them, which gives the same value up to rounding since corner
     # embeddings are shared. ``owner`` names it by slot * P + pattern index.
-    pattern = _lattice_pattern(resolution, device)
+    pattern = _lattice_pattern(resolution, torch.device("cpu")).numpy()
     lattice = local[:, None, :] * resolution + pattern[None]                      # (n, P, 3)
-    ids = torch.arange(lattice.shape[0] * lattice.shape[1], device=device).reshape(lattice.shape[:2])
-    owner = torch.full(tuple(lattice_dims.tolist()), -1, dtype=torch.int64, device=device)
+    ids = np.arange(lattice.shape[0] * lattice.shape[1], dtype=np.int64).reshape(lattice.shape[:2])
+    owner = np.full(tuple(lattice_dims), -1, dtype=np.int64)
     owner[lattice[..., 0], lattice[..., 1], lattice[..., 2]] = ids
-    grid_pos = torch.nonzero(owner.reshape(-1) >= 0)[:, 0]
-    lattice_ids, order = torch.sort(owner.reshape(-1)[grid_pos])
+    flat_owner = owner.reshape(-1)
+    grid_pos = np.flatnonzero(flat_owner >= 0)
+    order = np.argsort(flat_owner[grid_pos], kind="stable")
+    lattice_ids = flat_owner[grid_pos][order]
     sdf = _lattice_sdf(lattice_ids, voxel_index, view, decoder, resolution, chunk_points)
-    if not bool((sdf <= 0).any()) or not bool((sdf >= 0).any()):
+    if not (sdf <= 0).any() or not (sdf >= 0).any():
         return None
 
-    volume = torch.ones(tuple(lattice_dims.tolist()), dtype=torch.float32, device=device)
-    volume.view(-1)[grid_pos[order]] = sdf
+    volume = np.ones(tuple(lattice_dims), dtype=np.float32)
+    volume.reshape(-1)[grid_pos[order]] = sdf
     cube_voxel = _cube_owner(occupancy, resolution)                   # (L-1,)^3 voxel row or -1
     # scikit-image (0.26) runs a cube when ``mask`` is set at its far corner (origin + 1);
     # tests pin this down. Faces are also filtered by the cube they fall in, so a change of
     # convention could drop surface but never add any in unobserved space.
-    mask = torch.zeros_like(owner, dtype=torch.bool)
+    mask = np.zeros(owner.shape, dtype=bool)
     mask[1:, 1:, 1:] = cube_voxel >= 0
     try:
-        verts, faces, _, _ = measure.marching_cubes(
-            volume.cpu().numpy(), level=0.0, mask=mask.cpu().numpy(), allow_degenerate=False)
+        verts, faces, _, _ = measure.marching_cubes(volume, level=0.0, mask=mask, allow_degenerate=False)
     except RuntimeError:  # no crossing inside the masked cubes
         return None
-    face_voxel = _face_voxel(verts, faces, cube_voxel.cpu().numpy())
+    face_voxel = _face_voxel(verts, faces, cube_voxel)
     keep = face_voxel >= 0
     if not keep.any():
         return None
-    offset = (lo * resolution).cpu().numpy().astype(np.float64)
+    offset = (lo * resolution).astype(np.float64)
     return _BlockSurface(verts.astype(np.float64) + offset, faces[keep].astype(np.int64), face_voxel[keep])
 
 
-def _cube_owner(occupancy: torch.Tensor, resolution: int) -> torch.Tensor:
+def _cube_owner(occupancy: np.ndarray, resolution: int) -> np.ndarray:
     """Voxel row (or -1) of every lattice cube. occupancy (X, Y, Z) -> (X*r, Y*r, Z*r)."""
     out = occupancy
     for axis in range(3):
-        out = out.repeat_interleave(resolution, dim=axis)
+        out = np.repeat(out, resolution, axis=axis)
     return out
 
 
@@ -255,17 +262,18 @@ def extract_submap_mesh(submap, resolution: int, *, block_voxels: int = 8,
         return empty_mesh()
     decoder = submap.decoder
     voxel_ijk = morton_decode(view.voxel_codes)
+    ijk_host = voxel_ijk.cpu().numpy()  # the blocks' grids are built on the host
     blocks = []
-    for members in _blocks_of(voxel_ijk, int(block_voxels)):
-        block = _block_surface(members, voxel_ijk, view, decoder, resolution, chunk_points)
+    for members in _blocks_of(ijk_host, int(block_voxels)):
+        block = _block_surface(members, ijk_host, view, decoder, resolution, chunk_points)
         if block is not None:
             blocks.append(block)
     if not blocks:
         return empty_mesh()
     vertices, faces, vertex_voxel = _merge_blocks(blocks)
-    device = view.voxel_codes.device
-    rgb = _color_at(torch.from_numpy(vertices).to(device), torch.from_numpy(vertex_voxel).to(device),
-                    voxel_ijk.to(torch.float64), view, decoder, resolution, chunk_points)
+    moved = to_device({"vertices": vertices, "vertex_voxel": vertex_voxel}, view.voxel_codes.device)
+    rgb = _color_at(moved["vertices"], moved["vertex_voxel"], voxel_ijk.to(torch.float64), view, decoder,
+                    resolution, chunk_points)
     colors = np.concatenate([
         np.round(rgb.cpu().numpy() * 255.0).clip(0, 255).astype(np.uint8),
         np.full((rgb.shape[0], 1), 255, dtype=np.uint8),

@@ -40,10 +40,10 @@ from .gauss_newton import (Linearisation, MotionPrior, RenderedJacobians, damped
 from .geometry import se3_exp, se3_inverse, se3_log
 from .losses import LossWeights, compute_losses
 from .mapping import MapSnapshot, training_far
-from .maps import optimised_voxel_mask
 from .profiling import TRACKING_ITERATION, scope
 from .padded import band_grid_size, color_slots, grid_samples, grid_size, pack_samples, render_padded, round_up
 from .render import MapView, render_rays
+from .transfer import to_device
 from .voxels import lookup_sorted, morton_encode, voxel_coords_of
 
 
@@ -70,21 +70,23 @@ class FrozenMap:
     def __init__(self, snapshot: MapSnapshot, config: SLAMConfig, device: torch.device):
         self.version = snapshot.version
         self.map_id = snapshot.map_id
-        def t(a: np.ndarray) -> torch.Tensor:
-            return torch.from_numpy(a).to(device)
-
-        self.T_world_map = t(snapshot.T_world_map)
-        self.T_map_world = se3_inverse(self.T_world_map)
-        codes, corners = t(snapshot.voxel_codes), t(snapshot.voxel_corners)
+        codes, corners = snapshot.voxel_codes, snapshot.voxel_corners
         if snapshot.corner_updates is not None:
             # Only voxels whose eight corners the mapper has optimised: a freshly allocated
             # voxel holds random embeddings whose SDF means nothing yet, and rays landing in
-            # one (the new border of a turning camera) would pull the pose anywhere.
-            keep = optimised_voxel_mask(t(snapshot.corner_updates), corners, config.tracking.min_corner_updates)
+            # one (the new border of a turning camera) would pull the pose anywhere. Chosen
+            # on the host, where the snapshot is (``maps.optimised_voxel_mask``'s test).
+            keep = (snapshot.corner_updates[corners] >= config.tracking.min_corner_updates).all(1)
             codes, corners = codes[keep], corners[keep]
-        self.view = MapView(codes, corners, t(snapshot.embeddings), snapshot.voxel_size)
+        # One upload per dtype (``slam.transfer``).
+        on_device = to_device({"T_world_map": snapshot.T_world_map, "codes": codes, "corners": corners,
+                               "embeddings": snapshot.embeddings,
+                               **{f"decoder.{k}": v for k, v in snapshot.decoder_state.items()}}, device)
+        self.T_world_map = on_device["T_world_map"]
+        self.T_map_world = se3_inverse(self.T_world_map)
+        self.view = MapView(on_device["codes"], on_device["corners"], on_device["embeddings"], snapshot.voxel_size)
         self.decoder = Decoder(config.decoder, config.voxel.embed_dim).to(device)
-        self.decoder.load_state_dict({k: t(v) for k, v in snapshot.decoder_state.items()})
+        self.decoder.load_state_dict({k[len("decoder."):]: v for k, v in on_device.items() if k.startswith("decoder.")})
         self.decoder.requires_grad_(False)
 
 

@@ -58,8 +58,10 @@ def morton_encode(ijk: torch.Tensor) -> torch.Tensor:
     Example: ``morton_encode(tensor([[0, 0, 0]]))`` is ``0b100100100...`` (the offset).
     """
     ijk = ijk.to(torch.int64)
-    if ijk.numel() and (int(ijk.min()) < _COORD_MIN or int(ijk.max()) > _COORD_MAX):
-        raise ValueError(f"voxel coordinate outside the Morton range [{_COORD_MIN}, {_COORD_MAX}]")
+    if ijk.numel():
+        lo, hi = torch.stack(torch.aminmax(ijk)).tolist()  # one read of the device
+        if lo < _COORD_MIN or hi > _COORD_MAX:
+            raise ValueError(f"voxel coordinate outside the Morton range [{_COORD_MIN}, {_COORD_MAX}]")
     return morton_encode_unchecked(ijk)
 
 
