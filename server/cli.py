@@ -34,7 +34,7 @@ def add_server_commands(subparsers) -> None:
                                  description="Start the server and one session on the built-in synthetic scene, "
                                              "then print the URL to open.")
     _server_options(demo)
-    demo.add_argument("--preset", choices=("test", "cpu", "paper"), default=None,
+    demo.add_argument("--preset", choices=("test", "cpu", "paper", "gpu"), default=None,
                       help="config preset (default: paper with a GPU, else cpu)")
     demo.add_argument("--spec", default=DEFAULT_DEMO_SPEC,
                       help=f"synthetic scene spec (default {DEFAULT_DEMO_SPEC!r})")

@@ -42,7 +42,7 @@ router = APIRouter(prefix="/api/sessions", tags=["sessions"], dependencies=[Depe
                    responses={401: {"model": ErrorOut}, 404: {"model": ErrorOut}})
 
 MESH_MEDIA_TYPES = {"ply": "application/octet-stream", "glb": "model/gltf-binary", "obj": "text/plain"}
-PRESETS = ("test", "cpu", "paper")
+PRESETS = ("test", "cpu", "paper", "gpu")
 
 _MULTIPART_SCHEMA = {
     "type": "object",

@@ -91,7 +91,7 @@ class SessionCreateJSON(Strict):
                     "list of specs for a collaborative session: one agent each, in order "
                     "(e.g. ['agents?agent=0&agents=2', 'agents?agent=1&agents=2'])",
         examples=["orbit?frames=60&width=160&height=120"])
-    preset: Literal["test", "cpu", "paper"] | None = Field(None, description="config preset; default cpu without a GPU")
+    preset: Literal["test", "cpu", "paper", "gpu"] | None = Field(None, description="config preset; default cpu without a GPU, gpu with one")
     intrinsics: str | None = Field(None, description="stream: 'fx,fy,cx,cy' (else on the first frame)",
                                    examples=["525,525,319.5,239.5"])
     depth_scale: float | None = Field(None, ge=DEPTH_SCALE_RANGE[0], le=DEPTH_SCALE_RANGE[1],

@@ -671,7 +671,7 @@ def add_stream_arguments(parser) -> None:
                              "iPhone/iPad streaming from the Record3D app over USB); a Record3D .r3d export")
     parser.add_argument("--url", default="http://127.0.0.1:8000", help="the server (default http://127.0.0.1:8000)")
     parser.add_argument("--token", default=None, help="the server's token (default VOXFUSION_TOKEN)")
-    parser.add_argument("--preset", choices=("test", "cpu", "paper"), default=None,
+    parser.add_argument("--preset", choices=("test", "cpu", "paper", "gpu"), default=None,
                         help="the session's config preset (default: the server's)")
     parser.add_argument("--max-frames", type=int, default=None, help="stop after this many frames of the source")
     parser.add_argument("--fps", type=float, default=None,

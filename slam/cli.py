@@ -33,7 +33,7 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
                    help="dataset folder(s), or a synthetic spec such as synthetic:orbit?frames=100")
     p.add_argument("--out", required=True, type=Path, help="output folder")
     p.add_argument("--format", default="auto", choices=["auto", "tum", "replica", "scannet", "7scenes", "synthetic"])
-    p.add_argument("--preset", default=None, choices=["test", "cpu", "paper"],
+    p.add_argument("--preset", default=None, choices=["test", "cpu", "paper", "gpu"],
                    help="default: paper with CUDA, cpu otherwise")
     p.add_argument("--config", type=Path, default=None, help="JSON overrides of the preset")
     p.add_argument("--device", default=None, choices=["auto", "cpu", "cuda"])
@@ -44,6 +44,9 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--gt-poses", action="store_true", help="map with the dataset's poses (no tracking)")
     p.add_argument("--no-loops", action="store_true", help="multi-maps without loop closure")
     p.add_argument("--single-process", action="store_true", help="tracking and mapping in one process")
+    p.add_argument("--deterministic", type=int, nargs="?", const=1, default=None, metavar="LAG",
+                   help="track every frame against exactly the map of all frames but the newest LAG (default 1), "
+                        "so the trajectory does not depend on machine load (runtime.deterministic_lag)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -61,6 +64,8 @@ def cmd_run(args: argparse.Namespace) -> int:
             runtime = replace(runtime, device=args.device)
         if args.single_process:
             runtime = replace(runtime, processes=False)
+        if args.deterministic is not None:
+            runtime = replace(runtime, deterministic_lag=args.deterministic)
         config = replace(config, runtime=runtime)
         if args.no_loops:
             config = replace(config, loop=replace(config.loop, enabled=False))

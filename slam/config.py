@@ -4,7 +4,8 @@ Presets:
     ``test``  seconds per run, for the test suite (tiny rays and iterations).
     ``cpu``   the default without a GPU: fewer rays and iterations than the paper.
     ``paper`` the paper's stated settings, the Vox-Fusion release's where the paper is silent
-              (``_paper`` names each source); the default with a GPU.
+              (``_paper`` names each source).
+    ``gpu``   the default with a GPU: the paper's settings on static shapes (``_gpu``).
 
 A config file is JSON whose top-level keys are the section names below and whose values
 override the preset field by field; an unknown section or field is an error
@@ -407,6 +408,14 @@ class RuntimeConfig:
     run: 5.35 cm at 0.92; two more without a wait: 5.86 and 6.42 cm); TUM fr1/rpy 150
     frames, -1 / 0: 4.37 / 4.71 cm at 2.00 / 0.88 frames/s. Off in every preset: real
     sequences pay the speed and gain nothing."""
+    deterministic_lag: int = -1
+    """Deterministic evaluation (-1: off, free-running). With K >= 0, every frame is tracked
+    against exactly the map of all frames sent to the mapper but the newest K (the tracker
+    waits where the mapper is behind and holds frames back where it would be ahead), the
+    mapper takes one frame at a time and never optimises while idle, and the final bundle
+    adjustment is budgeted by iterations only: a run's trajectory is the same on a busy or a
+    quiet machine. K >= 1 keeps tracking and mapping overlapped (the mapper integrates frame
+    i - K while frame i is tracked); K = 0 alternates them. For A/Bs (benchmarks/README.md)."""
     checkpoint_every_keyframes: int = 10
     """Write map.pt every this many keyframes while running (0: only at the end)."""
     seed: int = 0
@@ -414,6 +423,12 @@ class RuntimeConfig:
     def __post_init__(self) -> None:
         if self.max_map_lag < -1:
             raise ConfigError(f"runtime.max_map_lag must be -1 (no wait) or >= 0, got {self.max_map_lag}")
+        if self.deterministic_lag < -1:
+            raise ConfigError(f"runtime.deterministic_lag must be -1 (off) or >= 0, got {self.deterministic_lag}")
+
+    @property
+    def deterministic(self) -> bool:
+        return self.deterministic_lag >= 0
 
 
 @dataclass(frozen=True)
@@ -583,11 +598,32 @@ def _test() -> SLAMConfig:
     )
 
 
-PRESETS = {"test": _test, "cpu": _cpu, "paper": _paper}
+def _gpu() -> SLAMConfig:
+    """The default with a GPU (issue 40 item 5): the paper's decoder, voxel size, losses and
+    tracker (``_paper``), with every iteration on static shapes (``render.static_shapes``:
+    nothing read back from the device inside the loops), the tracker's stop flag never read
+    (its Adam has no convergence test, as the paper's), and 640-wide input at most.
+
+    Unmeasured: no GPU has run it yet. Its tracker is the paper's until one measures which
+    is best there (the ``cpu`` preset's Gauss-Newton converges in 4 steps where Adam takes
+    50, but each step renders with Jacobians); its speed, accuracy and SM share are to be
+    measured with ``benchmarks/bench_gpu.py`` (benchmarks/README.md, issue 40).
+    """
+    paper = _paper()
+    return replace(
+        paper,
+        preset="gpu",
+        render=replace(paper.render, static_shapes="on"),
+        tracking=replace(paper.tracking, check_every=0),
+        runtime=replace(paper.runtime, device="auto", input_width=640),
+    )
+
+
+PRESETS = {"test": _test, "cpu": _cpu, "paper": _paper, "gpu": _gpu}
 
 
 def preset(name: str) -> SLAMConfig:
-    """The named preset (``test``, ``cpu`` or ``paper``)."""
+    """The named preset (``test``, ``cpu``, ``paper`` or ``gpu``)."""
     try:
         return PRESETS[name]()
     except KeyError:
@@ -595,10 +631,10 @@ def preset(name: str) -> SLAMConfig:
 
 
 def default_preset_name() -> str:
-    """``paper`` when CUDA is present, else ``cpu``."""
+    """``gpu`` when CUDA is present, else ``cpu``."""
     import torch
 
-    return "paper" if torch.cuda.is_available() else "cpu"
+    return "gpu" if torch.cuda.is_available() else "cpu"
 
 
 def _check_type(name: str, hint: Any, value: Any) -> Any:

@@ -3,7 +3,7 @@
 "use strict";
 
 const $ = (id) => document.getElementById(id);
-const PRESETS = ["", "test", "cpu", "paper"];
+const PRESETS = ["", "test", "cpu", "paper", "gpu"];
 
 // ------------------------------------------------------------------ token and API calls
 const token = (() => {

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from dataclasses import replace
 
 import pytest
 
@@ -18,7 +19,7 @@ from slam.config import (
     preset,
 )
 
-NAMES = ("test", "cpu", "paper")
+NAMES = ("test", "cpu", "paper", "gpu")
 
 
 def write(tmp_path, payload, name="cfg.json"):
@@ -42,15 +43,20 @@ def test_presets_exist_are_named_and_frozen(name):
     assert preset(name) == cfg and preset(name) is not cfg
 
 
-def test_the_three_presets_differ_where_they_should():
+def test_the_presets_differ_where_they_should():
     assert set(PRESETS) == set(NAMES)
-    test, cpu, paper = (preset(n) for n in NAMES)
+    test, cpu, paper, gpu = (preset(n) for n in NAMES)
     assert test.mapping.iterations <= cpu.mapping.iterations <= paper.mapping.iterations
     assert test.tracking.num_rays < cpu.tracking.num_rays <= paper.tracking.num_rays
     assert test.runtime.device == "cpu"
     assert paper.voxel.voxel_size == 0.2 and paper.voxel.embed_dim == 16
     assert paper.decoder.hidden_dim == 128 and paper.decoder.color_hidden_dim == 256
-    assert default_preset_name() in ("cpu", "paper")
+    assert default_preset_name() in ("cpu", "gpu")
+    # gpu: the paper's decoder, voxels, losses and tracker, on static shapes (issue 40)
+    assert (gpu.decoder, gpu.voxel, gpu.loss, gpu.mapping) == (paper.decoder, paper.voxel, paper.loss, paper.mapping)
+    assert replace(gpu.tracking, check_every=paper.tracking.check_every) == paper.tracking
+    assert gpu.render.static_shapes == "on" and paper.render.static_shapes == "auto"
+    assert cpu.render.static_shapes == "auto"
 
 
 def test_unknown_preset():
