@@ -7,7 +7,9 @@
 Each run is ``voxfusion run`` (``python -m slam.cli run``) in a child process, the way users
 run it: tracking and mapping in separate processes unless ``--extra-args`` says otherwise.
 Variants alternate run by run (A B A B ..., the order rotated each round), so a slow hour
-hits them alike. A variant is a preset and optional JSON overrides of it, e.g.
+hits them alike. With ``--deterministic LAG`` the runs use the deterministic mode
+(``runtime.deterministic_lag``), whose trajectory does not depend on load, and run r uses
+seed r: the spread is then that of the ray sampling alone. A variant is a preset and optional JSON overrides of it, e.g.
 ``ray=cpu:{"loss": {"normalisation": "ray"}}``; the first variant is the baseline. ``--peer``
 adds the classical peer (Open3D's tensor SLAM at 1 cm voxels, ``benchmarks/peer_open3d.py``)
 as one more variant.
@@ -142,15 +144,19 @@ def parse_variant(text: str) -> Variant:
     return Variant(name, preset, parsed)
 
 
-def run_voxfusion(seq: RealSequence, variant: Variant, out: Path, extra: list[str], timeout: float) -> dict:
-    """One ``voxfusion run``; returns run.json."""
+def run_voxfusion(seq: RealSequence, variant: Variant, out: Path, extra: list[str], timeout: float,
+                  seed: int | None = None) -> dict:
+    """One ``voxfusion run``; returns run.json. ``seed`` replaces ``runtime.seed``."""
     out.mkdir(parents=True, exist_ok=True)
     command = [sys.executable, "-m", "slam.cli", "run", str(seq.path), "--out", str(out), "--preset", variant.preset,
                "--quiet", *extra]
     if seq.max_frames:
         command += ["--max-frames", str(seq.max_frames)]
-    if variant.overrides:
-        (out / "overrides.json").write_text(json.dumps(variant.overrides))
+    overrides = json.loads(json.dumps(variant.overrides))
+    if seed is not None:
+        overrides.setdefault("runtime", {})["seed"] = seed
+    if overrides:
+        (out / "overrides.json").write_text(json.dumps(overrides))
         command += ["--config", str(out / "overrides.json")]
     completed = subprocess.run(command, cwd=REPO, capture_output=True, text=True, timeout=timeout)
     if completed.returncode != 0 or not (out / "run.json").is_file():
@@ -244,6 +250,10 @@ def main() -> int:
     parser.add_argument("--sequences", default=None, help="comma-separated names (default: all found)")
     parser.add_argument("--max-frames", type=int, default=None, help="cap every sequence at N frames")
     parser.add_argument("--extra-args", default="", help="more arguments for 'voxfusion run'")
+    parser.add_argument("--deterministic", type=int, default=None, metavar="LAG",
+                        help="runs in deterministic mode (runtime.deterministic_lag = LAG): the same run gives "
+                             "the same trajectory on any load, so run r uses runtime.seed = r and the spread is "
+                             "the sampling's, not the machine's")
     parser.add_argument("--timeout", type=float, default=3600.0)
     parser.add_argument("--json", type=Path, default=None)
     parser.add_argument("--markdown", type=Path, default=None)
@@ -259,6 +269,8 @@ def main() -> int:
         print("no real sequences found", file=sys.stderr)
         return 2
     extra = shlex.split(args.extra_args)
+    if args.deterministic is not None:
+        extra += ["--deterministic", str(args.deterministic)]
     work = Path(tempfile.mkdtemp(prefix="bench-real-"))
     listed = ", ".join(f"{s.name} ({s.max_frames or 'all'} frames)" for s in seqs)
     print(f"sequences: {listed}; "
@@ -272,7 +284,8 @@ def main() -> int:
                 load, started = f"{os.getloadavg()[0]:.1f}", time.perf_counter()
                 try:
                     info = run_peer(seq, out, args.timeout) if variant.is_peer else \
-                        run_voxfusion(seq, variant, out, extra, args.timeout)
+                        run_voxfusion(seq, variant, out, extra, args.timeout,
+                                      seed=round_ if args.deterministic is not None else None)
                     ate = info.get("ate_rmse_m")
                     run = Run(seq.name, variant.name, round_, None if ate is None else ate * 100, info.get("fps"),
                               int(info.get("frames", 0)), round(time.perf_counter() - started, 1), load)

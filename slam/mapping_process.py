@@ -349,6 +349,8 @@ def _finish(side: _MapperSide, refine: bool) -> list[Reply]:
         t0 = time.perf_counter()
         maps = mapper.maps.maps
         budget = final_budget(m, mapper.maps.num_keyframes(), t0 - side.started)
+        if mapper.config.runtime.deterministic:
+            budget = replace(budget, seconds=None)  # a time cap would make the result depend on load
         shares = final_iterations_per_map([len(s.keyframes) for s in maps], budget.iterations if refine else 0)
         ran = 0
         for submap, iterations in zip(maps, shares):
@@ -435,10 +437,11 @@ def _mapping_process(config_dict: dict, device_name: str, out_dir: str, emit_mes
                 # the reply pipe at exit would block this process forever.
                 replies.cancel_join_thread()
                 return
+            idle_steps = side.mapper.active and not config.runtime.deterministic
             try:
-                msg = frames.get(timeout=0 if side.mapper.active else _POLL_SECONDS)
+                msg = frames.get(timeout=0 if idle_steps else _POLL_SECONDS)
             except queue.Empty:
-                for reply in _idle_step(side, lambda: not frames.empty()):
+                for reply in _idle_step(side, lambda: not frames.empty()) if idle_steps else ():
                     replies.put(reply)
                 continue
             batch = [msg]
@@ -446,7 +449,7 @@ def _mapping_process(config_dict: dict, device_name: str, out_dir: str, emit_mes
             # counts frames still in the queue's pipe, which get_nowait would miss. At most
             # what was queued when we looked: a producer faster than us would otherwise keep
             # this loop draining forever.
-            waiting = _queued(frames)
+            waiting = 0 if config.runtime.deterministic else _queued(frames)  # one frame at a time
             while batch[-1] not in (END, END_NOW) and waiting > 0 and len(batch) <= config.runtime.queue_size + 1:
                 waiting -= 1
                 try:

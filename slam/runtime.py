@@ -36,6 +36,7 @@ from __future__ import annotations
 import sys
 import time
 import traceback
+from collections import deque
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable, Iterable, Iterator, Protocol
@@ -154,6 +155,9 @@ class _TrackingSide:
     """(agent, frame index) of the newest of them."""
     on_keyframe: Callable[[], None] | None = None
     """Called for each KeyframeEvent before it is emitted (``run_slam`` writes the progress)."""
+    held: deque[FrameMessage] = field(default_factory=deque)
+    """Deterministic mode (``runtime.deterministic_lag``): tracked frames not yet handed to the
+    mapper, newest last."""
 
     def frozen_map(self, map_id: int) -> FrozenMap:
         """The tracker's copy of a map, rebuilt only when a newer snapshot arrived, placed
@@ -270,8 +274,60 @@ def _track_map(side: _TrackingSide, track: AgentTrack, channel, emit) -> int:
         parent = side.map_parent.get(track.active_map)
         if parent is not None and parent in side.snapshots:
             return parent
+        if side.config.runtime.deterministic:
+            _send_until_map(side, channel, track.active_map, emit)
+            if track.active_map in side.snapshots:
+                break
         _handle_replies(channel.poll(block=True), side, emit)
     return track.active_map
+
+
+def _hand_over(side: _TrackingSide, msg: FrameMessage, channel) -> None:
+    """A tracked frame for the mapper: sent now, or in deterministic mode held until the
+    lag says (``_deterministic_map``)."""
+    if side.config.runtime.deterministic:
+        side.held.append(msg)
+        return
+    channel.submit(msg)
+    side.frames_sent += 1
+
+
+def _send_held(side: _TrackingSide, channel, count: int) -> None:
+    for _ in range(min(count, len(side.held))):
+        channel.submit(side.held.popleft())
+        side.frames_sent += 1
+
+
+def _wait_integrated(side: _TrackingSide, channel, emit) -> None:
+    """Block until the mapper has integrated every frame sent to it (and its replies are applied)."""
+    if side.frames_integrated >= side.frames_sent:
+        return
+    t0 = time.perf_counter()
+    side.map_waits += 1
+    while side.frames_integrated < side.frames_sent:
+        _handle_replies(channel.poll(block=True), side, emit)
+    side.map_wait_seconds += time.perf_counter() - t0
+
+
+def _deterministic_map(side: _TrackingSide, channel, emit) -> None:
+    """Deterministic mode, before a frame is tracked: the tracker's maps hold exactly the
+    frames tracked so far but the newest ``lag`` (config doc). Frames past that are sent and
+    waited for; then, with a lag, the oldest held frame goes to the mapper, which integrates it
+    while this frame is tracked (its map is applied only after: nothing polls meanwhile)."""
+    lag = side.config.runtime.deterministic_lag
+    _send_held(side, channel, len(side.held) - lag)
+    _wait_integrated(side, channel, emit)
+    if lag > 0:
+        _send_held(side, channel, 1)
+
+
+def _send_until_map(side: _TrackingSide, channel, map_id: int, emit) -> None:
+    """Deterministic mode: a map the tracker needs starts with a frame it still holds; send the
+    held frames up to that one and wait for them (the same frames every run)."""
+    position = next((i for i, msg in enumerate(side.held) if msg.map_id == map_id), None)
+    if position is not None:
+        _send_held(side, channel, position + 1)
+    _wait_integrated(side, channel, emit)
 
 
 def _wait_for_map(side: _TrackingSide, lag: int, channel, emit) -> None:
@@ -353,7 +409,10 @@ def _estimate_pose(side: _TrackingSide, track: AgentTrack, frame: Frame, raw: Fr
         _count_failure(track, config)
         T_mc = np.linalg.inv(side.map_poses[track.active_map]) @ T
         return None, FrameRecord(frame.index, float(frame.timestamp), track.active_map, T_mc, False, gt)
-    _wait_for_map(side, config.runtime.max_map_lag, channel, emit)
+    if config.runtime.deterministic:
+        _deterministic_map(side, channel, emit)
+    else:
+        _wait_for_map(side, config.runtime.max_map_lag, channel, emit)
     t0 = time.perf_counter()
     map_id = _track_map(side, track, channel, emit)
     fmap = side.frozen_map(map_id)
@@ -471,8 +530,7 @@ def run_slam(sources: list[Iterable[Frame]], config: SLAMConfig, out_dir: str | 
                            thumbnail=_thumbnail(frame.rgb) if on_event else None,
                            K=np.asarray(frame.K, np.float64), image_size=(frame.width, frame.height)))
             if msg is not None:
-                channel.submit(msg)
-                side.frames_sent += 1
+                _hand_over(side, msg, channel)
             _handle_replies(channel.poll(), side, emit)
             done += 1
             fps = done / max(time.perf_counter() - started, 1e-9)
@@ -499,6 +557,8 @@ def run_slam(sources: list[Iterable[Frame]], config: SLAMConfig, out_dir: str | 
         _write_progress(out, side, total, started)
     if channel is not None:
         try:
+            if side is not None and status != "failed":
+                _send_held(side, channel, len(side.held))  # deterministic mode's last frames
             if side is not None and (status != "failed" or side.snapshots):
                 if status == "finished":
                     emit(PhaseEvent("refining"))

@@ -276,6 +276,43 @@ def test_the_tracker_waits_for_a_map_with_every_frame_sent(frames, tmp_path, mon
     assert done.info["map_waits"] <= NUM_FRAMES - 1 and "tracking_waited_for_map" in done.info["timings_s"]
 
 
+@pytest.mark.parametrize("lag", [0, 1])
+def test_deterministic_mode_gives_one_trajectory_whatever_the_timing(tmp_path, monkeypatch, lag):
+    """runtime.deterministic_lag (issue 41 item 3): a tracker slowed at random (as a loaded
+    machine would) changes nothing: every frame is tracked against exactly the map of the
+    frames before it but the newest ``lag``, and the mapper neither batches nor idles."""
+    frames = list(open_sequence(SPEC, max_frames=8))
+    cfg = replace(FAST, runtime=replace(FAST.runtime, processes=True, deterministic_lag=lag),
+                  mapping=replace(FAST.mapping, final_iterations=2))
+    seen: list[tuple[int, int, int]] = []
+    frozen_map, track = runtime._TrackingSide.frozen_map, runtime.Tracker.track
+
+    def spy(self, map_id):
+        seen.append((self.frames_sent + len(self.held), self.frames_integrated, map_id))
+        return frozen_map(self, map_id)
+
+    monkeypatch.setattr(runtime._TrackingSide, "frozen_map", spy)
+    trajectories = []
+    for delays in ([0.0] * 8, [0.3, 0.0, 0.05, 0.4, 0.0, 0.2, 0.0, 0.1]):
+        pending = list(delays)
+
+        def slow_track(self, *args, **kwargs):
+            import time
+
+            time.sleep(pending.pop(0) if pending else 0.0)
+            return track(self, *args, **kwargs)
+
+        monkeypatch.setattr(runtime.Tracker, "track", slow_track)
+        seen.clear()
+        done = do_run([frames], cfg, tmp_path / f"run{len(trajectories)}")
+        assert done.result.status == "finished", done.result.error
+        # Frame k (k >= 1) is tracked with the k frames before it handed over, all but `lag` mapped.
+        assert [(tracked, integrated) for tracked, integrated, _ in seen] == \
+            [(k, max(k - lag, 1)) for k in range(1, len(frames))], seen
+        trajectories.append((tmp_path / f"run{len(trajectories)}" / "trajectory.txt").read_bytes())
+    assert trajectories[0] == trajectories[1]
+
+
 @pytest.mark.parametrize("processes", [True, False], ids=["processes", "single-process"])
 def test_the_window_refined_pose_replaces_the_tracked_one(frames, tmp_path, monkeypatch, processes):
     # mapping.optimize_current_pose (issue 21 item 2): the mapper optimises each mapped
