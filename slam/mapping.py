@@ -41,7 +41,7 @@ from .frames import (
     sample_stacked_pixels,
     stack_frames,
 )
-from .geometry import se3_exp, se3_inverse
+from .geometry import se3_exp, se3_exp_compact, se3_inverse
 from .losses import LossWeights, Losses, compute_losses
 from .maps import Keyframe, MapSet, SubMap
 from .padded import color_slots, grid_samples, grid_size, pack_samples, render_padded, round_up
@@ -196,10 +196,12 @@ class Mapper:
         opt = self._optimizers.get(submap.map_id)
         if opt is None:
             m = self.config.mapping
+            # Static shapes: the fused step (one kernel for every parameter, its step count on
+            # the device), as a GPU wants it; else torch's default (foreach on CUDA).
             opt = torch.optim.Adam([
                 {"params": [submap.voxels.embeddings], "lr": m.lr_embed},
                 {"params": list(submap.decoder.parameters()), "lr": m.lr_decoder},
-            ])
+            ], fused=True if self.static else None)
             self._optimizers[submap.map_id] = opt
         return opt
 
@@ -373,7 +375,7 @@ class Mapper:
         # One (P, 6) tensor for all free poses: Adam is per coordinate, so this is the same
         # update as one optimiser per keyframe, at one batched exp map per iteration.
         twists = torch.zeros(len(free), 6, device=self.device, requires_grad=True)
-        pose_opt = torch.optim.Adam([twists], lr=m.lr_pose) if free else None
+        pose_opt = torch.optim.Adam([twists], lr=m.lr_pose, fused=True if self.static else None) if free else None
         weights = self._loss_weights()
         stack = stack_frames(sources)
         losses: Losses | None = None
@@ -399,7 +401,7 @@ class Mapper:
                 T = T_start
                 if free:
                     xi = torch.zeros(len(sources), 6, device=self.device).index_copy(0, free_rows, twists)
-                    T = T_start @ se3_exp(xi)
+                    T = T_start @ (se3_exp_compact(xi) if self.static else se3_exp(xi))
                 o, d = rays(batch, T)
                 c_gt, d_gt = batch.rgb, batch.depth
                 n = o.shape[0]

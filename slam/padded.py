@@ -47,7 +47,6 @@ from .render import (
     color_of_hidden,
     decode_samples,
 )
-from .voxels import lookup_sorted, morton_encode_unchecked
 
 SLOT_MULTIPLE = 16
 """Slot and grid counts are rounded up to a multiple of this (fewer distinct shapes)."""
@@ -150,7 +149,7 @@ def grid_samples(origins: torch.Tensor, dirs: torch.Tensor, near: torch.Tensor, 
     t = (k0[:, None] + j[None, :] + u[:, None]) * step                          # (R, G)
     points = origins[:, None, :] + t[..., None] * dirs[:, None, :]                # (R, G, 3)
     ijk = torch.floor(points / view.voxel_size).long().clamp(-(1 << 20), (1 << 20) - 1)
-    voxel = lookup_sorted(view.voxel_codes, morton_encode_unchecked(ijk.reshape(-1, 3))).reshape(R, grid)
+    voxel = view.find(ijk.reshape(-1, 3)).reshape(R, grid)
     keep = (t < far[:, None]) & (voxel >= 0)
     if max_hits > 0:
         # A new voxel run starts where the previous grid point is no sample or lies in

@@ -37,7 +37,7 @@ from .frames import TensorFrame, sample_pixels
 from .gauss_newton import (Linearisation, MotionPrior, RenderedJacobians, damped_step, damped_step_tensor, limit_step,
                            limit_step_tensor, linearise_rendered, render_with_jacobians,
                            render_with_jacobians_padded)
-from .geometry import se3_exp, se3_inverse, se3_log
+from .geometry import se3_exp, se3_exp_compact, se3_inverse, se3_log
 from .losses import LossWeights, compute_losses
 from .mapping import MapSnapshot, training_far
 from .profiling import TRACKING_ITERATION, scope
@@ -460,7 +460,7 @@ class Tracker:
                 stop = done | ~torch.isfinite(delta).all() | (delta.norm() < c.convergence_tol)
                 count = count + (~done).long()
                 delta = torch.where(stop, torch.zeros_like(delta), delta)
-                T_new = T @ se3_exp(delta)
+                T_new = T @ se3_exp_compact(delta)
                 cand = linearise_at(T_new, inlier)
                 accept = ~stop & (cand.cost < best.cost)
                 T = torch.where(accept, T_new, T)
@@ -483,24 +483,25 @@ class Tracker:
         device = T0_map.device
         rho = torch.zeros(3, device=device, requires_grad=True)
         phi = torch.zeros(3, device=device, requires_grad=True)
-        opt = torch.optim.Adam([{"params": [rho], "lr": c.lr_trans}, {"params": [phi], "lr": c.lr_rot}])
+        opt = torch.optim.Adam([{"params": [rho], "lr": c.lr_trans}, {"params": [phi], "lr": c.lr_rot}], fused=True)
         gamma = c.lr_decay ** (1.0 / max(c.iterations - 1, 1))
         sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma)
         step = r.step_ratio * fmap.view.voxel_size
         batch = sample_pixels(frame, c.num_rays, self._gen)
         near, far = tracking_bounds(batch.depth, r.truncation, c.sample_band, r.max_distance)
         G, N, C = self._sample_shape(frame, fmap, batch.dirs_cam, near, far, T0_map)
-        f64 = dict(dtype=torch.float64, device=device)
-        inf = torch.full((), float("inf"), **f64)
-        best_loss, best_T = inf, T0_map.detach().clone()
-        best_hit, best_med = torch.zeros((), **f64), inf
-        last_loss, last_hit, last_med = inf, torch.zeros((), **f64), inf
+        # (loss, hit ratio, median residual) of the lowest-loss and of the last live iterate
+        inf = float("inf")
+        best = torch.full((3,), inf, dtype=torch.float64, device=device)
+        best[1] = 0.0
+        last = best.clone()
+        best_T = T0_map.detach().clone()
         alive = torch.ones((), dtype=torch.bool, device=device)
         count = torch.zeros((), dtype=torch.int64, device=device)
         for it in range(1, c.iterations + 1):
             with scope(TRACKING_ITERATION):
                 count = count + alive.long()
-                T = T0_map @ se3_exp(torch.cat([rho, phi]))
+                T = T0_map @ se3_exp_compact(torch.cat([rho, phi]))
                 if c.resample_rays and it > 1:
                     batch = sample_pixels(frame, c.num_rays, self._gen)
                     near, far = tracking_bounds(batch.depth, r.truncation, c.sample_band, r.max_distance)
@@ -515,22 +516,18 @@ class Tracker:
                                     mask_in_front=r.mask_in_front, renormalise_color=True)
                 residual = (out.depth.detach() - batch.depth).abs()
                 hit = out.hit & (out.weight_sum.detach() > 1e-3)
-                hit_ratio = hit.to(torch.float64).mean()
+                hit_ratio = hit.to(residual.dtype).mean()
                 live = alive & hit.any()
                 med = masked_median(residual, hit)
                 inlier = hit & (residual <= c.outlier_factor * med + 1e-6)
                 losses = compute_losses(out, batch.rgb, batch.depth, r.truncation, self.weights,
                                         ray_weight=inlier.float(), max_depth=r.max_distance)
                 total = losses.total if sparse is None else losses.total + sparse.cost(T)
-                loss = total.detach().to(torch.float64)
-                better = live & (loss < best_loss)
-                best_loss = torch.where(better, loss, best_loss)
+                now = torch.stack([total.detach(), hit_ratio, med]).to(torch.float64)
+                better = live & (now[0] < best[0])
+                best = torch.where(better, now, best)
                 best_T = torch.where(better, T.detach(), best_T)
-                best_hit = torch.where(better, hit_ratio, best_hit)
-                best_med = torch.where(better, med.to(torch.float64), best_med)
-                last_loss = torch.where(live, loss, last_loss)
-                last_hit = torch.where(live, hit_ratio, last_hit)
-                last_med = torch.where(live, med.to(torch.float64), last_med)
+                last = torch.where(live, now, last)
                 opt.zero_grad(set_to_none=True)
                 total.backward()
                 prev = torch.cat([rho, phi]).detach().clone()
@@ -544,11 +541,12 @@ class Tracker:
                 alive = live & ~(moved < c.convergence_tol)
             if c.check_every > 0 and it % c.check_every == 0 and it < c.iterations and not bool(alive):
                 break
-        it = int(count)
-        if not c.keep_best_iterate and bool(torch.isfinite(best_loss)):
-            T_last = (T0_map @ se3_exp(torch.cat([rho, phi]))).detach()
-            return it, float(last_loss), T_last, float(last_hit), float(last_med)
-        return it, float(best_loss), best_T, float(best_hit), float(best_med)
+        it, (best_loss, best_hit, best_med), (last_loss, last_hit, last_med) = (
+            int(count), best.tolist(), last.tolist())  # (one read each)
+        if not c.keep_best_iterate and np.isfinite(best_loss):
+            T_last = (T0_map @ se3_exp_compact(torch.cat([rho, phi]))).detach()
+            return it, last_loss, T_last, last_hit, last_med
+        return it, best_loss, best_T, best_hit, best_med
 
     def _result(self, fmap: FrozenMap, T0_map: torch.Tensor, T_best_map: torch.Tensor, it: int,
                 loss: float, hit_ratio: float, residual_med: float) -> TrackingResult:

@@ -333,3 +333,17 @@ def test_bad_shapes_raise(fn, bad):
 def test_pose_from_tum_bad_row_raises():
     with pytest.raises((ValueError, RuntimeError, IndexError)):
         pose_from_tum(np.zeros(6))
+
+
+@pytest.mark.parametrize("scale", [0.0, 1e-5, 1e-3, 0.05, 1.0, 3.0])
+def test_se3_exp_compact_matches_se3_exp_and_its_gradient(scale):
+    from slam.geometry import se3_exp_compact
+
+    gen = torch.Generator().manual_seed(7)
+    xi = (torch.randn(5, 6, generator=gen, dtype=torch.float64) * scale).requires_grad_(True)
+    w = torch.randn(5, 4, 4, generator=gen, dtype=torch.float64)
+    (ref,) = torch.autograd.grad((se3_exp(xi) * w).sum(), xi)
+    (got,) = torch.autograd.grad((se3_exp_compact(xi) * w).sum(), xi)
+    assert torch.allclose(se3_exp_compact(xi), se3_exp(xi), atol=1e-12)
+    assert torch.allclose(got, ref, atol=1e-9)
+    assert se3_exp_compact(xi[0]).shape == (4, 4)

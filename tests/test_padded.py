@@ -209,3 +209,16 @@ def test_padded_losses_and_gradients_match_the_flat_ones(scene, normalisation, t
 def test_band_grid_covers_the_tracking_band():
     assert band_grid_size(2.0, 0.1, 0.02) >= 2 * 2.0 * 0.1 / 0.02 + 1
     assert grid_size(0.05, 1.0, 0.1) == 16
+
+
+def test_map_view_find_is_lookup_of_the_morton_code(scene):
+    from slam.render import MapView
+    from slam.voxels import lookup_sorted, morton_encode
+
+    view = scene[0].current.view()
+    ijk = torch.randint(-40, 40, (20000, 3), generator=torch.Generator().manual_seed(5))
+    found = view.find(ijk)
+    assert torch.equal(found, lookup_sorted(view.voxel_codes, morton_encode(ijk)))
+    assert int((found >= 0).sum()) > 0
+    empty = MapView(view.voxel_codes[:0], view.voxel_corners[:0], view.embeddings, view.voxel_size)
+    assert bool((empty.find(ijk) == -1).all())
