@@ -416,6 +416,11 @@ class RuntimeConfig:
     adjustment is budgeted by iterations only: a run's trajectory is the same on a busy or a
     quiet machine. K >= 1 keeps tracking and mapping overlapped (the mapper integrates frame
     i - K while frame i is tracked); K = 0 alternates them. For A/Bs (benchmarks/README.md)."""
+    deterministic_every: int = 3
+    """Deterministic mode: the mapper runs its windowed optimisation at every this-many-th
+    frame and only integrates the others, as a free-running mapper optimises once per batch
+    of the frames that queued up (at most ``queue_size`` + 1 = 3). 1 optimises every frame
+    (fr1/rpy 150, cpu preset, lag 1: 0.24x the free-running frame rate)."""
     checkpoint_every_keyframes: int = 10
     """Write map.pt every this many keyframes while running (0: only at the end)."""
     seed: int = 0
@@ -425,6 +430,8 @@ class RuntimeConfig:
             raise ConfigError(f"runtime.max_map_lag must be -1 (no wait) or >= 0, got {self.max_map_lag}")
         if self.deterministic_lag < -1:
             raise ConfigError(f"runtime.deterministic_lag must be -1 (off) or >= 0, got {self.deterministic_lag}")
+        if self.deterministic_every < 1:
+            raise ConfigError(f"runtime.deterministic_every must be >= 1, got {self.deterministic_every}")
 
     @property
     def deterministic(self) -> bool:

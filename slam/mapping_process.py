@@ -79,6 +79,9 @@ class FrameMessage:
     """(reason, map id, T_world_map) of a map this frame starts."""
     covariance: np.ndarray | None = None
     """(6, 6) the tracker's uncertainty of this frame's pose (``keyframe_graph.frame_covariance``)."""
+    optimize: bool = True
+    """Run the windowed optimisation after integrating it (deterministic mode integrates some
+    frames only, as a free-running mapper optimises once per batch of queued frames)."""
 
 
 @dataclass(frozen=True)
@@ -397,7 +400,7 @@ def _integrate_batch(side: _MapperSide, work: list[FrameMessage]) -> list[Reply]
     last = {msg.agent: i for i, msg in enumerate(work)}
     out: list[Reply] = []
     for i, msg in enumerate(work):
-        out += _integrate(side, msg, optimize=last[msg.agent] == i)
+        out += _integrate(side, msg, optimize=last[msg.agent] == i and msg.optimize)
     for agent in sorted(last):
         out.append(("snapshot", side.snapshot(side.mapper.active[agent])))
     return out

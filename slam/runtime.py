@@ -285,8 +285,13 @@ def _track_map(side: _TrackingSide, track: AgentTrack, channel, emit) -> int:
 def _hand_over(side: _TrackingSide, msg: FrameMessage, channel) -> None:
     """A tracked frame for the mapper: sent now, or in deterministic mode held until the
     lag says (``_deterministic_map``)."""
-    if side.config.runtime.deterministic:
-        side.held.append(msg)
+    runtime = side.config.runtime
+    if runtime.deterministic:
+        # The mapper optimises at every deterministic_every-th frame (a map's first frame
+        # always), as a free-running one optimises once per batch of the frames it found queued.
+        handed = side.frames_sent + len(side.held)
+        optimize = msg.new_map is not None or (handed + 1) % runtime.deterministic_every == 0
+        side.held.append(replace(msg, optimize=optimize))
         return
     channel.submit(msg)
     side.frames_sent += 1
