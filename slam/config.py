@@ -415,12 +415,17 @@ class RuntimeConfig:
     mapper takes one frame at a time and never optimises while idle, and the final bundle
     adjustment is budgeted by iterations only: a run's trajectory is the same on a busy or a
     quiet machine. K >= 1 keeps tracking and mapping overlapped (the mapper integrates frame
-    i - K while frame i is tracked); K = 0 alternates them. For A/Bs (benchmarks/README.md)."""
+    i - K while frame i is tracked); K = 0 alternates them. The final bundle adjustment's time
+    cap becomes ``deterministic_final_iterations``. For A/Bs (benchmarks/README.md)."""
     deterministic_every: int = 3
     """Deterministic mode: the mapper runs its windowed optimisation at every this-many-th
     frame and only integrates the others, as a free-running mapper optimises once per batch
     of the frames that queued up (at most ``queue_size`` + 1 = 3). 1 optimises every frame
     (fr1/rpy 150, cpu preset, lag 1: 0.24x the free-running frame rate)."""
+    deterministic_final_iterations: int = 12
+    """Deterministic mode, for a preset whose final bundle adjustment has a time cap: its
+    iterations instead of the cap (the cpu preset's 10-11 s ran 12 of its 500 iterations on
+    fr1/rpy 150 on the 2-core machine; without a cap the 500 took 400 s)."""
     checkpoint_every_keyframes: int = 10
     """Write map.pt every this many keyframes while running (0: only at the end)."""
     seed: int = 0

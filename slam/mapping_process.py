@@ -352,8 +352,10 @@ def _finish(side: _MapperSide, refine: bool) -> list[Reply]:
         t0 = time.perf_counter()
         maps = mapper.maps.maps
         budget = final_budget(m, mapper.maps.num_keyframes(), t0 - side.started)
-        if mapper.config.runtime.deterministic:
-            budget = replace(budget, seconds=None)  # a time cap would make the result depend on load
+        runtime = mapper.config.runtime
+        if runtime.deterministic and budget.seconds is not None:
+            # A time cap would make the result depend on load: an iteration count instead.
+            budget = FinalBudget(min(budget.iterations, runtime.deterministic_final_iterations), None)
         shares = final_iterations_per_map([len(s.keyframes) for s in maps], budget.iterations if refine else 0)
         ran = 0
         for submap, iterations in zip(maps, shares):
