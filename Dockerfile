@@ -43,11 +43,14 @@ WORKDIR /app
 ARG EXTRAS=""
 # Dependencies in their own layer, so that code changes do not reinstall them.
 COPY pyproject.toml README.md ./
-RUN mkdir -p slam ar server && touch slam/__init__.py ar/__init__.py server/__init__.py \
+RUN mkdir -p slam ar server client \
+    && touch slam/__init__.py ar/__init__.py server/__init__.py client/__init__.py \
     && pip install ".${EXTRAS:+[$EXTRAS]}" && pip uninstall -y voxfusion
 COPY slam ./slam
 COPY ar ./ar
 COPY server ./server
+# The stream client: `voxfusion`'s parser includes its `stream` subcommand.
+COPY client ./client
 COPY static ./static
 # Editable: the page's files in /app/static are served from where they are.
 RUN pip install --no-deps -e .

@@ -40,7 +40,7 @@ def add_server_commands(subparsers) -> None:
                       help=f"synthetic scene spec (default {DEFAULT_DEMO_SPEC!r})")
     demo.set_defaults(handler=demo_command)
 
-    from server.stream_client import add_stream_arguments
+    from client.stream import add_stream_arguments
 
     stream = subparsers.add_parser("stream", help="send a camera or a replayed dataset folder to a running server",
                                    description="Create a stream session on a running server and send it frames "
@@ -168,7 +168,7 @@ def demo_command(args: argparse.Namespace) -> int:
 
 
 def stream_command(args: argparse.Namespace) -> int:
-    from server.stream_client import stream_command as run_stream
+    from client.stream import stream_command as run_stream
 
     return run_stream(args)
 

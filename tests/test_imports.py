@@ -1,4 +1,5 @@
-"""Imports point inward: ``slam`` never imports server, ar, fastapi, viser or uvicorn."""
+"""Imports point inward: ``slam`` never imports server, ar, fastapi, viser or uvicorn; ``client``
+(the stream client) never imports the server, the web stack or the viewer."""
 
 from __future__ import annotations
 
@@ -7,8 +8,11 @@ import subprocess
 import sys
 from pathlib import Path
 
-SLAM = Path(__file__).resolve().parents[1] / "slam"
+ROOT = Path(__file__).resolve().parents[1]
+SLAM = ROOT / "slam"
+CLIENT = ROOT / "client"
 FORBIDDEN = {"server", "ar", "fastapi", "viser", "uvicorn"}
+FORBIDDEN_IN_CLIENT = {"server", "ar", "fastapi", "starlette", "viser", "uvicorn"}
 
 
 def imported_top_level_names(source: str, package: list[str]) -> list[tuple[int, str]]:
@@ -33,7 +37,7 @@ def imported_top_level_names(source: str, package: list[str]) -> list[tuple[int,
 
 
 def imports_of_file(path: Path) -> list[tuple[int, str]]:
-    package = list(path.relative_to(SLAM.parent).parent.parts)
+    package = list(path.relative_to(ROOT).parent.parts)
     return imported_top_level_names(path.read_text(), package)
 
 
@@ -52,6 +56,14 @@ def test_no_slam_module_imports_the_outer_layers():
     assert len(files) > 20, "the walk must see the whole package"
     offences = [f"{f.relative_to(SLAM.parent)}:{line} imports {name}"
                 for f in files for line, name in imports_of_file(f) if name in FORBIDDEN]
+    assert not offences, "\n".join(offences)
+
+
+def test_the_client_imports_no_server_web_or_viewer_module():
+    files = sorted(CLIENT.rglob("*.py"))
+    assert len(files) >= 4, "the walk must see the whole package"
+    offences = [f"{f.relative_to(ROOT)}:{line} imports {name}"
+                for f in files for line, name in imports_of_file(f) if name in FORBIDDEN_IN_CLIENT]
     assert not offences, "\n".join(offences)
 
 

@@ -12,9 +12,9 @@ import cv2
 import numpy as np
 import pytest
 
-from server.camera_sources import FolderSource, PendingFrame, SourceError, open_source
+from client.camera_sources import FolderSource, PendingFrame, SourceError, open_source
+from client.stream import FrameSlot, Progress, _send_all, read_source
 from server.cli import main
-from server.stream_client import FrameSlot, Progress, _send_all, read_source
 from tests.live_server import LiveServer, free_port, start_uvicorn
 from tests.test_server_api import needs_runtime
 
@@ -124,7 +124,7 @@ def test_unreachable_server_and_bad_source(tum_folder, tmp_path, capsys):
 def test_server_going_away_mid_stream_exits_non_zero(tmp_path, monkeypatch, capsys):
     """The server stops while a slow replay streams (and does not come back within the
     reconnect window): a clear message, exit 1, within seconds."""
-    from server import stream_client
+    from client import stream as stream_client
 
     monkeypatch.setattr(stream_client, "RECONNECT_S", 3.0)
     live = start_server(tmp_path / "data")
@@ -186,7 +186,7 @@ def test_server_restarting_mid_stream_reports_the_session(tmp_path, monkeypatch,
     it, finds the session can take no more frames (a restart ends it as "interrupted") and
     says so; exit 1."""
     import tests.live_server as live_server
-    from server import stream_client
+    from client import stream as stream_client
 
     monkeypatch.setattr(stream_client, "RECONNECT_S", 120.0)  # the old server's stop waits for its worker
     live = start_server(tmp_path / "data")
@@ -270,7 +270,7 @@ def test_broken_connection_reconnects_to_the_same_session(server_url, tum_folder
     """The connection breaks mid-stream (the proxy cuts it just before the third frame) while
     the server stays up: the client reopens the session's socket and streams on; every frame is
     on the server but one that was waiting for its ack (counted as lost), and the session finishes."""
-    from server import stream_client
+    from client import stream as stream_client
 
     root, _ = tum_folder
     proxy, send_frame, calls = CuttingProxy(server_url), stream_client.send_frame, []
@@ -426,7 +426,7 @@ class SlowServerSocket:
 def test_slow_server_drops_older_frames_and_keeps_time_order():
     """A 100 Hz replay into a server that takes 50 ms a frame: about half the frames are dropped,
     every one counted, the ones sent in time order and the last frame always sent."""
-    from server.stream_client import _Printer
+    from client.stream import _Printer
 
     source = FolderSource("synthetic:orbit?frames=20&width=40&height=30", fps=100)
     slot, stop = FrameSlot(replace=True), threading.Event()
@@ -582,7 +582,7 @@ class _FakeFrameset:
 def test_realsense_skips_a_frameset_whose_colour_and_depth_are_frames_apart():
     """The SDK's syncer can pair colour k with depth k + 1; such a frameset (more than half a
     frame apart at 30 Hz) is skipped and counted, a few milliseconds of skew are not."""
-    from server.camera_sources import RealSenseSource
+    from client.camera_sources import RealSenseSource
 
     source = object.__new__(RealSenseSource)  # no SDK: the pairing check alone
     sets = iter([_FakeFrameset(0.0, 0.0), _FakeFrameset(33.3, 66.7), _FakeFrameset(66.7, 70.0), None])
@@ -602,7 +602,7 @@ def test_missing_recording_is_a_clear_error(tmp_path):
 def test_keep_newest_waits_for_the_server_to_catch_up():
     """With frames acknowledged but not tracked, the sender waits for the server's count (from
     the status poller) to come within MAX_AHEAD, and stops waiting when it cannot be read."""
-    from server.stream_client import wait_for_server
+    from client.stream import wait_for_server
 
     progress = Progress(acked=6)
     progress.server_frames_done = 1
@@ -630,7 +630,7 @@ class UnpluggedCamera:
     info = None
 
     def frames(self, stop):
-        from server.camera_sources import EncodedFrame
+        from client.camera_sources import EncodedFrame
 
         for i in range(3):
             yield PendingFrame(index=i, arrived=time.monotonic(),
@@ -642,7 +642,7 @@ class UnpluggedCamera:
 
 
 def test_source_failing_mid_stream_is_reported_after_the_frames_it_gave():
-    from server.stream_client import _Printer
+    from client.stream import _Printer
 
     slot, stop = FrameSlot(replace=False), threading.Event()
     reader = threading.Thread(target=read_source, args=(UnpluggedCamera(), slot, stop), daemon=True)

@@ -33,7 +33,7 @@ from typing import Callable, Iterator
 import cv2
 import numpy as np
 
-from server.camera_sources import (FOLDER_DEPTH_SCALE, CameraInfo, EncodedFrame, PendingFrame, SourceError,
+from client.camera_sources import (FOLDER_DEPTH_SCALE, CameraInfo, EncodedFrame, PendingFrame, SourceError,
                                    encode_png, import_device_library, metric_depth_to_raw, paced)
 
 RECORD3D_EXTRA = "pip install 'voxfusion[record3d]' (or: pip install record3d lzfse)"

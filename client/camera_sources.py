@@ -1,5 +1,5 @@
 """Frame sources for ``voxfusion stream``: a dataset folder replayed like a camera, a RealSense
-(Record3D: ``server/record3d.py``).
+(Record3D: ``client/record3d.py``).
 
 A source says what its camera is (``CameraInfo``) before the first frame, then yields
 ``PendingFrame`` items at the pace frames arrive: a live camera as the device delivers them, a
@@ -332,7 +332,7 @@ def open_source(spec: str, *, fps: float | None = None, max_frames: int | None =
         raise SourceError(f"{NOT_YET[spec]} is not supported yet; record to a dataset folder "
                           f"(TUM layout) and stream that, or use a RealSense or Record3D")
     if spec == "record3d" or spec.endswith(".r3d"):
-        from server.record3d import R3DSource, Record3DLiveSource, Record3DOptions
+        from client.record3d import R3DSource, Record3DLiveSource, Record3DOptions
 
         options = Record3DOptions(width=width, min_confidence=min_confidence)
         if spec == "record3d":
