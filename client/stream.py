@@ -699,7 +699,7 @@ def stream_command(args) -> int:
     if args.max_frames is not None and args.max_frames < 1:
         print("voxfusion stream: --max-frames must be at least 1", file=sys.stderr)
         return EXIT_SOURCE
-    from client.camera_sources import open_source
+    from client.open import open_source
 
     try:
         source = open_source(args.source, fps=args.fps, max_frames=args.max_frames, width=args.width,

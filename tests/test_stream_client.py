@@ -12,7 +12,8 @@ import cv2
 import numpy as np
 import pytest
 
-from client.camera_sources import FolderSource, PendingFrame, SourceError, open_source
+from client.camera_sources import FolderSource, PendingFrame, SourceError
+from client.open import open_source
 from client.stream import FrameSlot, Progress, _send_all, read_source
 from server.cli import main
 from tests.live_server import LiveServer, free_port, start_uvicorn
