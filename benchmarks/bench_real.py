@@ -293,7 +293,8 @@ def main() -> int:
                     run = Run(seq.name, variant.name, round_, None, None, 0, round(time.perf_counter() - started, 1),
                               load, error=str(error)[:400])
                 runs.append(run)
-                shown = "failed: " + run.error if run.error else f"ATE {run.ate_cm:.2f} cm, {run.fps:.2f} frames/s"
+                ate = "no ATE (no ground truth?)" if run.ate_cm is None else f"ATE {run.ate_cm:.2f} cm"
+                shown = "failed: " + run.error if run.error else f"{ate}, {run.fps or 0:.2f} frames/s"
                 print(f"round {round_} {seq.name} {variant.name}: {shown} ({run.seconds} s, load {load})", flush=True)
     rows = summary(runs, variants)
     print("\n" + table(rows))

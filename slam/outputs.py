@@ -142,14 +142,14 @@ def agent_trajectory(track: "AgentTrack", stats: "MapperStats | None", fallback_
 
 
 def _ate(trajectories: list[AgentTrajectory]) -> float | None:
-    """ATE RMSE (m) of the trajectories together, one rigid alignment for all (None when a
-    pose has no GT)."""
-    kept = [t for t in trajectories if len(t.poses)]
-    if not kept or any(g is None for t in kept for g in t.gt):
+    """ATE RMSE (m) of the trajectories together, one rigid alignment for all, over the frames
+    that have a GT pose (as TUM's evaluation pairs only frames with ground truth; a real
+    sequence lacks it for a few frames where the motion capture had no sample within 20 ms).
+    None when fewer than 3 frames have one."""
+    pairs = [(T[:3, 3], g[:3, 3]) for t in trajectories for T, g in zip(t.poses, t.gt) if g is not None]
+    if len(pairs) < 3:
         return None
-    est = np.concatenate([t.poses[:, :3, 3] for t in kept])
-    gt = np.concatenate([np.stack([g[:3, 3] for g in t.gt]) for t in kept])  # type: ignore[index]
-    return aligned_rmse(est, gt)
+    return aligned_rmse(np.stack([e for e, _ in pairs]), np.stack([g for _, g in pairs]))
 
 
 def _agent_joined(agent: int, stats: "MapperStats | None") -> bool:

@@ -582,3 +582,24 @@ def test_loop_pose_error_against_ground_truth():
              {"agent": 0, "frame_index": 3, "match_agent": 0, "match_frame_index": 1}]
     errors = loop_pose_errors(loops, lambda agent, index: gt.get((agent, index)))
     assert len(errors) == 1 and errors[0].translation_m == pytest.approx(0.0) and errors[0].gt_distance_m == 0.1
+
+
+def test_run_ate_uses_the_frames_that_have_ground_truth():
+    """A real sequence lacks GT for a few frames (fr1/rpy: 3 of 723): the run's ATE pairs the
+    others, as TUM's evaluation does, instead of giving none (issue 41's 300-frame windows)."""
+    from slam.outputs import AgentTrajectory, _ate
+
+    rng = np.random.default_rng(0)
+    gt = [np.eye(4) for _ in range(10)]
+    for k, T in enumerate(gt):
+        T[:3, 3] = rng.normal(size=3)
+    est = np.stack(gt).copy()
+    est[:, :3, 3] += 0.01 * rng.normal(size=(10, 3))
+    full = _ate([AgentTrajectory(0, np.arange(10.0), est, list(gt), 0)])
+    holes = list(gt)
+    holes[3] = holes[7] = None
+    partial = _ate([AgentTrajectory(0, np.arange(10.0), est, holes, 0)])
+    keep = [k for k in range(10) if k not in (3, 7)]
+    assert partial is not None and full is not None
+    assert partial == pytest.approx(_ate([AgentTrajectory(0, np.arange(8.0), est[keep], [gt[k] for k in keep], 0)]))
+    assert _ate([AgentTrajectory(0, np.arange(10.0), est, [None] * 8 + gt[:2], 0)]) is None
