@@ -54,7 +54,7 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-from server.executors import ExecutorError, WorkerInfo, WorkerPlaced, describe_exit
+from server.execution import ExecutorError, WorkerInfo, WorkerPlaced, describe_exit
 from server.settings import Settings
 from server.worker import END_OF_STREAM, WorkerDone, WorkerJob, run_worker
 
@@ -210,7 +210,7 @@ class RayExecutor:
 
 
 class RayExecution:
-    """One session's actor, seen from the API process (``server.executors.Execution``)."""
+    """One session's actor, seen from the API process (``server.execution.Execution``)."""
 
     def __init__(self, executor: RayExecutor, job: WorkerJob, directory: Path, frame_queue) -> None:
         self.executor = executor

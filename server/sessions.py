@@ -65,7 +65,8 @@ from typing import Callable, Sequence
 import numpy as np
 
 from server.errors import strip_paths
-from server.executors import Execution, Executor, ExecutorError, WorkerInfo, WorkerPlaced, make_executor
+from server.execution import Execution, Executor, ExecutorError, WorkerInfo, WorkerPlaced
+from server.executors import make_executor
 from server.settings import Settings
 from server.stream import StreamInput
 from server.tracks import Tracks, transform_points

@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import pytest
 
-from server.executors import LocalExecutor, WorkerInfo, describe_exit, make_executor
+from server.execution import WorkerInfo, describe_exit
+from server.executors import LocalExecutor, make_executor
 from server.ray_executor import pack_input, probe, relocate, unpack_input, write_files
 from server.sessions import SessionStatus
 from server.settings import Settings, SettingsError, settings_from_env
