@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from . import numba_kernels, set_threads
+from .backend import numba_kernels, set_threads
 
 
 def _np(t: torch.Tensor) -> np.ndarray:
@@ -197,17 +197,18 @@ def warm_up_kernels() -> None:
 
 
 def _run_every_kernel() -> None:
-    from ..config import DecoderConfig
-    from ..decoder import Decoder
-
-    D = 4
+    D, H, F = 4, 8, 4
     coords = torch.tensor([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
     corners = torch.arange(16).reshape(2, 8)
     embeddings = torch.randn(16, D, requires_grad=True)
-    decoder = Decoder(DecoderConfig(hidden_dim=8, feature_dim=4, color_hidden_dim=4), D)
+    # A decoder's tensors as FusedField takes them: the SDF head (1 + F, H) and two trunk
+    # layers (two, so the backward's ReLU pass between layers runs too).
+    head = [torch.randn(1 + F, H, requires_grad=True), torch.randn(1 + F, requires_grad=True)]
+    trunk = [torch.randn(H, D, requires_grad=True), torch.randn(H, requires_grad=True),
+             torch.randn(H, H, requires_grad=True), torch.randn(H, requires_grad=True)]
     points = torch.rand(5, 3, requires_grad=True)
     voxel_index = torch.zeros(5, dtype=torch.long)
-    sdf, hidden = field_sdf_and_hidden(points, voxel_index, coords, corners, 1.0, embeddings, decoder)
+    sdf, hidden = FusedField.apply(points, voxel_index, coords, corners, 1.0, embeddings, *head, *trunk)
     (sdf.sum() + hidden.sum()).backward()
     interpolate_with_slopes(points.detach(), voxel_index, coords, corners, 1.0, embeddings.detach())
     interpolate(points.detach(), voxel_index, coords, corners, 1.0, embeddings.detach())
