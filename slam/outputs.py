@@ -28,7 +28,7 @@ from .config import SLAMConfig
 
 if TYPE_CHECKING:
     from .mapping_process import MapperStats
-    from .runtime import AgentTrack, RunResult
+    from .runtime import AgentTrack
 
 
 @dataclass(frozen=True)
@@ -246,12 +246,28 @@ MAX_LISTED_SKIPPED = 100
 """Skipped frames listed in run.json by index and reason (all are counted)."""
 
 
+@dataclass(frozen=True)
+class RunResult:
+    """What ``slam.runtime.run_slam`` returns once the outputs are written (``run.json`` in
+    ``out_dir`` has the rest)."""
+
+    status: str
+    """``finished``, ``failed`` or ``cancelled``."""
+    error: str | None
+    frames: int
+    keyframes: int
+    maps: int
+    loops: int
+    fps: float
+    out_dir: Path
+    ate_rmse: float | None = None
+    agents: int = 1
+
+
 def write_outputs(out: Path, config: SLAMConfig, tracks: list["AgentTrack"], stats: "MapperStats | None",
                   status: str, error: str | None, elapsed: float, total: int | None, tracking_busy: float,
                   use_gt_poses: bool, map_poses: dict[int, np.ndarray] | None = None,
-                  map_waits: tuple[int, float] = (0, 0.0), frames_skipped: list[dict] | None = None) -> "RunResult":
-    from .runtime import RunResult
-
+                  map_waits: tuple[int, float] = (0, 0.0), frames_skipped: list[dict] | None = None) -> RunResult:
     trajectories = [agent_trajectory(t, stats, map_poses or {}, use_gt_poses) for t in tracks if t.records]
     _write_trajectories(out, trajectories, len(tracks) > 1)
     agents = [{

@@ -53,7 +53,7 @@ from .frames import prepare_frame
 from .mapping import MapSnapshot
 from .mapping_process import FrameMessage, FramePose, InlineMapper, MapperFailed, MapperStats, ProcessMapper
 from .mapping_process import set_threads as _set_threads
-from .outputs import FrameRecord, refine_with_keyframes, running_ate, write_outputs, write_progress
+from .outputs import FrameRecord, RunResult, refine_with_keyframes, running_ate, write_outputs, write_progress
 from .loop.keyframe_graph import frame_covariance
 from .tracking import FrozenMap, Tracker, constant_velocity_guess
 
@@ -73,21 +73,6 @@ class AgentStream:
 
     def __iter__(self) -> Iterator[tuple[int, Frame]]:
         raise NotImplementedError
-
-
-@dataclass(frozen=True)
-class RunResult:
-    status: str
-    """``finished``, ``failed`` or ``cancelled``."""
-    error: str | None
-    frames: int
-    keyframes: int
-    maps: int
-    loops: int
-    fps: float
-    out_dir: Path
-    ate_rmse: float | None = None
-    agents: int = 1
 
 
 def resolve_device(name: str) -> torch.device:
