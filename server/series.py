@@ -5,7 +5,8 @@ the tracking phase.
 The ground truth is read from the session's input (a synthetic scene's generated path, a
 dataset's ``groundtruth.txt`` / pose files) with the options the worker opened it with, so
 its timestamps are the ones the runtime reports; estimate and ground truth are associated by
-timestamp and rigidly aligned (Umeyama, no scale) exactly as ``slam.eval.ate`` does.
+timestamp and rigidly aligned (Umeyama, no scale) by ``slam.eval.ate.ate_from_pairs``, as the
+ATE is.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ import numpy as np
 
 from server.worker import SourceSpec
 from slam.data import DataError
-from slam.eval.ate import umeyama_alignment
+from slam.eval.ate import ate_from_pairs
 from slam.eval.trajectory import Trajectory, associate
 
 MAX_DT_S = 0.02
@@ -81,13 +82,13 @@ def compare(estimate: Trajectory, truth: Trajectory | None) -> TrajectoryCompari
     if len(idx_est) < 3:
         return unaligned
     try:
-        R, t, _ = umeyama_alignment(positions[idx_est], truth.positions[idx_gt])
+        paired = ate_from_pairs(truth.positions[idx_gt], positions[idx_est])
     except DataError:  # collinear: the rotation about the line is not determined
         return unaligned
-    aligned = positions @ R.T + t
+    T_gt_est = paired.T_gt_est
     errors = np.full(len(positions), np.nan)
-    errors[idx_est] = np.linalg.norm(aligned[idx_est] - truth.positions[idx_gt], axis=1)
-    return TrajectoryComparison(aligned, errors, True)
+    errors[idx_est] = paired.errors
+    return TrajectoryComparison(positions @ T_gt_est[:3, :3].T + T_gt_est[:3, 3], errors, True)
 
 
 def rounded(values: np.ndarray) -> list:

@@ -94,18 +94,16 @@ def world_poses(records: list[FrameRecord], map_poses: dict[int, np.ndarray]) ->
 
 
 def aligned_rmse(est: np.ndarray, gt: np.ndarray) -> float | None:
-    """RMSE (m) of positions est (N, 3) against gt (N, 3) after one rigid alignment (None
-    when fewer than 3 or degenerate)."""
-    from .eval.ate import umeyama_alignment
+    """RMSE (m) of positions est (N, 3) against gt (N, 3) after one rigid alignment
+    (``slam.eval.ate.ate_from_pairs``); None when fewer than 3 or degenerate."""
+    from .eval.ate import ate_from_pairs
 
     if len(est) < 3:
         return None
     try:
-        R, t, _ = umeyama_alignment(est, gt)
-    except ValueError:
+        return ate_from_pairs(gt, est).rmse
+    except ValueError:  # DataError too: collinear positions
         return None
-    err = np.linalg.norm(est @ R.T + t - gt, axis=1)
-    return float(np.sqrt((err ** 2).mean()))
 
 
 def running_ate(records: list[FrameRecord], map_poses: dict[int, np.ndarray]) -> float | None:

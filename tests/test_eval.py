@@ -603,3 +603,45 @@ def test_run_ate_uses_the_frames_that_have_ground_truth():
     assert partial is not None and full is not None
     assert partial == pytest.approx(_ate([AgentTrajectory(0, np.arange(8.0), est[keep], [gt[k] for k in keep], 0)]))
     assert _ate([AgentTrajectory(0, np.arange(10.0), est, [None] * 8 + gt[:2], 0)]) is None
+
+
+def test_one_aligned_ate_for_eval_runs_and_the_page():
+    """Issue 42: the aligned ATE is computed once (``slam.eval.ate.ate_from_pairs``). ``ate``,
+    a run's ATE (``slam.outputs.aligned_rmse``) and the page's error plot
+    (``server.series.compare``) give the same numbers on one trajectory, and the same as the
+    formula each used before (Umeyama, then the RMSE of the aligned positions)."""
+    from server.series import MAX_DT_S, compare
+    from slam.eval import ate_from_pairs
+    from slam.outputs import aligned_rmse
+
+    rng = np.random.default_rng(42)
+    full = random_walk(rng, 120)
+    est = perturbed(full, rng, pose([0.2, -0.1, 0.4], [1.0, -2.0, 0.5]), noise=0.01, drift=0.05, dt=0.004)
+    kept = np.setdiff1d(np.arange(120), [5, 50, 51])  # three estimated frames without ground truth
+    gt = Trajectory(full.timestamps[kept], full.poses[kept])
+    reference = ate(gt, est, max_dt=MAX_DT_S)
+    idx_gt, idx_est = associate(gt.timestamps, est.timestamps, MAX_DT_S)
+    assert reference.num_pairs == len(idx_est) == 117
+
+    R, t, _ = umeyama_alignment(est.positions[idx_est], gt.positions[idx_gt])
+    before = np.linalg.norm(est.positions[idx_est] @ R.T + t - gt.positions[idx_gt], axis=1)
+    assert reference.rmse == pytest.approx(float(np.sqrt((before ** 2).mean())), rel=1e-12)
+
+    assert aligned_rmse(est.positions[idx_est], gt.positions[idx_gt]) == reference.rmse
+    paired = ate_from_pairs(gt.positions[idx_gt], est.positions[idx_est])
+    np.testing.assert_array_equal(paired.errors, reference.errors)
+    np.testing.assert_array_equal(paired.T_gt_est, reference.T_gt_est)
+
+    plot = compare(est, gt)
+    assert plot.aligned and plot.rmse == pytest.approx(reference.rmse, rel=1e-12)
+    np.testing.assert_array_equal(plot.errors[idx_est], reference.errors)
+    assert np.isnan(plot.errors[[5, 50, 51]]).all()
+    np.testing.assert_allclose(plot.estimated, est.positions @ R.T + t, atol=1e-12)
+
+    # Too few or collinear pairs: no ATE, the same way everywhere.
+    line = np.outer(np.arange(5.0), [1.0, 2.0, 3.0])
+    with pytest.raises(DataError):
+        ate_from_pairs(line, line + 1)
+    assert aligned_rmse(line + 1, line) is None and aligned_rmse(line[:2], line[:2]) is None
+    with pytest.raises(ValueError):
+        ate_from_pairs(np.zeros((4, 3)), np.zeros((5, 3)))

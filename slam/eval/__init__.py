@@ -4,7 +4,7 @@ A pure core (``ate``, ``mesh_metrics``) with no file access, TUM file I/O in ``t
 and thin command-line handlers in ``commands`` (``voxfusion eval-ate`` / ``eval-mesh``).
 """
 
-from slam.eval.ate import ATEResult, ate, umeyama_alignment
+from slam.eval.ate import ATEResult, ate, ate_from_pairs, umeyama_alignment
 from slam.eval.mesh_metrics import CullCamera, MeshMetrics, cull_to_cameras, mesh_metrics
 from slam.eval.trajectory import (
     Trajectory,
@@ -23,6 +23,7 @@ __all__ = [
     "Trajectory",
     "associate",
     "ate",
+    "ate_from_pairs",
     "cull_to_cameras",
     "format_tum",
     "mesh_metrics",

@@ -90,8 +90,30 @@ def ate(gt: Trajectory, est: Trajectory, align: bool = True, max_dt: float = 0.0
             f"no associated poses: none of the {len(est)} estimated timestamps is within "
             f"{max_dt} s of the {len(gt)} ground-truth timestamps"
         )
-    gt_xyz = gt.positions[idx_gt]
-    est_xyz = est.positions[idx_est]
+    return ate_from_pairs(gt.positions[idx_gt], est.positions[idx_est], align)
+
+
+def ate_from_pairs(gt_xyz: np.ndarray, est_xyz: np.ndarray, align: bool = True) -> ATEResult:
+    """ATE of positions already paired: ``est_xyz[i]`` is the estimate of ``gt_xyz[i]``.
+
+    The one place the aligned error is computed: ``ate`` (after association), a run's ATE
+    (``slam.outputs.aligned_rmse``) and the page's error plot (``server.series.compare``) all
+    come here. With ``align`` the estimate is moved by the rigid Umeyama fit (no scale)
+    ``T_gt_est`` onto the ground truth first; ``errors[i] = |gt_xyz[i] - T_gt_est est_xyz[i]|``.
+
+    Args:
+        gt_xyz: (N, 3) ground-truth positions.
+        est_xyz: (N, 3) estimated positions, in the same order.
+    Raises:
+        DataError: no pairs, or (with ``align``) fewer than 3 or collinear positions.
+        ValueError: the arrays are not both (N, 3).
+    """
+    gt_xyz = np.asarray(gt_xyz, dtype=np.float64)
+    est_xyz = np.asarray(est_xyz, dtype=np.float64)
+    if gt_xyz.ndim != 2 or gt_xyz.shape[1] != 3 or gt_xyz.shape != est_xyz.shape:
+        raise ValueError(f"ate_from_pairs needs two (N, 3) arrays, got {gt_xyz.shape} and {est_xyz.shape}")
+    if len(gt_xyz) == 0:
+        raise DataError("no position pairs to measure")
     T_gt_est = np.eye(4)
     if align:
         R, t, _ = umeyama_alignment(est_xyz, gt_xyz, with_scale=False)
