@@ -85,6 +85,49 @@ def test_importing_slam_loads_no_web_or_viewer_package():
     assert proc.stdout.startswith("ok ") and int(proc.stdout.split()[1]) > 20
 
 
+def test_the_slam_face_exports_its_names_on_first_use():
+    code = (
+        "import importlib, sys, slam\n"
+        "assert 'torch' not in sys.modules, 'import slam loaded torch'\n"
+        "loaded = sorted(n for n in sys.modules if n.startswith('slam.'))\n"
+        "assert not loaded, loaded\n"
+        "for name in slam.__all__:\n"
+        "    assert getattr(slam, name) is getattr(importlib.import_module(slam._MODULE_OF[name]), name), name\n"
+        "assert set(slam.__all__) <= set(dir(slam))\n"
+        "try:\n"
+        "    slam.no_such_name\n"
+        "except AttributeError:\n"
+        "    pass\n"
+        "else:\n"
+        "    raise AssertionError('an unknown name must be an AttributeError')\n"
+        "from slam import kernels  # a submodule still imports by name\n"
+        "print('ok', len(slam.__all__))\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=ROOT)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.startswith("ok ")
+
+
+def test_the_slam_face_lists_for_type_checkers_what_it_exports():
+    import slam
+
+    tree = ast.parse((SLAM / "__init__.py").read_text())
+    block = next(node for node in tree.body if _is_type_checking_block(node))
+    typed = {alias.name: node.module for node in block.body if isinstance(node, ast.ImportFrom)
+             for alias in node.names}
+    assert typed == slam._MODULE_OF
+
+
+def test_no_slam_module_imports_the_slam_face():
+    # The face's names are imported on first use, which the circle finder cannot see: inside
+    # the package, modules import each other, never ``from slam import name``.
+    modules = project_modules(packages=("slam",))
+    offences = [f"{e.importer}:{e.line}" for name, path in modules.items() if name != "slam"
+                for e in import_edges(name, path.read_text(), path.name == "__init__.py", modules)
+                if e.imported == "slam"]
+    assert not offences, offences
+
+
 # ------------------------------------------------------------------------------------------
 # Import circles among the product's modules (issue 42): none, but for lazy factory imports
 # listed here, each with a comment on its line saying why it is lazy.
