@@ -230,7 +230,7 @@ def _run(args: argparse.Namespace) -> list[Path]:
         args.background_depth, args.depth_scale, width, height)
     mapset = _load_map(args.checkpoint, device)
     if given_rgb is None or given_depth is None:
-        from slam.views import render_view
+        from slam import render_view
 
         view = render_view(mapset, camera.T_world_cam, camera.K, width, height, device=device)
         given_rgb = view.rgb if given_rgb is None else given_rgb
@@ -258,7 +258,7 @@ def _resolve_device(name: str) -> str:
 def _load_map(path: Path, device: str):
     """The checkpoint's MapSet; loaded even when both images are given, so that a wrong map
     path is reported rather than silently ignored."""
-    from slam.checkpoint import CheckpointError, load_checkpoint
+    from slam import CheckpointError, load_checkpoint
 
     try:
         return load_checkpoint(path, device=device)

@@ -136,8 +136,7 @@ class FolderSource:
 
     def __init__(self, path: str, *, fps: float | None = None, max_frames: int | None = None,
                  width: int | None = None) -> None:
-        from slam.data import DataError, open_sequence
-        from slam.data.open import detect_format
+        from slam import DataError, detect_format, open_sequence
 
         try:
             self.format = detect_format(path)

@@ -162,7 +162,7 @@ def serve_command(args: argparse.Namespace) -> int:
 
 
 def demo_command(args: argparse.Namespace) -> int:
-    from slam.config import default_preset_name
+    from slam import default_preset_name
 
     return _serve(args, (args.spec, args.preset or default_preset_name()))
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from slam.data.frame import DataError
+from slam import DataError
 
 MAX_BACKGROUND_SIDE = 2048
 """Largest side of an input frame used as an AR background (as ``server.schemas.MAX_SIDE``)."""
@@ -42,7 +42,7 @@ def _sequence_frame(sources: tuple, index: int, agent: int):
         raise KeyError(f"agent {agent} does not exist (the session has {len(sources)} source"
                        f"{'s' if len(sources) > 1 else ''})")
     spec = sources[agent]
-    from slam.data import open_sequence
+    from slam import open_sequence
 
     if spec.kind == "synthetic":
         sequence = open_sequence(f"synthetic:{spec.path}", "synthetic", stride=spec.stride, max_frames=spec.max_frames)

@@ -184,7 +184,7 @@ class RayExecutor:
 
     def resources(self, preset: str) -> dict[str, float]:
         """What a session of ``preset`` declares to Ray."""
-        from slam.config import ConfigError, preset as preset_config
+        from slam import ConfigError, preset as preset_config
 
         try:
             device = preset_config(preset).runtime.device

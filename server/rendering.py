@@ -85,7 +85,7 @@ class MapCache:
                 if entry is not None and entry[0] == stamp:
                     self._entries.move_to_end(session_id)
                     return entry[1]
-            from slam.checkpoint import load_checkpoint
+            from slam import load_checkpoint
 
             mapset = load_checkpoint(map_path, device="cpu")
             with self._lock:
@@ -104,7 +104,7 @@ class MapCache:
 def render(mapset, camera: Camera, **options):
     """Neural render of ``camera``'s view -> ``slam.views.RenderedView`` (rgb, depth); ``options``
     go to ``render_view`` (method, precision)."""
-    from slam.views import render_view
+    from slam import render_view
 
     return render_view(mapset, camera.T_world_cam, camera.K, camera.width, camera.height, **options)
 
@@ -196,7 +196,7 @@ def mesh_bytes_from_arrays(parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]
     """Concatenate per-map world-frame meshes (V,3 / F,3 / V,3 uint8) and encode them."""
     import trimesh
 
-    from slam.mesh import mesh_to_bytes
+    from slam import mesh_to_bytes
 
     vertices, faces, colors, base = [], [], [], 0
     if not any(len(f) for _, f, _ in parts):
@@ -222,7 +222,7 @@ class MeshFiles:
     def convert(self, ply_path: Path, file_format: str) -> bytes:
         import trimesh
 
-        from slam.mesh import mesh_to_bytes
+        from slam import mesh_to_bytes
 
         stamp = ply_path.stat().st_mtime_ns
         key = (str(ply_path), file_format)
@@ -241,7 +241,7 @@ class MeshFiles:
         return data
 
     def extract_from_map(self, mapset, file_format: str) -> bytes:
-        from slam.mesh import extract_mesh, mesh_to_bytes
+        from slam import extract_mesh, mesh_to_bytes
 
         mesh = extract_mesh(mapset)
         if len(mesh.faces) == 0:

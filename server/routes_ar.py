@@ -24,7 +24,7 @@ from server.rendering import Camera, MapCache, check_pose, intrinsics_matrix, pn
 from server.routes_render import load_map
 from server.schemas import ARRequest, ErrorOut
 from server.sessions import SessionManager, check_session_id
-from slam.data import DataError
+from slam import DataError
 
 router = APIRouter(tags=["ar"], dependencies=[Depends(require_token)],
                    responses={401: {"model": ErrorOut}, 404: {"model": ErrorOut}})
@@ -68,7 +68,7 @@ def estimated_pose(manager: SessionManager, session_id: str, index: int, timesta
         path = directory / "trajectory.txt"
     if not path.is_file():
         return None
-    from slam.eval.trajectory import read_tum
+    from slam import read_tum
 
     trajectory = read_tum(path)
     if len(trajectory) == 0:

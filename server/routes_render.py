@@ -123,8 +123,7 @@ def _agent_positions(directory, agents: int) -> dict[int, np.ndarray]:
 
 
 def _positions(path) -> np.ndarray | None:
-    from slam.data import DataError
-    from slam.eval.trajectory import read_tum
+    from slam import DataError, read_tum
 
     try:
         return read_tum(path).positions if path.is_file() else None

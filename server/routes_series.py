@@ -11,8 +11,7 @@ from server.schemas import ErrorOut, SeriesOut
 from server.series import compare, ground_truth, rounded
 from server.sessions import ENDED, SessionManager, check_session_id
 from server.upload import MAX_AGENTS
-from slam.data import DataError
-from slam.eval.trajectory import Trajectory, read_tum
+from slam import DataError, Trajectory, read_tum
 
 router = APIRouter(prefix="/api/sessions", tags=["sessions"], dependencies=[Depends(require_token)],
                    responses={401: {"model": ErrorOut}, 404: {"model": ErrorOut}})

@@ -35,7 +35,7 @@ from server.upload import (
     save_upload,
 )
 from server.worker import SourceSpec
-from slam.data import FORMATS, DataError
+from slam import FORMATS, DataError
 from slam.data.images import ImageTooLarge
 
 router = APIRouter(prefix="/api/sessions", tags=["sessions"], dependencies=[Depends(require_token)],
@@ -105,7 +105,7 @@ def _phase_elapsed(state: SessionStatus) -> float | None:
 
 
 def _default_preset() -> str:
-    from slam.config import default_preset_name
+    from slam import default_preset_name
 
     return default_preset_name()
 
@@ -338,7 +338,7 @@ def get_trajectory(session_id: str,
                    manager: SessionManager = Depends(get_manager)) -> Response:
     """All agents' trajectories share one world frame (the first agent's first camera). While
     the session runs, poses tracked so far, moved with their maps by loop closures."""
-    from slam.eval.trajectory import Trajectory, format_tum
+    from slam import Trajectory, format_tum
 
     directory = manager.session_dir(check_session_id(session_id))
     state = manager.get(session_id)

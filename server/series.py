@@ -17,9 +17,7 @@ from functools import lru_cache
 import numpy as np
 
 from server.worker import SourceSpec
-from slam.data import DataError
-from slam.eval.ate import ate_from_pairs
-from slam.eval.trajectory import Trajectory, associate
+from slam import DataError, Trajectory, associate, ate_from_pairs
 
 MAX_DT_S = 0.02
 """Largest timestamp difference of an estimate-ground truth pair (as ``voxfusion eval-ate``)."""
@@ -33,7 +31,7 @@ def ground_truth(spec: SourceSpec) -> Trajectory | None:
     Cached: a page polls it while the session runs, and inputs do not change."""
     if spec.kind not in ("synthetic", "dataset") or not spec.path:
         return None
-    from slam.data import open_sequence
+    from slam import open_sequence
 
     try:
         if spec.kind == "synthetic":

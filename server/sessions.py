@@ -71,16 +71,7 @@ from server.settings import Settings
 from server.stream import StreamInput
 from server.tracks import Tracks, transform_points
 from server.worker import SourceSpec, WorkerDone, WorkerJob, WorkerStarted, describe_sources
-from slam.events import (
-    FinishedEvent,
-    KeyframeEvent,
-    LoopEvent,
-    MapUpdateEvent,
-    PhaseEvent,
-    PoseEvent,
-    StatsEvent,
-    SubmapEvent,
-)
+from slam import FinishedEvent, KeyframeEvent, LoopEvent, MapUpdateEvent, PhaseEvent, PoseEvent, StatsEvent, SubmapEvent
 
 STATUSES = ("queued", "running", "finished", "failed", "cancelled")
 ENDED = ("finished", "failed", "cancelled")
@@ -806,7 +797,7 @@ class SessionManager:
         in its trajectory files, ``keyframes``/``maps``/``loops`` from ``run.json``, whose
         ``status`` and ``error`` become the session's (a minimal ``run.json`` is written when
         there is none). Never raises: a folder it cannot read or write is said in the log."""
-        from slam.outputs import read_run_json, trajectory_frames, write_json_atomic
+        from slam import read_run_json, trajectory_frames, write_json_atomic
 
         directory = session.directory
         if not directory.is_dir():
@@ -863,7 +854,7 @@ def refinement_budget_s(preset: str, run_seconds: float) -> float | None:
     """The wall time the preset gives the final bundle adjustment of a run that has taken
     ``run_seconds`` (as ``slam.mapping_process.final_budget`` computes it from the mapper's
     start, which is about the worker's), or None without a time cap or refinement."""
-    from slam.config import ConfigError, preset as preset_config
+    from slam import ConfigError, preset as preset_config
 
     try:
         mapping = preset_config(preset).mapping

@@ -19,7 +19,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from slam.events import MapUpdateEvent, PoseEvent, PosesUpdatedEvent, SubmapEvent
+from slam import MapUpdateEvent, PoseEvent, PosesUpdatedEvent, SubmapEvent
 
 
 def rigid(T) -> np.ndarray:

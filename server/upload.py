@@ -23,7 +23,7 @@ import cv2
 import numpy as np
 
 from server.budget import DEPTH_SCALE_RANGE, FOCAL_RANGE, PRINCIPAL_POINT_LIMIT
-from slam.data.frame import DataError
+from slam import DataError
 from slam.data.images import MAX_IMAGE_SIDE, PNG_SIGNATURE, ImageTooLarge, decode_image, image_format
 
 # Entries that archivers add and that are never part of a dataset.
@@ -176,7 +176,7 @@ def inspect_dataset(root: str, spec) -> str:
     not at frame 500) and decodes the first frame. Meant to run in the decode helper
     (``server.decoding``); raises DataError (ImageTooLarge for a header over the limits).
     """
-    from slam.data import detect_format, open_sequence
+    from slam import detect_format, open_sequence
     from slam.data.images import check_image_size, header_of
 
     fmt = detect_format(root) if spec.format == "auto" else spec.format

@@ -60,7 +60,7 @@ import numpy as np
 import trimesh
 
 from server.tracks import inverse, rigid, transform_points
-from slam.events import (
+from slam import (
     FinishedEvent,
     KeyframeEvent,
     LoopEvent,
@@ -70,8 +70,9 @@ from slam.events import (
     PosesUpdatedEvent,
     StatsEvent,
     SubmapEvent,
+    matrix_to_quat_wxyz,
+    quat_wxyz_to_matrix,
 )
-from slam.geometry import matrix_to_quat_wxyz, quat_wxyz_to_matrix
 
 UPDATE_HZ = 5.0
 MESH_HZ = 1.0

@@ -29,7 +29,7 @@ from typing import Iterator
 
 import numpy as np
 
-from slam.data import DataError, Frame
+from slam import DataError, Frame
 
 
 @dataclass(frozen=True)
@@ -123,7 +123,7 @@ END_OF_STREAM = None
 
 def open_source(source: SourceSpec, frame_queue=None, stop_event=None):
     """The iterable ``run_slam`` reads for this source: frames, or (agent, frame) for a stream."""
-    from slam.data import open_sequence
+    from slam import open_sequence
 
     if source.kind == "dataset":
         return open_sequence(source.path, source.format, stride=source.stride, max_frames=source.max_frames,
@@ -172,7 +172,7 @@ def stream_frames(frame_queue, stop_event, poll_s: float = 0.25) -> Iterator[tup
 
 def stream_source(frame_queue, stop_event, poll_s: float = 0.25):
     """The stream as ``run_slam`` wants it: an ``AgentStream`` yielding (agent, Frame)."""
-    from slam.runtime import AgentStream
+    from slam import AgentStream
 
     class AgentFrames(AgentStream):
         """A live stream whose frames name their agent (``slam.runtime.AgentStream``)."""
@@ -259,8 +259,7 @@ def run_worker(job: WorkerJob, stop_event, event_queue, frame_queue) -> None:
     end_group_when_parent_dies()
     event_queue.put(WorkerStarted(pid=os.getpid()))
     try:
-        from slam.config import load_config
-        from slam.runtime import run_slam
+        from slam import load_config, run_slam
 
         config = load_config(job.preset)
         if stop_event.is_set():  # cancelled while this process was starting
