@@ -34,7 +34,7 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", required=True, type=Path, help="output folder")
     p.add_argument("--format", default="auto", choices=["auto", "tum", "replica", "scannet", "7scenes", "synthetic"])
     p.add_argument("--preset", default=None, choices=["test", "cpu", "paper", "gpu"],
-                   help="default: paper with CUDA, cpu otherwise")
+                   help="default: gpu with CUDA, cpu otherwise")
     p.add_argument("--config", type=Path, default=None, help="JSON overrides of the preset")
     p.add_argument("--device", default=None, choices=["auto", "cpu", "cuda"])
     p.add_argument("--max-frames", type=int, default=None)
