@@ -56,52 +56,33 @@ import torch
 
 from .render import band_grid, camera_rays, rays_in_map, render_rays
 
+# The tuned constants below are measured in benchmarks/decisions.md (views.*), one entry each.
 # Rays start this far in front of the camera (z-depth, metres): a camera placed inside an
 # allocated voxel must not render the SDF at its own centre. Real depth starts beyond it.
 DEFAULT_NEAR = 0.05
-# The colour head (the costliest part of a view) only runs on samples above this weight,
-# a fifth of the peak (0.25), and a pixel's colour is the weighted mean over those samples
-# (``render_rays``' ``renormalise_color``), so the samples left out do not darken it.
-# Same-process A/B against 1e-3 with the plain normalisation (10 held-out views, 640 wide):
-# room0 0.84x the time, 24.095 against 24.112 dB; fr1/rpy 0.92x, 14.676 against 14.704 dB.
-# Without the renormalisation 2e-2 alone lost 0.6 dB on room0.
+# The colour head only runs on samples above this weight, a fifth of the peak (0.25); a pixel's
+# colour is their weighted mean (decisions.md#views.VIEW_COLOR_WEIGHT_EPS).
 VIEW_COLOR_WEIGHT_EPS = 5e-2
 VIEW_METHODS = ("banded", "full")
 VIEW_PRECISIONS = ("auto", "float32", "bfloat16")
 # Every 4th pixel in each direction: 1/16 of the rays for the coarse pass, fine enough that a
 # 640x480 view's surfaces narrower than 4 pixels are all that can be missed.
 DEFAULT_COARSE_STRIDE = 4
-# The band reaches this many weight widths past the coarse neighbours' depths. The weight
-# sigmoid(s/tr) sigmoid(-s/tr) of a surface at distance d has s = d/tr, so it falls with
-# d / tr^2 (1 cm at tr = 0.1 m); beyond 3 widths it is under 0.045, 18 % of its peak: under
-# ``VIEW_COLOR_WEIGHT_EPS``, so the samples the band drops would not have coloured the pixel
-# anyway, and only its depth moves. Same-process A/B against 4 widths (and 2 steps for
-# ``BAND_MIN_STEPS``), 10 held-out 640-wide views, 2 rounds: fr1/rpy 1.03-1.23 -> 0.89-0.94 s,
-# 14.718 -> 14.705 dB, depth 2.5 -> 3.3 mm from the full render's; room0 0.97-1.00 ->
-# 0.83 s, 24.339 -> 24.297 dB (full 24.373).
+# The band reaches this many weight widths (tr^2) past the coarse neighbours' depths: beyond 3
+# the weight is under VIEW_COLOR_WEIGHT_EPS (decisions.md#views.BAND_WEIGHT_WIDTHS).
 BAND_WEIGHT_WIDTHS = 3.0
 # ... and at least this many sampling steps, so that a coarse preset's band still holds the
 # two samples that bracket the surface and one more.
 BAND_MIN_STEPS = 1.5
-# Where the coarse samples around a pixel lie on one plane to within this (metres of
-# depth), the pixel's band centres on the depth interpolated between them
-# (``planar_depths``) instead of spanning all four: a floor seen at a grazing angle no longer
-# costs a band as deep as the depths across its coarse cell. 0 turns it off. Same-process
-# A/B, 10 held-out 640-wide views, 2 rounds: room0 1.22 -> 1.12-1.19 s, fr1/rpy 1.61-1.80 ->
-# 1.58-1.60 s, PSNR unchanged (0.5 cm and 2 cm: the same within the spread).
+# Where the coarse samples around a pixel lie on one plane to within this (metres of depth),
+# its band centres on their interpolated depth (``planar_depths``); 0: off
+# (decisions.md#views.PLANAR_TOLERANCE).
 PLANAR_TOLERANCE = 0.01
-# The coarse pass samples at this many times the step: it only places the bands, and a
-# crossing between two samples is interpolated (``first_zero_crossing``), so its depth moves
-# little. Same-process A/B, fr1/rpy 640 wide: 10 % off the view (1.43 -> 1.30 s), PSNR
-# +0.004 dB, depth 2.3 -> 2.5 mm from the full render's; 4x was no faster and 5 mm off.
+# The coarse pass samples at this many times the step: it only places the bands
+# (decisions.md#views.COARSE_STEP_FACTOR).
 COARSE_STEP_FACTOR = 2.0
 # The band pass renders its pixels in runs of at most this many samples for each ray of a
-# ``chunk_rays`` chunk (65k at 4096), not in chunks of ``chunk_rays`` pixels: a band is a
-# few samples deep, so those chunks were small and their fixed costs showed (fr1/rpy 640
-# wide: 75 calls a view). Same-process A/B: 16 and 32 equally fast, 8 as slow as before, 64
-# slower (the products' operands no longer fit the cache). A full-range chunk may hold
-# M_h / step_ratio samples a ray (160 at the cpu preset), so memory stays under the full
-# path's.
+# ``chunk_rays`` chunk, not in chunks of ``chunk_rays`` pixels (decisions.md#views.BAND_CHUNK_SAMPLES_PER_RAY).
 BAND_CHUNK_SAMPLES_PER_RAY = 16
 
 

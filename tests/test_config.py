@@ -159,7 +159,7 @@ def test_unknown_tracking_optimizer_is_a_config_error():
 
 
 def test_the_thinned_mapping_step_is_the_cpu_presets_only():
-    # Issue 18: cpu trades the paper's every-sample step for speed (benchmarks/README.md);
+    # Issue 18: cpu trades the paper's every-sample step for speed (decisions.md#mapping.thin_samples);
     # paper stays faithful and test keeps what its tests were tuned on.
     assert (preset("cpu").mapping.thin_samples, preset("cpu").mapping.free_space_stride) == (True, 2)
     assert preset("cpu").mapping.color_weight_eps == pytest.approx(0.05)
@@ -169,7 +169,7 @@ def test_the_thinned_mapping_step_is_the_cpu_presets_only():
 
 
 def test_issue_21_switches_take_the_measured_winners_and_validate():
-    # Items 2-4 of issue 21, what won (benchmarks/README.md): the current pose optimised in
+    # Items 2-4 of issue 21, what won (benchmarks/decisions.md): the current pose optimised in
     # cpu and paper, slot means in cpu (paper keeps the paper's per-ray means), our front
     # mask everywhere; the test preset keeps the earlier behaviour its tests were tuned on.
     expected = {"test": (False, "ray"), "cpu": (True, "slots"), "paper": (True, "ray")}
