@@ -44,6 +44,24 @@ class FrameRecord:
     gt: np.ndarray | None
 
 
+PROGRESS_EVERY = 10
+"""Frames between two samples of a run's course (``ProgressSample``)."""
+
+
+@dataclass(frozen=True)
+class ProgressSample:
+    """A run's state after ``frames`` input frames, ``wall_s`` seconds in: the map's size as the
+    mapper last reported it (``map_mb``: embeddings and decoders). ``run.json``'s ``progress``
+    lists them, so a long sequence shows how frames/s and memory follow the map's growth."""
+
+    frames: int
+    wall_s: float
+    voxels: int
+    keyframes: int
+    maps: int
+    map_mb: float
+
+
 def refine_with_keyframes(poses: np.ndarray, frame_indices: list[int],
                           keyframe_poses: dict[int, list[float]]) -> np.ndarray:
     """Tracked world poses (N, 4, 4) moved by bundle adjustment's keyframe corrections.
@@ -265,7 +283,8 @@ class RunResult:
 def write_outputs(out: Path, config: SLAMConfig, tracks: list["AgentTrack"], stats: "MapperStats | None",
                   status: str, error: str | None, elapsed: float, total: int | None, tracking_busy: float,
                   use_gt_poses: bool, map_poses: dict[int, np.ndarray] | None = None,
-                  map_waits: tuple[int, float] = (0, 0.0), frames_skipped: list[dict] | None = None) -> RunResult:
+                  map_waits: tuple[int, float] = (0, 0.0), frames_skipped: list[dict] | None = None,
+                  progress: list[ProgressSample] | None = None) -> RunResult:
     trajectories = [agent_trajectory(t, stats, map_poses or {}, use_gt_poses) for t in tracks if t.records]
     _write_trajectories(out, trajectories, len(tracks) > 1)
     agents = [{
@@ -326,6 +345,7 @@ def write_outputs(out: Path, config: SLAMConfig, tracks: list["AgentTrack"], sta
         },
         "fps": fps,
         "ate_rmse_m": ate_rmse,
+        "progress": [asdict(sample) for sample in progress or ()],
     }
     write_json_atomic(out / "run.json", info)
     return RunResult(status, error, frames, info["keyframes"], info["maps"], len(closures), fps, out, ate_rmse,

@@ -53,7 +53,8 @@ from .frames import prepare_frame
 from .mapping import MapSnapshot
 from .mapping_process import FrameMessage, FramePose, InlineMapper, MapperFailed, MapperStats, ProcessMapper
 from .mapping_process import set_threads as _set_threads
-from .outputs import FrameRecord, RunResult, refine_with_keyframes, running_ate, write_outputs, write_progress
+from .outputs import (PROGRESS_EVERY, FrameRecord, ProgressSample, RunResult, refine_with_keyframes, running_ate,
+                      write_outputs, write_progress)
 from .loop.keyframe_graph import frame_covariance
 from .tracking import FrozenMap, Tracker, constant_velocity_guess
 
@@ -140,6 +141,8 @@ class _TrackingSide:
     """(agent, frame index) of the newest of them."""
     on_keyframe: Callable[[], None] | None = None
     """Called for each KeyframeEvent before it is emitted (``run_slam`` writes the progress)."""
+    progress: list[ProgressSample] = field(default_factory=list)
+    """The run's course, one sample every ``PROGRESS_EVERY`` frames (``run.json``'s ``progress``)."""
     held: deque[FrameMessage] = field(default_factory=deque)
     """Deterministic mode (``runtime.deterministic_lag``): tracked frames not yet handed to the
     mapper, newest last."""
@@ -527,8 +530,10 @@ def run_slam(sources: list[Iterable[Frame]], config: SLAMConfig, out_dir: str | 
             if bar is not None:
                 bar.update(1)
                 bar.set_postfix(_progress_fields(side, fps, done), refresh=False)
-            if done % 10 == 0:
-                emit(_stats_event(side, total, fps, started, done))
+            if done % PROGRESS_EVERY == 0:
+                event = _stats_event(side, total, fps, started, done)
+                side.progress.append(_progress_sample(side, event, started))
+                emit(event)
     except KeyboardInterrupt:
         status = "cancelled"
     except Exception:  # noqa: BLE001 - any failure ends this run only, with its traceback
@@ -571,7 +576,8 @@ def run_slam(sources: list[Iterable[Frame]], config: SLAMConfig, out_dir: str | 
     result = write_outputs(out, config, tracks, side.mapper_stats if side else None, status, error, elapsed, total,
                            side.busy if side else 0.0, use_gt_poses, side.map_poses if side else None,
                            (side.map_waits, side.map_wait_seconds) if side else (0, 0.0),
-                           frames_skipped=_skipped_frames(sources))
+                           frames_skipped=_skipped_frames(sources),
+                           progress=side.progress if side else None)
     if side is not None:
         emit(_stats_event(side, total, result.fps, started, done, ate=result.ate_rmse))
     emit(FinishedEvent(status, error))
@@ -611,6 +617,15 @@ def _progress_fields(side: _TrackingSide, fps: float, done: int) -> dict[str, st
     if side.loops:
         fields["loops"] = str(side.loops)
     return fields
+
+
+def _progress_sample(side: _TrackingSide, event: StatsEvent, started: float) -> ProgressSample:
+    """Where the run stands at ``event``: frames, seconds, and the map as the tracker's newest
+    copies of it hold it (embeddings and decoders)."""
+    nbytes = sum(s.embeddings.nbytes + sum(a.nbytes for a in s.decoder_state.values())
+                 for s in side.snapshots.values())
+    return ProgressSample(frames=event.frames_done, wall_s=time.perf_counter() - started, voxels=event.voxels,
+                          keyframes=side.keyframes_seen, maps=event.maps, map_mb=nbytes / 2**20)
 
 
 def _stats_event(side: _TrackingSide, total: int | None, fps: float, started: float, done: int,

@@ -160,6 +160,16 @@ def test_run_json_fields(run):
     assert "ate_rmse_m" in info and info["ate_rmse_m"] is not None, "synthetic frames carry GT"
 
 
+def test_run_json_traces_the_runs_course(frames, tmp_path, monkeypatch):
+    monkeypatch.setattr(runtime, "PROGRESS_EVERY", 2)
+    info = do_run([frames], config(False), tmp_path).info
+    samples = info["progress"]
+    assert [s["frames"] for s in samples] == [2, 4]
+    assert 0 < samples[0]["wall_s"] < samples[1]["wall_s"] <= info["timings_s"]["wall"]
+    assert samples[1]["voxels"] > 0 and samples[1]["keyframes"] >= 1 and samples[1]["map_mb"] > 0
+    assert all(s["maps"] == 1 for s in samples)
+
+
 def test_trajectory_carries_the_bundle_adjusted_keyframe_poses(run, frames):
     traj = read_tum(run.out / "trajectory.txt")
     for index, pose in run.info["keyframe_poses"].items():
