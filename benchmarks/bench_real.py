@@ -31,6 +31,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import shlex
 import statistics
 import subprocess
@@ -79,6 +80,24 @@ class Run:
     seconds: float
     load: str
     error: str | None = None
+
+
+RUN_LINE = re.compile(r"^round (\d+) (\S+) (\S+): ATE ([\d.]+) cm, ([\d.]+) frames/s \(([\d.]+) s, load ([\d.]+)\)$")
+
+
+def earlier_runs(path: Path) -> list[Run]:
+    """The runs of an earlier sitting: its ``--json``, or its printed log (the lines of the
+    finished runs, for a sitting that was stopped before it wrote the JSON)."""
+    text = path.read_text()
+    if path.suffix == ".json":
+        return [Run(**r) for r in json.loads(text)["runs"]]
+    found = []
+    for line in text.splitlines():
+        match = RUN_LINE.match(line.strip())
+        if match:
+            r, seq, variant, ate, fps, seconds, load = match.groups()
+            found.append(Run(seq, variant, int(r), float(ate), float(fps), 0, float(seconds), load))
+    return found
 
 
 def sequences(max_frames: int | None) -> list[RealSequence]:
@@ -254,6 +273,11 @@ def main() -> int:
                         help="runs in deterministic mode (runtime.deterministic_lag = LAG): the same run gives "
                              "the same trajectory on any load, so run r uses runtime.seed = r and the spread is "
                              "the sampling's, not the machine's")
+    parser.add_argument("--first-round", type=int, default=0,
+                        help="number the rounds from here (with --deterministic, round r runs seed r): more "
+                             "seeds for a sitting whose first rounds are in another --json")
+    parser.add_argument("--merge", type=Path, action="append", default=[],
+                        help="add the runs of an earlier sitting (its --json or its log) to the summary")
     parser.add_argument("--timeout", type=float, default=3600.0)
     parser.add_argument("--json", type=Path, default=None)
     parser.add_argument("--markdown", type=Path, default=None)
@@ -275,8 +299,8 @@ def main() -> int:
     listed = ", ".join(f"{s.name} ({s.max_frames or 'all'} frames)" for s in seqs)
     print(f"sequences: {listed}; "
           f"variants: {', '.join(v.name for v in variants)}; {args.runs} runs; work in {work}", flush=True)
-    runs: list[Run] = []
-    for round_ in range(args.runs):
+    runs: list[Run] = [run for path in args.merge for run in earlier_runs(path)]
+    for round_ in range(args.first_round, args.first_round + args.runs):
         for seq in seqs:
             order = variants[round_ % len(variants):] + variants[:round_ % len(variants)]
             for variant in order:
