@@ -168,7 +168,7 @@ def backproject(frame: TensorFrame, T_map_cam: torch.Tensor, stride: int,
     vv, uu = torch.meshgrid(vs, us, indexing="ij")
     flat = (vv * W + uu).reshape(-1)
     d = frame.depth.reshape(-1)[flat]
-    keep = d > 0
+    keep = torch.nonzero(d > 0).squeeze(1)  # one data-dependent read for both
     flat, d = flat[keep], d[keep]
     batch = pixels_at(frame, flat)
     pts = []

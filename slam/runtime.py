@@ -155,9 +155,11 @@ class _TrackingSide:
         if fmap is None or fmap.version != snap.version:
             fmap = FrozenMap(snap, self.config, self.device)
             self.frozen[map_id] = fmap
-        T = torch.from_numpy(self.map_poses[map_id]).float().to(self.device)
-        fmap.T_world_map = T
-        fmap.T_map_world = torch.linalg.inv(T)
+        # Inverted on the host, where the pose is (torch.linalg.inv on the device reads its
+        # error flag back twice), and uploaded with it in one copy.
+        T_wm = np.asarray(self.map_poses[map_id], np.float64)
+        both = torch.from_numpy(np.stack([T_wm, np.linalg.inv(T_wm)])).float().to(self.device)
+        fmap.T_world_map, fmap.T_map_world = both[0], both[1]
         return fmap
 
     def move_maps(self, poses: dict[int, np.ndarray]) -> None:

@@ -469,10 +469,14 @@ class Tracker:
                 done = stop | (~accept & (damping > 1e3))
             if c.check_every > 0 and it % c.check_every == 0 and it < c.iterations and bool(done):
                 break
-        hit_ratio = float(best.hit.float().mean())
-        residual_med = float(masked_median(best.residual, best.hit))
         H = best.H if prior is None else best.H - torch.diag(2 * prior.w).to(best.H.dtype)
-        return int(count), float(best.cost), T, hit_ratio, residual_med, T0_map, H.detach().cpu().numpy().astype(np.float64)
+        # One read of the device: the statistics ride along with the curvature.
+        H = H.detach().to(torch.float64)
+        stats = torch.stack([best.hit.float().mean().to(H.dtype), masked_median(best.residual, best.hit).to(H.dtype),
+                             count.to(H.dtype), torch.as_tensor(best.cost).to(H.dtype)])
+        host = torch.cat([H.reshape(-1), stats]).cpu().numpy()
+        hit_ratio, residual_med, it, cost = (float(v) for v in host[36:])
+        return int(it), cost, T, hit_ratio, residual_med, T0_map, host[:36].reshape(6, 6).copy()
 
     def _adam_static(self, frame: TensorFrame, fmap: FrozenMap, T0_map: torch.Tensor, sparse: _SparseTerm | None):
         """``_adam`` on padded samples with its bookkeeping on the device: the lowest loss
@@ -498,6 +502,10 @@ class Tracker:
         best_T = T0_map.detach().clone()
         alive = torch.ones((), dtype=torch.bool, device=device)
         count = torch.zeros((), dtype=torch.int64, device=device)
+        # Without a convergence test only a frame whose rays all miss stops early, and the
+        # iterations after a stop change nothing: reading the flag would buy nothing but a
+        # sync per check (the paper preset: 49 a frame).
+        check = c.check_every if c.convergence_tol > 0 else 0
         for it in range(1, c.iterations + 1):
             with scope(TRACKING_ITERATION):
                 count = count + alive.long()
@@ -539,10 +547,11 @@ class Tracker:
                     phi.copy_(torch.where(live, phi, prev[3:]))
                 moved = (torch.cat([rho, phi]).detach() - prev).norm()
                 alive = live & ~(moved < c.convergence_tol)
-            if c.check_every > 0 and it % c.check_every == 0 and it < c.iterations and not bool(alive):
+            if check > 0 and it % check == 0 and it < c.iterations and not bool(alive):
                 break
-        it, (best_loss, best_hit, best_med), (last_loss, last_hit, last_med) = (
-            int(count), best.tolist(), last.tolist())  # (one read each)
+        it, best_loss, best_hit, best_med, last_loss, last_hit, last_med = (
+            torch.cat([count.to(best.dtype)[None], best, last]).tolist())  # (one read)
+        it = int(it)
         if not c.keep_best_iterate and np.isfinite(best_loss):
             T_last = (T0_map @ se3_exp_compact(torch.cat([rho, phi]))).detach()
             return it, last_loss, T_last, last_hit, last_med
@@ -554,10 +563,13 @@ class Tracker:
         T_world = fmap.T_world_map @ T_best_map
         reason = ""
         jump = se3_log(se3_inverse(T0_map) @ T_best_map)
-        if not bool(torch.isfinite(T_best_map).all()):
+        # One read of the device for the three tests (finite, metres, radians).
+        finite, jump_m, jump_rad = torch.stack([torch.isfinite(T_best_map).all().to(jump.dtype),
+                                                jump[:3].norm(), jump[3:].norm()]).tolist()
+        if not finite:
             reason = "the pose estimate is not finite"
-        elif float(jump[:3].norm()) > c.max_jump_m or float(jump[3:].norm()) > c.max_jump_rad:
-            reason = f"the estimate jumped {float(jump[:3].norm()):.2f} m / {float(jump[3:].norm()):.2f} rad from the guess"
+        elif jump_m > c.max_jump_m or jump_rad > c.max_jump_rad:
+            reason = f"the estimate jumped {jump_m:.2f} m / {jump_rad:.2f} rad from the guess"
         elif hit_ratio < c.min_valid_ratio:
             reason = f"only {hit_ratio:.0%} of rays hit the map"
         elif residual_med > c.max_depth_residual:

@@ -114,3 +114,28 @@ def test_the_flat_path_is_what_the_count_sees():
 
     counts, checker = _counted(run)
     assert counts[MAPPING_ITERATION].syncs > 0 and checker.reads[MAPPING_ITERATION] > 0
+
+
+RUN_SPEC = "synthetic:walk?frames=3&width=80&height=60"
+READS_PER_FRAME = 15
+"""Device-to-host reads a frame the ``test`` preset's 3-frame run may make on static shapes
+(issue 40 asks <= 50 of every preset at 160 x 120; ``benchmarks/bench_syncs.py`` counts those):
+the per-frame ones outside the iterations (the tracker's few, the keyframe test, the window's
+slot count) and the run's ends (the mesh, the outputs)."""
+
+
+def test_a_frame_of_a_whole_run_reads_little_back(tmp_path):
+    """``aten::_local_scalar_dense`` + ``aten::nonzero`` a frame of a 3-frame single-process run
+    without loops, everything from the first frame to the written outputs, on static shapes."""
+    from slam.runtime import run_slam
+
+    base = preset("test")
+    config = replace(base, render=replace(base.render, static_shapes="on"),
+                     runtime=replace(base.runtime, device=str(PIPELINE_DEVICE), processes=False),
+                     loop=replace(base.loop, enabled=False))
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        result = run_slam([open_sequence(RUN_SPEC)], config, tmp_path)
+    assert result.status == "finished" and result.frames == 3, result.error
+    c = aten_counts(prof.events())[None]
+    # Fused Adam's CPU kernel reads its step count (``optimizer_reads``); CUDA's does not.
+    assert c.syncs <= READS_PER_FRAME * result.frames, dict(c.by_op)
