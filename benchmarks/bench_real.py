@@ -320,6 +320,9 @@ def main() -> int:
                 ate = "no ATE (no ground truth?)" if run.ate_cm is None else f"ATE {run.ate_cm:.2f} cm"
                 shown = "failed: " + run.error if run.error else f"{ate}, {run.fps or 0:.2f} frames/s"
                 print(f"round {round_} {seq.name} {variant.name}: {shown} ({run.seconds} s, load {load})", flush=True)
+    # A round run twice (merged sittings) counts once: the later run stands (deterministic
+    # runs of one seed repeat exactly, so the spread would shrink for nothing).
+    runs = list({(r.sequence, r.variant, r.round): r for r in runs}.values())
     rows = summary(runs, variants)
     print("\n" + table(rows))
     if args.json:
