@@ -115,6 +115,11 @@ def fit_exposure(rendered: torch.Tensor, observed: torch.Tensor, weight: torch.T
     gain, bias = torch.ones(shape, dtype=x.dtype, device=x.device), torch.zeros(shape, dtype=x.dtype, device=x.device)
     u = torch.ones_like(x)
     dims = (-2,) if per_channel else (-2, -1)
+
+    def total(t: torch.Tensor) -> torch.Tensor:
+        s = t.sum(dims)
+        return s if per_channel else s[..., None]
+
     for k in range(passes):
         if k > 0:
             r = Exposure(gain, bias).apply(x) - y
@@ -122,11 +127,6 @@ def fit_exposure(rendered: torch.Tensor, observed: torch.Tensor, weight: torch.T
             c = KERNEL_TUNING["cauchy"] * sigma[..., None, None]
             u = 1.0 / (1.0 + (r / c) ** 2)
         v = w * u
-
-        def total(t: torch.Tensor) -> torch.Tensor:
-            s = t.sum(dims)
-            return s if per_channel else s[..., None]
-
         W, Sx, Sy, Sxx, Sxy = total(v), total(v * x), total(v * y), total(v * x * x), total(v * x * y)
         P = prior * total(w)
         a11, a12, a22 = Sxx + P, Sx, W + P

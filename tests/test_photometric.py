@@ -49,6 +49,26 @@ def test_fit_exposure_recovers_a_known_gain_and_bias_exactly():
     assert torch.allclose(both.bias[1], torch.full((3,), 0.2, dtype=torch.float64), atol=1e-9)
 
 
+@pytest.mark.parametrize("per_channel", [True, False])
+def test_one_pass_is_the_weighted_ridge_least_squares_of_lstsq(per_channel):
+    """The closed form against its plain twin: the same weighted, prior-augmented problem
+    handed to torch.linalg.lstsq (rows sqrt(w) [x 1] -> sqrt(w) y, plus the prior's two)."""
+    g = torch.Generator().manual_seed(3)
+    x = torch.rand(300, 3, generator=g, dtype=torch.float64)
+    y = 0.9 * x + 0.1 + 0.05 * torch.randn(300, 3, generator=g, dtype=torch.float64)
+    w = torch.rand(300, generator=g, dtype=torch.float64)
+    prior = 0.3
+    fit = fit_exposure(x, y, w, per_channel=per_channel, prior=prior, passes=1)
+    columns = [(x[:, c], y[:, c], w) for c in range(3)] if per_channel else [(x.T.reshape(-1), y.T.reshape(-1), w.repeat(3))]
+    for c, (xc, yc, wc) in enumerate(columns):
+        s, P = wc.sqrt(), (prior * wc.sum()).sqrt()
+        A = torch.cat([torch.stack([xc * s, s], 1), torch.tensor([[1.0, 0.0], [0.0, 1.0]], dtype=torch.float64) * P])
+        b = torch.cat([yc * s, torch.stack([P, P * 0])])
+        a_ref, b_ref = torch.linalg.lstsq(A, b[:, None]).solution[:, 0]
+        assert float(fit.gain[c]) == pytest.approx(float(a_ref), abs=1e-9)
+        assert float(fit.bias[c]) == pytest.approx(float(b_ref), abs=1e-9)
+
+
 def test_fit_exposure_ignores_outliers():
     x, y = _colours(1000, seed=1)
     g = torch.Generator().manual_seed(2)
