@@ -9,7 +9,11 @@ per frame compare within one run. A variant is a set of config overrides, plus `
 for a constant-velocity guess from the GT history.
 
     python benchmarks/bench_tracking.py [--sequence fr1_rpy|laps|PATH|SPEC] [--start 20]
-        [--frames 40] [--variants JSON] [--json FILE] [--per-frame]
+        [--frames 40] [--variants JSON] [--map-config JSON] [--json FILE] [--per-frame]
+
+``--map-config`` overrides the mapper's config (the ``cpu`` preset's), e.g.
+``{"mapping": {"exposure": "per_channel"}}`` to compare the trackers against a map built
+another way (one map per run: run it once per map setting).
 
 The default variants are the ``cpu`` preset against its tracker before issue 18's cuts (6
 steps, colour Jacobian on samples > 1e-3, stop below 1e-5).
@@ -58,7 +62,7 @@ def read_frames(sequence: str, count: int) -> list:
     return frames_with_gt(spec, count, "bench_tracking.py")
 
 
-def run(sequence: str, start: int, count: int, variants: dict) -> dict:
+def run(sequence: str, start: int, count: int, variants: dict, map_overrides: dict | None = None) -> dict:
     import torch
 
     import slam.kernels
@@ -74,6 +78,7 @@ def run(sequence: str, start: int, count: int, variants: dict) -> dict:
     slam.kernels.warm_up()
     base = preset("cpu")
     base = replace(base, mapping=replace(base.mapping, final_iterations=0))
+    map_config = config_of(base, map_overrides or {})
     configs = {name: (config_of(base, o), bool(o.get("cv"))) for name, o in variants.items()}
     raw = read_frames(sequence, start + count + 1)
     if len(raw) < start + 2:
@@ -90,7 +95,7 @@ def run(sequence: str, start: int, count: int, variants: dict) -> dict:
         j = i + 1
         if i < start or j >= len(frames):
             return
-        fmap = FrozenMap(mapper.snapshot(), base, device)
+        fmap = FrozenMap(mapper.snapshot(), map_config, device)
         frame = prepare_frame(frames[j], None, device, base.voxel.max_depth)
         features.correspondences(raw[i])
         features.remember(np.asarray(raw[i].T_world_cam, np.float64))
@@ -108,7 +113,7 @@ def run(sequence: str, start: int, count: int, variants: dict) -> dict:
             r["error_deg"].append(float(xi[3:].norm()) * 180 / np.pi)
             r["ok"] += int(result.ok)
 
-    map_with_gt_poses(frames[: start + count + 1], base, on_frame=after_mapping)
+    map_with_gt_poses(frames[: start + count + 1], map_config, on_frame=after_mapping)
     return results
 
 
@@ -131,13 +136,15 @@ def main() -> int:
     parser.add_argument("--start", type=int, default=20, help="frames mapped before the first one tracked")
     parser.add_argument("--frames", type=int, default=40, help="frames tracked")
     parser.add_argument("--variants", default=None, help="JSON: {name: {section: {field: value}}}")
+    parser.add_argument("--map-config", default=None, help="JSON: {section: {field: value}} for the mapper")
     parser.add_argument("--per-frame", action="store_true", help="print every frame's error")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args()
     if args.start < 1 or args.frames < 1:
         parser.error("--start and --frames must be >= 1")
     variants = json.loads(args.variants) if args.variants else DEFAULT_VARIANTS
-    results = run(args.sequence, args.start, args.frames, variants)
+    results = run(args.sequence, args.start, args.frames, variants,
+                  json.loads(args.map_config) if args.map_config else None)
     rows = summary(results)
     print(f"# Tracking frame i+1 against a GT map of frames 0..i: {args.sequence}, "
           f"frames {args.start + 1}-{args.start + args.frames}, 1 thread\n")

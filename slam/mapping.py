@@ -13,7 +13,10 @@ For every tracked frame the mapper
    the frame itself with its tracked pose held fixed (the paper optimises that pose too, and
    so does ``mapping.optimize_current_pose``: the refined pose is then the frame's estimate,
    ``MappingStep.T_map_cam``). The first keyframe of a map is fixed to remove the gauge
-   freedom;
+   freedom; with ``mapping.exposure`` every other frame of the window also has a learnable
+   affine exposure (its rendered colour times a gain plus a bias), fitted in closed form at
+   its first window, kept near identity by ``exposure_prior``, the first keyframe's held at
+   identity (the map's colour is that keyframe's), and stored with the keyframe;
 4. at the end of a sequence, ``global_bundle_adjustment`` does the same over every keyframe
    of the submap (the paper's intra-map optimisation).
 
@@ -24,7 +27,7 @@ from __future__ import annotations
 
 import random
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable
 
 import numpy as np
@@ -45,6 +48,7 @@ from .geometry import se3_exp, se3_exp_compact, se3_inverse
 from .losses import LossWeights, Losses, compute_losses
 from .maps import Keyframe, MapSet, SubMap
 from .padded import color_slots, grid_samples, grid_size, pack_samples, render_padded, round_up
+from .photometric import fit_exposure
 from .profiling import MAPPING_ITERATION, scope
 from .render import TrainingThinning, render_rays
 from .transfer import to_host
@@ -122,6 +126,81 @@ class _Timer:
 
     def add(self, name: str, seconds: float) -> None:
         self.totals[name] = self.totals.get(name, 0.0) + seconds
+
+
+@dataclass
+class _WindowExposure:
+    """The learnable exposures of one joint optimisation's S frames (``mapping.exposure``).
+
+    ``values`` (P, 2, C) are the gain and bias rows of the frames ``rows`` (P,) of the window,
+    all but the submap's first keyframe (identity, the gauge); ``unfitted`` (U,) indexes the
+    values with no estimate yet (new keyframes, the current frame), fitted in closed form
+    (``fit_exposure``) from the first iteration's render before its loss."""
+
+    values: torch.Tensor
+    identity: torch.Tensor
+    rows: torch.Tensor
+    unfitted: torch.Tensor
+    frames: int
+    per_channel: bool
+    prior: float
+    optimizer: torch.optim.Optimizer
+    fitted: bool = False
+
+    @staticmethod
+    def of(m, keyframes: list[Keyframe], first_kf: Keyframe, frames: int, device: torch.device,
+           fused: bool) -> "_WindowExposure | None":
+        if m.exposure == "off":
+            return None
+        C = 3 if m.exposure == "per_channel" else 1
+        identity = torch.stack([torch.ones(C), torch.zeros(C)])
+        rows, init, unfitted = [], [], []
+        for i in range(frames):
+            kf = keyframes[i] if i < len(keyframes) else None
+            if kf is first_kf:
+                continue
+            if kf is None or kf.exposure is None or kf.exposure.shape[-1] != C:
+                unfitted.append(len(rows))
+                init.append(identity)
+            else:
+                init.append(kf.exposure.detach().cpu())
+            rows.append(i)
+        values = (torch.stack(init) if init else torch.zeros(0, 2, C)).to(device).requires_grad_(True)
+        opt = torch.optim.Adam([values], lr=m.exposure_lr, fused=True if fused else None)
+        as_index = lambda xs: torch.tensor(xs, dtype=torch.long, device=device)  # noqa: E731
+        return _WindowExposure(values, identity.to(device), as_index(rows), as_index(unfitted), frames, m.exposure == "per_channel",
+                               m.exposure_prior, opt, fitted=not unfitted)
+
+    def per_frame(self) -> torch.Tensor:
+        """(S, 2, C): every frame's gain and bias rows, identity for the gauge keyframe."""
+        return self.identity.expand(self.frames, *self.identity.shape).index_copy(0, self.rows, self.values)
+
+    def applied(self, out, rgb_gt: torch.Tensor, rays_per_frame: int):
+        """``out`` with each frame's colour mapped by its exposure (rays frame by frame)."""
+        color = out.color.reshape(self.frames, rays_per_frame, 3)
+        if not self.fitted:
+            with torch.no_grad():
+                hit = out.hit.reshape(self.frames, rays_per_frame).to(color.dtype)
+                fit = fit_exposure(color.detach(), rgb_gt.reshape(self.frames, rays_per_frame, 3), hit,
+                                   per_channel=self.per_channel, prior=self.prior)
+                fitted = torch.stack([fit.gain, fit.bias], 1)[self.rows][self.unfitted]   # (U, 2, C)
+                self.values.index_copy_(0, self.unfitted, fitted)
+            self.fitted = True
+        E = self.per_frame()
+        return replace(out, color=(color * E[:, None, 0] + E[:, None, 1]).reshape(-1, 3))
+
+    def regularised(self, losses: Losses) -> Losses:
+        """``losses`` with ``prior`` times the mean of (gain - 1)^2 + bias^2 over the frames."""
+        E = self.per_frame()
+        penalty = ((E[:, 0] - 1.0) ** 2 + E[:, 1] ** 2).mean()
+        return replace(losses, total=losses.total + self.prior * penalty)
+
+    def store(self, keyframes: list[Keyframe]) -> None:
+        """Write the keyframes' exposures back (the gauge keyframe's stays identity)."""
+        E = self.per_frame().detach()
+        for i in self.rows.tolist():
+            if i < len(keyframes):
+                keyframes[i].exposure = E[i].clone()
 
 
 def training_far(depth: torch.Tensor, truncation: float, max_distance: float) -> torch.Tensor:
@@ -380,6 +459,7 @@ class Mapper:
         stack = stack_frames(sources)
         losses: Losses | None = None
         self.last_iterations = 0
+        exposure = _WindowExposure.of(m, keyframes, first_kf, len(sources), self.device, self.static)
         view = submap.view()  # the map does not change inside the loop (no allocation)
         step = r.step_ratio * submap.voxels.voxel_size
         gen_device = draw_device(self._gen, self.device)
@@ -427,20 +507,30 @@ class Mapper:
                                       max_hits=r.max_hits, offsets=offsets,
                                       mask_in_front=r.mask_in_front, thinning=thinning,
                                       color_weight_eps=m.color_weight_eps, renormalise_color=True)
+                if exposure is not None:
+                    out = exposure.applied(out, c_gt, rays_per_frame)
                 losses = compute_losses(out, c_gt, d_gt, r.truncation, weights, max_depth=r.max_distance,
                                         normalisation=self.config.loss.normalisation)
+                if exposure is not None:
+                    losses = exposure.regularised(losses)
                 tb = time.perf_counter()
                 optimizer.zero_grad(set_to_none=True)
                 if pose_opt is not None:
                     pose_opt.zero_grad(set_to_none=True)
+                if exposure is not None:
+                    exposure.optimizer.zero_grad(set_to_none=True)
                 losses.total.backward()
                 self._count_corner_updates(submap)
                 optimizer.step()
                 if pose_opt is not None:
                     pose_opt.step()
+                if exposure is not None:
+                    exposure.optimizer.step()
                 self.timer.add("render", tb - tq)
                 self.timer.add("backward", time.perf_counter() - tb)
         frame_poses = [T for _, T in fixed]
+        if exposure is not None:
+            exposure.store(keyframes)
         if free:
             with torch.no_grad():
                 moved = T_start[free_rows] @ se3_exp(twists.detach())

@@ -38,8 +38,9 @@ from .gauss_newton import (Linearisation, MotionPrior, RenderedJacobians, damped
                            limit_step_tensor, linearise_rendered, render_with_jacobians,
                            render_with_jacobians_padded)
 from .geometry import se3_exp, se3_exp_compact, se3_inverse, se3_log
-from .losses import LossWeights, compute_losses
+from .losses import COLOR_EPS, LossWeights, compute_losses
 from .mapping import MapSnapshot, training_far
+from .photometric import ColourModel, masked_median
 from .profiling import TRACKING_ITERATION, scope
 from .padded import band_grid_size, color_slots, grid_samples, grid_size, pack_samples, render_padded, round_up
 from .render import MapView, render_rays
@@ -168,17 +169,6 @@ def constant_velocity_guess(previous: list[torch.Tensor], enabled: bool) -> torc
     return previous[-1].clone()
 
 
-def masked_median(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """``values[mask].median()`` (the lower median, as torch's) of values (R,) over mask (R,)
-    bool, inf where the mask is empty, as a 0-dim tensor: nothing read back from the device.
-    Example: values [3., 1., 2., 9.], mask [T, T, T, F] -> 2."""
-    inf = torch.full_like(values, float("inf"))
-    ordered = torch.sort(torch.where(mask, values, inf)).values
-    n = mask.sum()
-    k = torch.div((n - 1).clamp(min=0), 2, rounding_mode="floor")
-    return torch.where(n > 0, ordered.gather(0, k[None])[0], inf[0])
-
-
 def _select(take: torch.Tensor, a: Linearisation, b: Linearisation) -> Linearisation:
     """``a`` where the 0-dim bool ``take`` holds, else ``b``, field by field, on the device."""
     def pick(x, y):
@@ -198,6 +188,9 @@ class Tracker:
         self.static = config.render.uses_static_shapes(device)
         c = config.tracking
         self.weights = LossWeights(c.rgb_weight, c.depth_weight, c.sdf_weight, c.fs_weight)
+        self.colour = ColourModel(c.exposure, c.exposure_prior, c.color_robust, c.color_adaptive)
+        """The colour term's exposure fit, kernel and weight (``slam.photometric``); its scale and
+        weight are fixed per frame at the first render with the outliers dropped."""
 
     def track(self, frame: TensorFrame, fmap: FrozenMap, T_init: torch.Tensor,
               matches: Correspondences | None = None) -> TrackingResult:
@@ -259,9 +252,11 @@ class Tracker:
                                          mask_in_front=r.mask_in_front, jacobians=jacobians,
                                          renormalise_color=True)
 
+        colour = self.colour
+
         def dense_of(rendered: RenderedJacobians, ray_weight: torch.Tensor | None) -> Linearisation:
             return linearise_rendered(rendered, batch.rgb, batch.depth, ray_weight, weights=self.weights,
-                                      max_depth=r.max_distance, miss_cost=miss_cost)
+                                      max_depth=r.max_distance, miss_cost=miss_cost, colour=colour)
 
         prior: MotionPrior | None = None
 
@@ -288,6 +283,7 @@ class Tracker:
             if int(inner.sum()) >= c.min_valid_ratio * inlier.numel():
                 inlier = inner
         inlier = inlier.float()
+        colour = self.colour.fixed_at(rendered0.color, batch.rgb, rendered0.hit * inlier, COLOR_EPS)
         # The same render as ``first``, weighed again without the outliers.
         start = linearise_at(T0_map, inlier, rendered0)
         if c.motion_prior > 0:
@@ -335,6 +331,7 @@ class Tracker:
         it = 0
         batch = sample_pixels(frame, c.num_rays, self._gen)
         near, far = tracking_bounds(batch.depth, r.truncation, c.sample_band, r.max_distance)
+        colour = self.colour
         for it in range(1, c.iterations + 1):
             with scope(TRACKING_ITERATION):
                 T = T0_map @ se3_exp(torch.cat([rho, phi]))
@@ -355,8 +352,10 @@ class Tracker:
                     break
                 med = residual[hit].median()
                 inlier = hit & (residual <= c.outlier_factor * med + 1e-6)
+                if colour.scale is None:  # the frame's first render fixes the colour scale and weight
+                    colour = self.colour.fixed_at(out.color.detach(), batch.rgb, inlier.float(), COLOR_EPS)
                 losses = compute_losses(out, batch.rgb, batch.depth, r.truncation, self.weights,
-                                        ray_weight=inlier.float(), max_depth=r.max_distance)
+                                        ray_weight=inlier.float(), max_depth=r.max_distance, colour=colour)
                 total = losses.total if sparse is None else losses.total + sparse.cost(T)
                 loss = float(total.detach())
                 if loss < best[0]:
@@ -419,9 +418,11 @@ class Tracker:
                                                 color_weight_eps=c.color_weight_eps, mask_in_front=r.mask_in_front,
                                                 jacobians=jacobians, renormalise_color=True)
 
+        colour = self.colour
+
         def dense_of(rendered: RenderedJacobians, ray_weight: torch.Tensor | None) -> Linearisation:
             return linearise_rendered(rendered, batch.rgb, batch.depth, ray_weight, weights=self.weights,
-                                      max_depth=r.max_distance, miss_cost=miss_cost)
+                                      max_depth=r.max_distance, miss_cost=miss_cost, colour=colour)
 
         prior: MotionPrior | None = None
 
@@ -446,6 +447,7 @@ class Tracker:
             inner = inlier & interior_rays(T0_map, batch.dirs_cam, batch.depth, fmap.view, c.border_margin)
             inlier = torch.where(inner.sum() >= c.min_valid_ratio * inlier.numel(), inner, inlier)
         inlier = inlier.float()
+        colour = self.colour.fixed_at(rendered0.color, batch.rgb, rendered0.hit * inlier, COLOR_EPS)
         start = linearise_at(T0_map, inlier, rendered0)
         if c.motion_prior > 0:
             prior = MotionPrior.scaled_to(start, c.motion_prior)
@@ -494,6 +496,7 @@ class Tracker:
         batch = sample_pixels(frame, c.num_rays, self._gen)
         near, far = tracking_bounds(batch.depth, r.truncation, c.sample_band, r.max_distance)
         G, N, C = self._sample_shape(frame, fmap, batch.dirs_cam, near, far, T0_map)
+        colour = self.colour
         # (loss, hit ratio, median residual) of the lowest-loss and of the last live iterate
         inf = float("inf")
         best = torch.full((3,), inf, dtype=torch.float64, device=device)
@@ -528,8 +531,10 @@ class Tracker:
                 live = alive & hit.any()
                 med = masked_median(residual, hit)
                 inlier = hit & (residual <= c.outlier_factor * med + 1e-6)
+                if colour.scale is None:  # the frame's first render fixes the colour scale and weight
+                    colour = self.colour.fixed_at(out.color.detach(), batch.rgb, inlier.float(), COLOR_EPS)
                 losses = compute_losses(out, batch.rgb, batch.depth, r.truncation, self.weights,
-                                        ray_weight=inlier.float(), max_depth=r.max_distance)
+                                        ray_weight=inlier.float(), max_depth=r.max_distance, colour=colour)
                 total = losses.total if sparse is None else losses.total + sparse.cost(T)
                 now = torch.stack([total.detach(), hit_ratio, med]).to(torch.float64)
                 better = live & (now[0] < best[0])

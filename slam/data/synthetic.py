@@ -7,6 +7,7 @@ The embedded default of the demo and of most tests. A spec string names what to 
     synthetic:agents?agent=1&agents=3
     synthetic:laps?width=160&height=120&noise=1&blank=300-330
     synthetic:laps?size=large&noise=1
+    synthetic:laps?width=160&height=120&exposure=0.3&color_shift=2
     loop                                   (the ``synthetic:`` prefix is optional)
 
 The kind names the trajectory; the scene is the one that trajectory is made for
@@ -15,7 +16,9 @@ The kind names the trajectory; the scene is the one that trajectory is made for
 ``large`` (10 x 8 x 3 m, about 51 m in 2200 frames). World frame: metres, z up, origin at the floor centre (see
 ``synthetic_scene``); poses are camera-to-world with OpenCV camera axes. Frames are rendered
 lazily by a numpy ray caster (``synthetic_render``), exact unless ``noise=1`` adds Kinect-like
-depth noise and holes; ``gt_mesh()`` gives the matching coloured mesh (``synthetic_mesh``).
+depth noise and holes, ``exposure=A`` a per-frame random exposure and white balance and
+``color_shift=P`` colour P pixels off its depth (``camera_colour``); ``gt_mesh()`` gives the
+matching coloured mesh (``synthetic_mesh``).
 
 This module re-exports the pieces so callers need one import.
 """
@@ -67,7 +70,12 @@ SPEC_PREFIX = "synthetic:"
 FPS = 30.0
 """Synthetic frames are spaced as a 30 Hz camera: timestamp = original frame number / 30."""
 DEFAULT_WIDTH, DEFAULT_HEIGHT = 320, 240
-SPEC_OPTIONS = ("frames", "seed", "width", "height", "noise", "agent", "agents", "size", "blank", "drop")
+SPEC_OPTIONS = ("frames", "seed", "width", "height", "noise", "agent", "agents", "size", "blank", "drop",
+                "exposure", "color_shift")
+MAX_EXPOSURE = 0.9
+"""Largest ``exposure`` amplitude: gains stay in [0.1, 1.9]."""
+MAX_COLOR_SHIFT = 64
+"""Largest ``color_shift`` (pixels); it must also stay below a quarter of the width."""
 
 FrameRange = tuple[int, int]
 """Inclusive ``(first, last)`` 0-based frame numbers of the spec's sequence."""
@@ -84,6 +92,10 @@ class SyntheticSpec:
     keep their timestamps (there is a gap).
 
     ``size`` is the hall layout of ``laps`` (``compact`` when not given; None for other kinds).
+
+    ``exposure`` (A in [0, 0.9]) and ``color_shift`` (P pixels) imitate a real camera's
+    colour (``camera_colour``): a per-frame gain, white balance and bias, and a colour image
+    shifted P pixels to the right of its depth. 0: the exact rendered colour.
     """
 
     kind: str
@@ -97,6 +109,8 @@ class SyntheticSpec:
     size: str | None = None
     blank: FrameRange | None = None
     drop: FrameRange | None = None
+    exposure: float = 0.0
+    color_shift: int = 0
 
     def __post_init__(self) -> None:
         if self.kind == "laps" and self.size is None:
@@ -112,8 +126,30 @@ class SyntheticSpec:
         agent = f"&agent={self.agent}&agents={self.agents}" if self.kind == "agents" else ""
         size = f"&size={self.size}" if self.size is not None else ""
         loss = "".join(f"&{key}={r[0]}-{r[1]}" for key, r in (("blank", self.blank), ("drop", self.drop)) if r is not None)
+        camera = (f"&exposure={self.exposure:g}" if self.exposure > 0 else "") + (
+            f"&color_shift={self.color_shift}" if self.color_shift > 0 else "")
         return (f"{SPEC_PREFIX}{self.kind}?frames={self.frames}&seed={self.seed}&width={self.width}"
-                f"&height={self.height}&noise={int(self.noise)}{agent}{size}{loss}")
+                f"&height={self.height}&noise={int(self.noise)}{agent}{size}{loss}{camera}")
+
+
+def frame_exposure(seed: int, number: int, amount: float) -> tuple[np.ndarray, np.ndarray]:
+    """The exposure of frame ``number``: gain (3,) = g * w with g ~ U[1 - A, 1 + A] and a white
+    balance w ~ U[1 - A/5, 1 + A/5] per channel, bias (3,) = b ~ U[-A/5, A/5] on every channel
+    (A = ``amount``), seeded by (seed, frame number): the same frame has the same exposure at
+    any stride. A = 0: gain 1, bias 0."""
+    rng = np.random.default_rng([seed, 0xE7, number])
+    g, w, b = rng.uniform(-1, 1), rng.uniform(-1, 1, 3), rng.uniform(-1, 1)
+    gain = (1.0 + amount * g) * (1.0 + amount / 5 * w)
+    return gain.astype(np.float32), np.full(3, amount / 5 * b, np.float32)
+
+
+def camera_colour(rgb: np.ndarray, gain: np.ndarray, bias: np.ndarray, shift: int) -> np.ndarray:
+    """A camera's view of exact colour rgb (H, W, 3) in [0, 1]: shifted ``shift`` pixels to
+    the right against the depth (column x shows what column x - shift sees, the first
+    columns repeat column 0), then ``clip(gain * rgb + bias, 0, 1)`` per channel."""
+    if shift > 0:
+        rgb = np.concatenate([np.repeat(rgb[:, :1], shift, axis=1), rgb[:, :-shift]], axis=1)
+    return np.clip(rgb * gain + bias, 0.0, 1.0).astype(np.float32)
 
 
 class SyntheticSequence:
@@ -130,12 +166,13 @@ class SyntheticSequence:
         frame_numbers: (N,) int original (unstrided) frame numbers; timestamps are these / 30.
         blank: inclusive range of frame numbers served blank (all-zero RGB and depth, GT pose
             kept), or None.
+        exposure, color_shift: the camera's colour (``camera_colour``; ``exposure_of``).
     """
 
     def __init__(self, scene: Scene, trajectory: np.ndarray, K: np.ndarray, width: int, height: int, *,
                  name: str = "synthetic", noise: DepthNoiseModel | None = None, seed: int = 0,
                  frame_numbers: np.ndarray | None = None, cache_size: int = 16,
-                 blank: FrameRange | None = None) -> None:
+                 blank: FrameRange | None = None, exposure: float = 0.0, color_shift: int = 0) -> None:
         trajectory = np.asarray(trajectory, dtype=np.float64)
         if trajectory.ndim != 3 or trajectory.shape[1:] != (4, 4):
             raise DataError(f"{name}: trajectory must be (N, 4, 4), got {trajectory.shape}")
@@ -151,6 +188,8 @@ class SyntheticSequence:
         if self.frame_numbers.shape != (len(trajectory),):
             raise DataError(f"{name}: frame_numbers must be ({len(trajectory)},), got {self.frame_numbers.shape}")
         self.blank = None if blank is None else (int(blank[0]), int(blank[1]))
+        self.exposure = float(exposure)
+        self.color_shift = int(color_shift)
         self._cache: OrderedDict[int, Frame] = OrderedDict()
         self._cache_size = int(cache_size)
 
@@ -189,6 +228,10 @@ class SyntheticSequence:
         number = int(self.frame_numbers[i])
         return self.blank is not None and self.blank[0] <= number <= self.blank[1]
 
+    def exposure_of(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        """(gain (3,), bias (3,)) of frame ``i``'s colour (``frame_exposure``)."""
+        return frame_exposure(self.seed, int(self.frame_numbers[i]), self.exposure)
+
     def _render(self, i: int) -> Frame:
         T = self.trajectory[i]
         number = int(self.frame_numbers[i])
@@ -201,7 +244,10 @@ class SyntheticSequence:
             # Seeded by the original frame number: the same frame is equally noisy at any stride.
             rng = np.random.default_rng([self.seed, 0xD0, number])
             depth = add_depth_noise(depth, view.incidence_cos, rng, self.noise)
-        return Frame(index=i, timestamp=number / FPS, rgb=view.rgb, depth=depth, K=self.K, T_world_cam=T)
+        rgb = view.rgb
+        if self.exposure > 0 or self.color_shift > 0:
+            rgb = camera_colour(rgb, *self.exposure_of(i), self.color_shift)
+        return Frame(index=i, timestamp=number / FPS, rgb=rgb, depth=depth, K=self.K, T_world_cam=T)
 
     def gt_mesh(self, spacing: float = 0.1) -> trimesh.Trimesh:
         """The coloured ground-truth mesh of :attr:`scene` (world frame)."""
@@ -223,6 +269,16 @@ def _parse_int(key: str, text: str, spec: str, low: int, high: int | None = None
     if value < low or (high is not None and value > high):
         bound = f">= {low}" if high is None else f"in {low}..{high}"
         raise DataError(f"synthetic spec {spec!r}: option {key}={value} must be {bound}")
+    return value
+
+
+def _parse_float(key: str, text: str, spec: str, low: float, high: float) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise DataError(f"synthetic spec {spec!r}: option {key}={text!r} is not a number") from None
+    if not low <= value <= high:  # NaN fails too
+        raise DataError(f"synthetic spec {spec!r}: option {key}={text} must be in [{low:g}, {high:g}]")
     return value
 
 
@@ -250,7 +306,9 @@ def parse_synthetic_spec(spec: str) -> SyntheticSpec:
     or width * 3 / 4 when only width is given), noise (0 or 1), for ``agents``: agent (0-based,
     default 0) and agents (default 2), for ``laps``: size (``compact``, the default, or
     ``large``; see ``HALL_LAYOUTS``), and a forced tracking loss: blank=A-B (frames A..B served
-    all black with no depth) and drop=A-B (frames A..B left out); see :class:`SyntheticSpec`.
+    all black with no depth) and drop=A-B (frames A..B left out); see :class:`SyntheticSpec`;
+    the camera's colour: exposure=A (a number in [0, 0.9]) and color_shift=P (pixels, 0..64 and
+    below width / 4).
     Unknown kinds or options raise :class:`DataError` listing the valid ones.
     """
     if not isinstance(spec, str):
@@ -282,9 +340,12 @@ def parse_synthetic_spec(spec: str) -> SyntheticSpec:
     fields: dict[str, object] = {"kind": kind, "frames": nominal_frames(kind, size), "size": size}
     limits = {"frames": (1, MAX_FRAMES), "seed": (0, 2**63 - 1), "width": (16, MAX_SIDE), "height": (16, MAX_SIDE),
               "noise": (0, 1), "agents": (1, 8), "agent": (0, 7)}
+    limits["color_shift"] = (0, MAX_COLOR_SHIFT)
     for key, text in options.items():
-        if key not in ("blank", "drop", "size"):
+        if key not in ("blank", "drop", "size", "exposure"):
             fields[key] = _parse_int(key, text, spec, *limits[key])
+    if "exposure" in options:
+        fields["exposure"] = _parse_float("exposure", options["exposure"], spec, 0.0, MAX_EXPOSURE)
     for key in ("blank", "drop"):
         if key in options:
             fields[key] = _parse_range(key, options[key], spec, int(fields["frames"]))  # type: ignore[arg-type]
@@ -293,6 +354,10 @@ def parse_synthetic_spec(spec: str) -> SyntheticSpec:
     if "width" in fields and "height" not in fields:
         fields["height"] = max(16, round(int(fields["width"]) * 3 / 4))  # type: ignore[arg-type]
     fields["noise"] = bool(fields.get("noise", 0))
+    width = int(fields.get("width", DEFAULT_WIDTH))  # type: ignore[arg-type]
+    if 4 * int(fields.get("color_shift", 0)) >= width:  # type: ignore[arg-type]
+        raise DataError(f"synthetic spec {spec!r}: option color_shift={fields['color_shift']} must be below "
+                        f"a quarter of the width ({width})")
     parsed = SyntheticSpec(**fields)  # type: ignore[arg-type]
     if parsed.agent >= parsed.agents:
         raise DataError(f"synthetic spec {spec!r}: agent={parsed.agent} must be below agents={parsed.agents}")
@@ -331,4 +396,5 @@ def open_synthetic(spec: str, *, width: int | None = None, stride: int = 1, max_
     K = default_intrinsics(parsed.width, parsed.height)
     noise = DepthNoiseModel() if parsed.noise else None
     return SyntheticSequence(scene, full[numbers], K, parsed.width, parsed.height, name=parsed.name,
-                             noise=noise, seed=parsed.seed, frame_numbers=numbers, blank=parsed.blank)
+                             noise=noise, seed=parsed.seed, frame_numbers=numbers, blank=parsed.blank,
+                             exposure=parsed.exposure, color_shift=parsed.color_shift)
