@@ -22,11 +22,15 @@ uploads of host data ("uploads").
 
 ``--static on`` renders padded samples (``render.static_shapes``: the path CUDA devices take);
 ``off`` the flat samples (the CPU's default); ``default`` leaves the preset's setting (and
-runs code that predates the switch, for a before/after). ``--kernels torch`` (default) is the
+runs code that predates the switch, for a before/after); ``on,off`` measures both, a row each.
+The second table holds issue 40's per-frame figures of the whole run: device-to-host reads a
+frame (``aten::_local_scalar_dense`` + ``aten::nonzero``; in brackets those of fused Adam's
+CPU kernel, which reads its step count where CUDA's does not), aten ops a frame, and the
+per-iteration syncs of tracking and mapping. ``--kernels torch`` (default) is the
 plain torch path, the one CUDA tensors take; ``numba`` the CPU's fused host kernels, which
 hand numpy arrays to numba and so read the host by design.
 
-    python benchmarks/bench_syncs.py [--presets test,cpu,paper,gpu] [--static on|off|default]
+    python benchmarks/bench_syncs.py [--presets test,cpu,paper,gpu] [--static on|off|on,off|default]
         [--kernels torch|numba] [--no-run] [--json FILE] [--quick]
 """
 
@@ -171,37 +175,55 @@ def main(argv: list[str] | None = None) -> int:
     global STATIC
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--presets", default=",".join(PRESETS))
-    parser.add_argument("--static", choices=("on", "off", "default"), default="on")
+    parser.add_argument("--static", default="on", help="on, off, default, or several joined by commas")
     parser.add_argument("--kernels", choices=("torch", "numba"), default="torch")
     parser.add_argument("--no-run", action="store_true", help="skip the 3-frame whole runs")
+    parser.add_argument("--no-inner", action="store_true", help="skip the single iterations (whole runs only)")
     parser.add_argument("--quick", action="store_true", help="test preset only")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
-    STATIC = args.static
+    modes = [m for m in args.static.split(",") if m]
+    if not modes or any(m not in ("on", "off", "default") for m in modes):
+        parser.error("--static takes on, off or default, joined by commas")
     os.environ["VOXFUSION_KERNELS"] = args.kernels
     names = ["test"] if args.quick else [p for p in args.presets.split(",") if p]
     results: dict = {}
-    for name in names:
-        results[name] = {"inner": inner_loops(name)}
-        if not args.no_run:
-            results[name]["run"] = whole_run(name)
-        print(f"done {name}", file=sys.stderr, flush=True)
-    rows = []
-    for name, r in results.items():
-        t, m = r["inner"]["tracking"], r["inner"]["mapping"]
-        run = r.get("run")
+    for mode in modes:
+        STATIC = mode
+        for name in names:
+            r = results.setdefault(mode, {}).setdefault(name, {})
+            if not args.no_inner:
+                r["inner"] = inner_loops(name)
+            if not args.no_run:
+                r["run"] = whole_run(name)
+            print(f"done {name}, static {mode}", file=sys.stderr, flush=True)
+    print(f"kernels: {args.kernels}")
+    if not args.no_inner:
+        rows = []
+        for mode, by_name in results.items():
+            for name, r in by_name.items():
+                t, m = r["inner"]["tracking"], r["inner"]["mapping"]
 
-        def three(d):
-            return f"{d['syncs']:.1f} / {d['reads']:.1f} / {d['uploads']:.1f}"
+                def three(d):
+                    return f"{d['syncs']:.1f} / {d['reads']:.1f} / {d['uploads']:.1f}"
 
-        rows.append([name, three(t), f"{t['aten_ops']:.0f}", three(m), f"{m['aten_ops']:.0f}",
-                     "-" if run is None else f"{run['syncs']:.0f} / {run['reads']:.0f} / {run['uploads']:.0f}",
-                     "-" if run is None else f"{run['aten_ops'] / 1000:.1f}k"])
-    print(f"static shapes: {args.static}, kernels: {args.kernels}")
-    print(markdown_table(["preset", "tracking it.: syncs / reads / uploads", "aten ops",
-                          "mapping it.: syncs / reads / uploads", "aten ops",
-                          "run, a frame: syncs / reads / uploads", "aten ops"], rows))
-    write_json(args.json, {"static": args.static, "kernels": args.kernels, "results": results})
+                rows.append([name, mode, three(t), f"{t['aten_ops']:.0f}", three(m), f"{m['aten_ops']:.0f}"])
+        print(markdown_table(["preset", "static", "tracking it.: syncs / reads / uploads", "aten ops",
+                              "mapping it.: syncs / reads / uploads", "aten ops"], rows))
+    if not args.no_run:
+        rows = []
+        for mode, by_name in results.items():
+            for name, r in by_name.items():
+                run = r["run"]
+                rows.append([name, mode, f"{run['syncs']:.1f} ({run['optimizer_reads']:.0f})",
+                             f"{run['aten_ops'] / 1000:.1f}k",
+                             f"{run['in_tracking_iterations']:.1f} / {run['in_mapping_iterations']:.1f}",
+                             f"{run['reads']:.0f} / {run['uploads']:.0f}", run["status"]])
+        print(f"\nA frame of {RUN}, one process, no loops (issue 40's figures):")
+        print(markdown_table(["preset", "static", "device-to-host reads a frame (fused Adam's CPU)",
+                              "aten ops a frame", "syncs a frame inside tracking / mapping iterations",
+                              "Python reads / uploads a frame", "status"], rows))
+    write_json(args.json, {"static": modes, "kernels": args.kernels, "results": results})
     return 0
 
 
