@@ -676,9 +676,13 @@ def add_stream_arguments(parser) -> None:
     parser.add_argument("--max-frames", type=int, default=None, help="stop after this many frames of the source")
     parser.add_argument("--fps", type=float, default=None,
                         help="folder replay rate (default: recorded timestamps for TUM, else 30)")
-    parser.add_argument("--all-frames", action="store_true",
-                        help="send every frame, waiting for the server (replays); default: keep the newest, "
-                             "drop older unsent frames when the server is slower than the source")
+    pace = parser.add_mutually_exclusive_group()
+    pace.add_argument("--all-frames", action="store_true",
+                      help="send every frame, waiting for the server (the default for recordings: folders, "
+                           "files, .bag, .r3d)")
+    pace.add_argument("--live", action="store_true",
+                      help="keep the newest frame and drop older unsent ones when the server is slower than the "
+                           "source (the default for live cameras; for a recording, a replay as a camera would send it)")
     parser.add_argument("--width", type=int, default=None,
                         help="folder, record3d, .r3d: resize frames to this width first")
     parser.add_argument("--serial", default=None,
@@ -702,8 +706,9 @@ def stream_command(args) -> int:
     from client.open import open_source
 
     try:
+        # A recording is not a camera: it waits for the server unless --live asks for a camera's pace.
         source = open_source(args.source, fps=args.fps, max_frames=args.max_frames, width=args.width,
-                             serial=args.serial, all_frames=args.all_frames,
+                             serial=args.serial, all_frames=not args.live,
                              min_confidence=args.min_confidence)
     except SourceError as error:
         print(f"voxfusion stream: {error}", file=sys.stderr)
@@ -712,7 +717,8 @@ def stream_command(args) -> int:
         print("voxfusion stream: --all-frames with a live camera: frames the server cannot take in time are "
               "lost in the camera's own queue instead of being counted here", file=sys.stderr)
     server = Server(args.url, args.token if args.token is not None else os.environ.get("VOXFUSION_TOKEN"))
-    options = StreamOptions(preset=args.preset, all_frames=args.all_frames, wait_s=args.wait, quiet=args.quiet)
+    all_frames = args.all_frames or not (args.live or source.info.live)
+    options = StreamOptions(preset=args.preset, all_frames=all_frames, wait_s=args.wait, quiet=args.quiet)
     try:
         return stream(source, server, options).code
     except KeyboardInterrupt:  # during --wait, or a second Ctrl-C while finishing

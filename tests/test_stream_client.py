@@ -121,6 +121,29 @@ def test_unreachable_server_and_bad_source(tum_folder, tmp_path, capsys):
     assert "not supported yet" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize(("flags", "all_frames"), [([], True), (["--live"], False), (["--all-frames"], True)])
+def test_a_recording_sends_every_frame_unless_asked_to_replay_live(flags, all_frames, monkeypatch):
+    """A folder or file replay waits for the server by default (a recording is not a camera:
+    keeping the newest frame sent 3 of fr1/desk's 9 frames); ``--live`` keeps a camera's pace."""
+    from client import stream as stream_client
+
+    seen = []
+
+    class Done:
+        code = 0
+
+    monkeypatch.setattr(stream_client, "stream", lambda source, server, options: seen.append(options) or Done())
+    assert main(["stream", "synthetic:orbit?frames=3&width=40&height=30", "--url", "http://127.0.0.1:9",
+                 "--quiet", *flags]) == 0
+    assert [o.all_frames for o in seen] == [all_frames]
+
+
+def test_live_and_all_frames_exclude_each_other(capsys):
+    with pytest.raises(SystemExit):
+        main(["stream", "synthetic:orbit?frames=3", "--url", "http://127.0.0.1:9", "--live", "--all-frames"])
+    assert "not allowed with argument" in capsys.readouterr().err
+
+
 @needs_runtime
 def test_server_going_away_mid_stream_exits_non_zero(tmp_path, monkeypatch, capsys):
     """The server stops while a slow replay streams (and does not come back within the
