@@ -32,6 +32,7 @@ import numpy as np
 
 from ar.composite import CompositeResult, composite
 from ar.objects import ObjectSpecError, _check_rigid, load_objects_json
+from slam import parse_pose as parse_pose_text
 
 PROG = "voxfusion ar"
 RENDER_BACKGROUND = "render"
@@ -56,32 +57,12 @@ class PinholeCamera:
 def parse_pose(text: str) -> np.ndarray:
     """(4, 4) float64 rigid ``T_world_cam`` from 16 numbers (row-major, separated by commas
     or spaces), a JSON 4x4 list, or the path of a file holding either."""
-    source = "--pose"
-    if _is_file(text):
-        source, text = text.strip(), _read_text(Path(text.strip()), "--pose")
     try:
-        values = np.asarray(json.loads(text), dtype=np.float64)
-    except (json.JSONDecodeError, TypeError, ValueError):
-        try:
-            values = np.asarray(text.replace(",", " ").split(), dtype=np.float64)
-        except ValueError:
-            raise ARInputError(f"{source}: not a file, and not 16 numbers or a JSON 4x4 list: {text[:80]!r}") from None
-    if values.size != 16:
-        raise ARInputError(f"{source}: a pose needs 16 numbers (4x4 row-major), found {values.size}")
-    pose = values.reshape(4, 4)
-    try:
-        _check_rigid(pose, source)
+        pose = parse_pose_text(text, "--pose")
+        _check_rigid(pose, "--pose")
     except ValueError as error:
         raise ARInputError(str(error)) from None
     return pose
-
-
-def _is_file(text: str) -> bool:
-    """Whether ``text`` names an existing file (an inline pose can be too long for a file name)."""
-    try:
-        return bool(text.strip()) and Path(text.strip()).is_file()
-    except (OSError, ValueError):
-        return False
 
 
 def parse_intrinsics(text: str) -> tuple[np.ndarray, int, int]:
@@ -99,13 +80,6 @@ def parse_intrinsics(text: str) -> tuple[np.ndarray, int, int]:
         raise ARInputError(f"--intrinsics: width and height must be positive integers, got {width:g}x{height:g}")
     K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
     return K, int(width), int(height)
-
-
-def _read_text(path: Path, what: str) -> str:
-    try:
-        return path.read_text()
-    except (OSError, UnicodeDecodeError) as error:
-        raise ARInputError(f"{what}: cannot read {path} ({error})") from None
 
 
 def read_background_rgb(path: Path, width: int, height: int) -> np.ndarray:

@@ -35,7 +35,7 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     "slam.checkpoint": ("CheckpointError", "load_checkpoint", "save_checkpoint"),
     "slam.views": ("render_view",),
     "slam.mesh": ("extract_mesh", "mesh_to_bytes"),
-    "slam.geometry": ("matrix_to_quat_wxyz", "quat_wxyz_to_matrix"),
+    "slam.geometry": ("matrix_to_quat_wxyz", "parse_pose", "quat_wxyz_to_matrix"),
     "slam.eval": ("ATEResult", "MeshMetrics", "Trajectory", "associate", "ate", "ate_from_pairs", "format_tum",
                   "mesh_metrics", "read_tum", "umeyama_alignment", "write_tum"),
 }
@@ -67,7 +67,7 @@ if TYPE_CHECKING:  # what the names are, for type checkers and editors; nothing 
                            mesh_metrics, read_tum, umeyama_alignment, write_tum)
     from slam.events import (Event, FinishedEvent, KeyframeEvent, LoopEvent, MapUpdateEvent, PhaseEvent, PoseEvent,
                              PosesUpdatedEvent, StatsEvent, SubmapEvent)
-    from slam.geometry import matrix_to_quat_wxyz, quat_wxyz_to_matrix
+    from slam.geometry import matrix_to_quat_wxyz, parse_pose, quat_wxyz_to_matrix
     from slam.maps import MapSet
     from slam.mesh import extract_mesh, mesh_to_bytes
     from slam.outputs import RunResult, read_run_json, trajectory_frames, write_json_atomic

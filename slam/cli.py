@@ -82,8 +82,9 @@ def cmd_run(args: argparse.Namespace) -> int:
         print(f"voxfusion run: {exc}", file=sys.stderr)
         return 2
     result = run_slam(sources, config, args.out, use_gt_poses=args.gt_poses, progress=not args.quiet)
-    line = (f"{result.status}: {result.frames} frames, {result.keyframes} keyframes, {result.maps} maps, "
-            f"{result.loops} loops, {result.fps:.2f} frames/s")
+    counts = ", ".join(_count(n, word) for n, word in ((result.frames, "frame"), (result.keyframes, "keyframe"),
+                                                        (result.maps, "map"), (result.loops, "loop")))
+    line = f"{result.status}: {counts}, {result.fps:.2f} frames/s"
     if result.ate_rmse is not None:
         line += f", ATE RMSE {result.ate_rmse * 100:.2f} cm"
     print(line + f" -> {result.out_dir}")
@@ -92,6 +93,11 @@ def cmd_run(args: argparse.Namespace) -> int:
     if result.error:
         print(result.error, file=sys.stderr)
     return {"finished": 0, "cancelled": 130}.get(result.status, 1)
+
+
+def _count(n: int, word: str) -> str:
+    """``1 map``, ``2 maps``."""
+    return f"{n} {word}" if n == 1 else f"{n} {word}s"
 
 
 def _agents_summary(run_json: Path) -> str:
@@ -112,25 +118,13 @@ def _agents_summary(run_json: Path) -> str:
 
 def add_render_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("checkpoint", type=Path, help="map.pt of a run")
-    p.add_argument("--pose", required=True, type=Path,
-                   help="4x4 T_world_cam as 16 numbers (row-major) or a JSON 4x4 list")
+    p.add_argument("--pose", required=True,
+                   help="4x4 T_world_cam: 16 numbers (row-major, commas or spaces) or a JSON 4x4 list, given "
+                        "here or in a file named here")
     p.add_argument("--intrinsics", required=True, metavar="fx,fy,cx,cy,width,height",
                    type=lambda s: _floats(s, (6,), "--intrinsics"))
     p.add_argument("--out", required=True, type=Path, help="colour PNG")
     p.add_argument("--depth", type=Path, default=None, help="16-bit depth PNG in millimetres")
-
-
-def _read_pose(path: Path):
-    import numpy as np
-
-    text = path.read_text()
-    try:
-        values = np.asarray(json.loads(text), dtype=np.float64)
-    except json.JSONDecodeError:
-        values = np.asarray(text.split(), dtype=np.float64)
-    if values.size != 16:
-        raise ValueError(f"{path}: a pose needs 16 numbers, found {values.size}")
-    return values.reshape(4, 4)
 
 
 def cmd_render(args: argparse.Namespace) -> int:
@@ -138,11 +132,12 @@ def cmd_render(args: argparse.Namespace) -> int:
     import numpy as np
 
     from .checkpoint import CheckpointError, load_checkpoint
+    from .geometry import parse_pose
     from .views import render_view
 
     try:
         maps = load_checkpoint(args.checkpoint)
-        T = _read_pose(args.pose)
+        T = parse_pose(args.pose)
     except (CheckpointError, ValueError, OSError) as exc:
         print(f"voxfusion render: {exc}", file=sys.stderr)
         return 2

@@ -9,6 +9,8 @@ its pose update there).
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import torch
 
@@ -219,6 +221,34 @@ def matrix_to_quat_wxyz(R: torch.Tensor) -> torch.Tensor:
     q = torch.gather(cands, -2, best[..., None, None].expand(*best.shape, 1, 4)).squeeze(-2)
     q = q / q.norm(dim=-1, keepdim=True)
     return torch.where(q[..., :1] < 0, -q, q)
+
+
+def parse_pose(text: str, source: str = "--pose") -> np.ndarray:
+    """(4, 4) float64 from 16 numbers (row-major, separated by commas or spaces), a JSON 4x4
+    list, or the path of a file holding either. Raises ValueError naming ``source`` (or the
+    file) and what was wrong; rigidity is the caller's to check."""
+    from pathlib import Path
+
+    name = text.strip()
+    try:
+        is_file = bool(name) and Path(name).is_file()  # an inline pose can be too long for a file name
+    except (OSError, ValueError):
+        is_file = False
+    if is_file:
+        try:
+            source, text = name, Path(name).read_text()
+        except (OSError, UnicodeDecodeError) as error:
+            raise ValueError(f"{source}: cannot read {name} ({error})") from None
+    try:
+        values = np.asarray(json.loads(text), dtype=np.float64)
+    except (json.JSONDecodeError, TypeError, ValueError):
+        try:
+            values = np.asarray(text.replace(",", " ").split(), dtype=np.float64)
+        except ValueError:
+            raise ValueError(f"{source}: not a file, and not 16 numbers or a JSON 4x4 list: {text[:80]!r}") from None
+    if values.size != 16:
+        raise ValueError(f"{source}: a pose needs 16 numbers (4x4 row-major), found {values.size}")
+    return values.reshape(4, 4)
 
 
 def pose_from_tum(txyz_qxyzw: np.ndarray) -> np.ndarray:

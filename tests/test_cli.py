@@ -144,3 +144,24 @@ def test_argument_errors_exit_2(argv, capsys):
         main(argv)
     assert info.value.code == 2
     assert capsys.readouterr().err
+
+
+def test_render_takes_the_pose_inline_too(run_dir, tmp_path, capsys):
+    """``--pose`` takes the 16 numbers themselves (commas or spaces) as well as a file; a run's
+    summary counts in the singular where there is one."""
+    seq = open_sequence(SPEC, max_frames=1)
+    inline = ",".join(map(str, seq[0].T_world_cam.ravel()))
+    K = seq[0].K
+    intr = f"{K[0, 0]},{K[1, 1]},{K[0, 2]},{K[1, 2]},80,60"
+    assert main(["render", str(run_dir / "map.pt"), "--pose", inline, "--intrinsics", intr,
+                 "--out", str(tmp_path / "inline.png")]) == 0
+    assert cv2.imread(str(tmp_path / "inline.png")).shape == (60, 80, 3)
+    assert main(["render", str(run_dir / "map.pt"), "--pose", "1 0 0", "--intrinsics", intr,
+                 "--out", str(tmp_path / "x.png")]) == 2
+    assert "--pose: a pose needs 16 numbers" in capsys.readouterr().err
+
+
+def test_counts_read_in_the_singular_for_one():
+    from slam.cli import _count
+
+    assert (_count(1, "map"), _count(2, "map"), _count(0, "loop")) == ("1 map", "2 maps", "0 loops")
