@@ -151,11 +151,23 @@ def _copy_limited(source, sink, budget: int, name: str, chunk: int = 1 << 20) ->
 
 def dataset_root(extracted: Path) -> Path:
     """The folder holding the dataset: ``extracted`` itself, or its single top-level folder
-    when the zip was made from a folder (archiver litter such as ``__MACOSX`` is ignored)."""
-    entries = [p for p in extracted.iterdir() if p.name not in _IGNORED_TOP_LEVEL]
+    when the zip was made from a folder (archiver litter such as ``__MACOSX`` is ignored);
+    and in NICE-SLAM's Replica layout, ``cam_params.json`` beside one scene folder (at the top
+    of the zip or in its single folder), that scene folder (the reader finds
+    ``cam_params.json`` in its parent)."""
+    root = extracted
+    entries = _entries(root)
     if len(entries) == 1 and entries[0].is_dir():
-        return entries[0]
-    return extracted
+        root = entries[0]
+    if (root / "cam_params.json").is_file():
+        scenes = [p for p in _entries(root) if p.is_dir()]
+        if len(scenes) == 1:
+            return scenes[0]
+    return root
+
+
+def _entries(folder: Path) -> list[Path]:
+    return [p for p in folder.iterdir() if p.name not in _IGNORED_TOP_LEVEL]
 
 
 def save_upload(source, target: Path, max_bytes: int) -> int:

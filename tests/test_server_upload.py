@@ -106,6 +106,24 @@ def test_extraction_and_single_top_folder(tmp_path):
     assert dataset_root(out) == out / "seq"
 
 
+@pytest.mark.parametrize("top", ["", "Replica/"])
+def test_replica_scene_beside_its_cam_params_is_the_root(tmp_path, top):
+    """NICE-SLAM's layout: cam_params.json one level above the scene folder, zipped from that
+    level (or from the folder holding both)."""
+    archive = make_zip(tmp_path / "replica.zip", {f"{top}cam_params.json": b"{}", f"{top}room0/traj.txt": b"",
+                                                 f"{top}room0/results/frame000000.jpg": b"x"})
+    out = tmp_path / "out"
+    extract_zip(archive, out, LIMITS)
+    assert dataset_root(out) == out / top / "room0"
+
+
+def test_several_scenes_beside_cam_params_stay_at_the_top(tmp_path):
+    archive = make_zip(tmp_path / "two.zip", {"cam_params.json": b"{}", "room0/traj.txt": b"",
+                                             "room1/traj.txt": b""})
+    extract_zip(archive, tmp_path / "out", LIMITS)
+    assert dataset_root(tmp_path / "out") == tmp_path / "out"
+
+
 def test_depth_must_be_16_bit_png():
     with pytest.raises(UploadError, match="16-bit PNG, got 8-bit"):
         decode_depth(png(np.zeros((4, 5), np.uint8)))
