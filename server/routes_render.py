@@ -23,7 +23,19 @@ from server.rendering import (
     png_from_rgb,
     render,
 )
-from server.schemas import CameraRequest, ErrorOut, Intrinsics, PickOut, PickRequest, ViewerCameraOut, ViewerInfo
+from server.routes_series import estimated_trajectory
+from server.schemas import (
+    CameraRequest,
+    ErrorOut,
+    Intrinsics,
+    PickOut,
+    PickRequest,
+    SessionCameraOut,
+    ViewerCameraOut,
+    ViewerInfo,
+)
+from server.series import source_camera
+from server.upload import MAX_AGENTS
 from server.sessions import ENDED, SessionManager, check_session_id
 from server.viewer import ViewerAdapter
 
@@ -90,6 +102,37 @@ async def pick(session_id: str, request: PickRequest, manager: SessionManager = 
     if result is None:
         return PickOut(hit=False)
     return PickOut(hit=True, point=result.point.tolist(), normal=result.normal.tolist(), depth=result.depth)
+
+
+@router.get("/api/sessions/{session_id}/camera", response_model=SessionCameraOut,
+            responses={404: {"model": ErrorOut}, 409: {"model": ErrorOut}},
+            summary="The newest tracked frame's pose and camera (a view that shows what the camera saw)")
+def newest_camera(session_id: str, agent: int = Query(0, ge=0, le=MAX_AGENTS - 1, description="agent (camera)"),
+                  manager: SessionManager = Depends(get_manager)) -> SessionCameraOut:
+    """The pose is the last of ``GET .../trajectory`` (the written, refined one once the session
+    ended; the tracked one, moved with its map by loop closures, while it runs); the camera is
+    the one its frames were tracked with, or after a server restart the input's."""
+    check_session_id(session_id)
+    agents = manager.agent_count(session_id)
+    if agent >= agents:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"session {session_id} has no agent {agent}: it has "
+                                                       f"{agents} agent{'s' if agents != 1 else ''}")
+    trajectory = estimated_trajectory(manager, session_id, agent)
+    newest = manager.newest_camera(session_id, agent)
+    sources = manager.get(session_id).sources
+    if newest is not None:
+        camera = newest[2]
+    else:
+        camera = source_camera(sources[agent]) if agent < len(sources) else None
+    if camera is None or not len(trajectory.timestamps):
+        raise HTTPException(status.HTTP_409_CONFLICT, f"session {session_id}: no tracked frame of agent {agent} yet")
+    timestamp = float(trajectory.timestamps[-1])
+    index = newest[0].index if newest is not None and abs(newest[0].timestamp - timestamp) < 1e-6 else None
+    K = camera.K
+    intrinsics = Intrinsics(fx=float(K[0, 0]), fy=float(K[1, 1]), cx=float(K[0, 2]), cy=float(K[1, 2]),
+                            width=camera.width, height=camera.height)
+    return SessionCameraOut(agent=agent, index=index, timestamp=timestamp,
+                            T_world_cam=np.asarray(trajectory.poses[-1], np.float64).tolist(), intrinsics=intrinsics)
 
 
 @router.get("/api/viewer", response_model=ViewerInfo, tags=["viewer"], summary="Is the 3D viewer running")

@@ -281,6 +281,17 @@ class ViewerCameraOut(BaseModel):
     intrinsics: Intrinsics
 
 
+class SessionCameraOut(BaseModel):
+    """A session's newest tracked camera: where the render panel starts."""
+
+    agent: int = Field(examples=[0])
+    index: int | None = Field(examples=[41], description="the frame's index among its agent's frames (null: "
+                                                          "read back from the written trajectory)")
+    timestamp: float = Field(examples=[1.366])
+    T_world_cam: Matrix4
+    intrinsics: Intrinsics = Field(description="the input camera, at the resolution it was tracked")
+
+
 class ViewerInfo(BaseModel):
     enabled: bool
     port: int | None = Field(description="viser's own port (its client files; its WebSocket admits only the "

@@ -16,6 +16,7 @@ from functools import lru_cache
 
 import numpy as np
 
+from server.tracks import FrameCamera
 from server.worker import SourceSpec
 from slam import DataError, Trajectory, associate, ate_from_pairs
 
@@ -25,23 +26,41 @@ DECIMALS = 4
 """Rounding of positions and errors in the JSON (0.1 mm)."""
 
 
+def _open(spec: SourceSpec):
+    """The source as the worker opened it (a synthetic scene or a dataset folder)."""
+    from slam import open_sequence
+
+    if spec.kind == "synthetic":
+        return open_sequence(f"synthetic:{spec.path}", "synthetic", stride=spec.stride, max_frames=spec.max_frames)
+    return open_sequence(spec.path, spec.format, stride=spec.stride, max_frames=spec.max_frames,
+                         intrinsics=spec.intrinsics, depth_scale=spec.depth_scale)
+
+
+@lru_cache(maxsize=16)
+def source_camera(spec: SourceSpec) -> FrameCamera | None:
+    """The input camera of a synthetic or dataset source (its first frame's intrinsics and
+    size), or None (a stream, an unreadable input). Cached as ``ground_truth``."""
+    if spec.kind not in ("synthetic", "dataset") or not spec.path:
+        return None
+    try:
+        frame = _open(spec)[0]
+    except (DataError, OSError, IndexError):
+        return None
+    return FrameCamera(np.asarray(frame.K, np.float64), frame.width, frame.height)
+
+
 @lru_cache(maxsize=16)
 def ground_truth(spec: SourceSpec) -> Trajectory | None:
     """The ground-truth trajectory of one source, or None (a stream, an input without poses).
     Cached: a page polls it while the session runs, and inputs do not change."""
     if spec.kind not in ("synthetic", "dataset") or not spec.path:
         return None
-    from slam import open_sequence
-
     try:
+        sequence = _open(spec)
         if spec.kind == "synthetic":
             from slam.data.synthetic import FPS
 
-            sequence = open_sequence(f"synthetic:{spec.path}", "synthetic", stride=spec.stride,
-                                     max_frames=spec.max_frames)
             return Trajectory(sequence.frame_numbers / FPS, sequence.trajectory)
-        sequence = open_sequence(spec.path, spec.format, stride=spec.stride, max_frames=spec.max_frames,
-                                 intrinsics=spec.intrinsics, depth_scale=spec.depth_scale)
     except (DataError, OSError):
         return None
     pairs = [(t, T) for t, T in zip(sequence.timestamps, sequence.gt_poses) if T is not None]

@@ -455,6 +455,17 @@ class SessionManager:
         with self._lock:
             return session.tracks.world_poses(agent)
 
+    def newest_camera(self, session_id: str, agent: int = 0) -> tuple[TrackedFrame, np.ndarray, FrameCamera] | None:
+        """The agent's newest tracked frame, its current T_world_cam and its camera, or None
+        before its first frame (and after a server restart: the events are gone)."""
+        session = self._get(session_id)
+        with self._lock:
+            newest = session.tracks.newest(agent)
+            camera = session.tracks.cameras.get(agent)
+        if newest is None or camera is None:
+            return None
+        return newest[0], newest[1], camera
+
     def tracked_agents(self, session_id: str) -> list[int]:
         """Agents with at least one pose reported while this server ran the session."""
         session = self._get(session_id)

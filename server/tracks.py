@@ -95,12 +95,24 @@ class MapPlacements:
         return changes
 
 
+@dataclass(frozen=True)
+class FrameCamera:
+    """The camera of an agent's newest tracked frame, at the resolution it was tracked."""
+
+    K: np.ndarray
+    """(3, 3) intrinsics."""
+    width: int
+    height: int
+
+
 class Tracks:
     """Tracked poses per (agent, frame index), each in the frame of the map it was tracked in."""
 
     def __init__(self) -> None:
         self.maps = MapPlacements()
         self.frames: dict[tuple[int, int], TrackedFrame] = {}
+        self.cameras: dict[int, FrameCamera] = {}
+        """agent -> the camera of its newest frame that carried one."""
 
     def apply(self, event: object) -> dict[int, str]:
         """Fold in an event; returns {map id: ``placed`` or ``moved``} of the maps it placed."""
@@ -120,6 +132,17 @@ class Tracks:
         T_map_cam = inverse(self.maps.T_world_map(map_id)) @ rigid(event.T_world_cam)
         key = (int(event.agent), int(event.frame_index))
         self.frames[key] = TrackedFrame(key[0], key[1], float(event.timestamp), map_id, T_map_cam)
+        if event.K is not None and event.image_size is not None:
+            width, height = event.image_size
+            self.cameras[key[0]] = FrameCamera(np.asarray(event.K, np.float64), int(width), int(height))
+
+    def newest(self, agent: int) -> tuple[TrackedFrame, np.ndarray] | None:
+        """The agent's newest tracked frame (highest index) and its current T_world_cam."""
+        frames = [f for f in self.frames.values() if f.agent == agent]
+        if not frames:
+            return None
+        frame = max(frames, key=lambda f: f.index)
+        return frame, self.maps.T_world_map(frame.map_id) @ frame.T_map_cam
 
     def __len__(self) -> int:
         return len(self.frames)

@@ -70,20 +70,17 @@ function poseLooking(position, yawDeg, pitchDeg) {
   ];
 }
 
-function poseFromTum(tx, ty, tz, qx, qy, qz, qw) {
-  const n = Math.hypot(qx, qy, qz, qw) || 1;
-  const [x, y, z, w] = [qx / n, qy / n, qz / n, qw / n];
-  return [
-    [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y), tx],
-    [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x), ty],
-    [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y), tz],
-    [0, 0, 0, 1],
-  ];
-}
-
 function yawPose(position, yawDeg) {
   const c = Math.cos(deg(yawDeg)), s = Math.sin(deg(yawDeg));
   return [[c, -s, 0, position[0]], [s, c, 0, position[1]], [0, 0, 1, position[2]], [0, 0, 0, 1]];
+}
+
+// The inverse of poseLooking for the render panel's fields: position, and the yaw and pitch of
+// the optical axis (its roll is not shown; Set rebuilds the pose without roll).
+function lookFromPose(T) {
+  const forward = [T[0][2], T[1][2], T[2][2]];
+  const yaw = Math.atan2(forward[1], forward[0]), pitch = Math.asin(Math.max(-1, Math.min(1, forward[2])));
+  return { position: [T[0][3], T[1][3], T[2][3]], yaw: (yaw * 180) / Math.PI, pitch: (pitch * 180) / Math.PI };
 }
 
 function formatMatrix(T) {
@@ -287,6 +284,7 @@ async function refreshSessions() {
     if (!selectedId || gone) setSelected(sessions.length ? sessions[0].id : null);
     listedIds = new Set(sessions.map((s) => s.id));
     renderSessionList();
+    followSession();
     $("server-note").textContent = "";
   } catch (error) {
     $("server-note").textContent = "server unreachable: " + error.message;
@@ -301,6 +299,7 @@ function setSelected(id) {
 }
 
 function selectSession(id) {
+  if (id !== selectedId) cameraChosen = false;  // another session, another world: follow its camera
   setSelected(id);
   renderSessionList();
   refreshPlots();
@@ -397,11 +396,19 @@ async function setUpViewer() {
     const info = await api("/api/viewer");
     if (!info.enabled) throw new Error("viewer off");
     $("viewer-frame").src = withToken("/viewer");
-    $("viewer-state").textContent = `(viser, port ${info.port})`;
+    $("viewer-open").href = withToken("/viewer");
+    $("viewer-open").hidden = false;
   } catch (_) {
     $("viewer-frame").hidden = true;
     $("viewer-off").hidden = false;
   }
+}
+
+// The viewer's height is this browser's choice, kept across visits.
+function toggleViewerSize(save = true) {
+  const tall = $("viewer-box").classList.toggle("tall");
+  $("viewer-size").textContent = tall ? "shorter" : "taller";
+  if (save) localStorage.setItem("voxfusion_viewer_tall", tall ? "1" : "");
 }
 
 // ------------------------------------------------------------------ render panel
@@ -420,26 +427,58 @@ async function useViewerCamera() {
   try {
     const width = Number($("cam-width").value) || 320, height = Number($("cam-height").value) || 240;
     const camera = await api(`/api/viewer/camera?width=${width}`);
-    $("cam-matrix").value = formatMatrix(camera.T_world_cam);
+    setCameraPose(camera.T_world_cam);
     const i = camera.intrinsics;
-    $("cam-fov").value = ((2 * Math.atan(i.height / 2 / i.fy) * 180) / Math.PI).toFixed(1);
+    $("cam-fov").value = verticalFov(i).toFixed(1);
+    cameraChosen = true;
     say("render-message", `Camera taken from the viewer (pose and vertical field of view; size kept at ${width}x${height}).`, "ok");
   } catch (error) {
     say("render-message", error.message, "error");
   }
 }
 
-async function useLastPose() {
-  if (!selectedId) return say("render-message", "Select a session first.", "error");
+const verticalFov = (i) => (2 * Math.atan(i.height / 2 / i.fy) * 180) / Math.PI;
+
+// The matrix is what renders; the fields show its position, yaw and pitch.
+function setCameraPose(T) {
+  $("cam-matrix").value = formatMatrix(T);
+  const look = lookFromPose(T);
+  ["cam-x", "cam-y", "cam-z"].forEach((id, k) => { $(id).value = look.position[k].toFixed(2); });
+  $("cam-yaw").value = look.yaw.toFixed(1);
+  $("cam-pitch").value = look.pitch.toFixed(1);
+}
+
+// Until the user picks a camera, the render panel follows the selected session's last tracked
+// frame with that camera's own field of view and aspect (the synthetic room's default camera
+// shows little of a real upload).
+let cameraChosen = false;
+let cameraOf = null;  // the session whose last tracked camera the panel holds
+
+// The selected session's last tracked frame: its pose, and the input camera's field of view and
+// aspect at the panel's width. `quiet`: no message (the automatic follow).
+async function useLastPose(quiet = false) {
+  if (!selectedId) return quiet || say("render-message", "Select a session first.", "error");
+  const id = selectedId;
   try {
-    const text = await api(`/api/sessions/${selectedId}/trajectory`, { expect: "text" });
-    const rows = text.split("\n").filter((l) => l.trim() && !l.startsWith("#"));
-    const v = rows[rows.length - 1].trim().split(/\s+/).map(Number);
-    $("cam-matrix").value = formatMatrix(poseFromTum(v[1], v[2], v[3], v[4], v[5], v[6], v[7]));
-    say("render-message", `Pose of the last tracked frame (t = ${v[0]}).`, "ok");
+    const camera = await api(`/api/sessions/${id}/camera?agent=${plotAgent(id)}`);
+    if (id !== selectedId) return;
+    setCameraPose(camera.T_world_cam);
+    const i = camera.intrinsics;
+    const width = Number($("cam-width").value) || 320;
+    $("cam-height").value = Math.max(16, Math.round((width * i.height) / i.width));
+    $("cam-fov").value = verticalFov(i).toFixed(1);
+    cameraOf = id;
+    if (!quiet) {
+      cameraChosen = true;
+      say("render-message", `Pose and camera of the last tracked frame (frame ${camera.index}, t = ${camera.timestamp}).`, "ok");
+    }
   } catch (error) {
-    say("render-message", error.message, "error");
+    if (!quiet) say("render-message", error.message, "error");
   }
+}
+
+function followSession() {
+  if (!cameraChosen && selectedId && cameraOf !== selectedId) useLastPose(true);
 }
 
 function poseFromNumbers() {
@@ -600,18 +639,42 @@ async function refreshPlots() {
     plotsShown = null;
   }
   if (!s || plotsBusy) return;
+  showAgentChoice(s);
+  const agent = plotAgent(s.id);
   const ended = ENDED.includes(s.status);
-  const shown = plotsShown && plotsShown.id === s.id;
+  const shown = plotsShown && plotsShown.id === s.id && plotsShown.agent === agent;
   if (shown && (ended ? plotsShown.ended : Date.now() - plotsShown.at < PLOT_EVERY_MS)) return;
   plotsBusy = true;
   try {
-    drawPlots(await api(`/api/sessions/${s.id}/series`), s);
-    plotsShown = { id: s.id, at: Date.now(), ended };
+    drawPlots(await api(`/api/sessions/${s.id}/series?agent=${agent}`), s);
+    plotsShown = { id: s.id, agent, at: Date.now(), ended };
   } catch (error) {
     $("plots-note").textContent = "plots: " + error.message;
   } finally {
     plotsBusy = false;
   }
+}
+
+// A collaborative session's plots show one agent at a time, chosen beside the card's title.
+let agentChoice = { id: null, agent: 0 };
+
+function plotAgent(id) {
+  return agentChoice.id === id ? agentChoice.agent : 0;
+}
+
+function showAgentChoice(s) {
+  const agents = s.agents || 1, select = $("plots-agent");
+  $("plots-agent-label").hidden = agents < 2;
+  if (agentChoice.id !== s.id) agentChoice = { id: s.id, agent: 0 };
+  if (select.options.length !== agents) {
+    select.replaceChildren(...Array.from({ length: agents }, (_, k) => new Option(`agent ${k}`, String(k))));
+  }
+  select.value = String(agentChoice.agent);
+}
+
+function chooseAgent() {
+  agentChoice = { id: selectedId, agent: Number($("plots-agent").value) };
+  refreshPlots();
 }
 
 // The two axes along which the path spreads most: the ground plane of a walk (a top view).
@@ -624,9 +687,11 @@ function drawPlots(series, s) {
   const truth = series.ground_truth;
   const reference = truth && truth.length ? truth : series.estimated;
   const running = ENDED.includes(s.status) ? "" : " so far";
-  const ate = s.ate_rmse_m ?? series.ate_rmse_m;  // the status's, as in the list: one number on the page
+  // Agent 0's is the status's, as in the list: one number on the page; another agent's is its own.
+  const ate = series.agent === 0 ? s.ate_rmse_m ?? series.ate_rmse_m : series.ate_rmse_m;
+  const who = (s.agents || 1) > 1 ? `agent ${series.agent}: ` : "";
   $("plots-note").textContent = ate != null
-    ? `ATE ${centimetres(ate)} over ${plural(series.estimated.length, "frame")}${running} (RMSE after a rigid alignment onto the ground truth)`
+    ? `${who}ATE ${centimetres(ate)} over ${plural(series.estimated.length, "frame")}${running} (RMSE after a rigid alignment onto the ground truth)`
     : truth ? "Too few frames to align onto the ground truth yet." : "This input has no ground truth: the trajectory is shown in the session's own frame.";
   drawTrajectory(series, reference);
   drawError(series);
@@ -660,6 +725,7 @@ function drawError(series) {
 // start-up before the first pose shows), and the average (the status's frames/s) dashed.
 function drawFps(series) {
   if (!series.fps_time_s.length) return Plots.message($("plot-fps"), "tracking has not started yet");
+  if (series.fps_frames[series.fps_frames.length - 1] < 2) return Plots.message($("plot-fps"), "measuring…");
   const t = [0, ...series.fps_time_s], n = [0, ...series.fps_frames];
   const rates = t.slice(1).map((ti, i) => [ti, (n[i + 1] - n[i]) / Math.max(ti - t[i], MIN_FPS_SPAN_S)]);
   const average = n[n.length - 1] / Math.max(t[t.length - 1], MIN_FPS_SPAN_S);
@@ -677,8 +743,10 @@ function start() {
   $("demo-form").addEventListener("submit", startDemo);
   $("demo-kind").addEventListener("change", () => { $("demo-agents-label").hidden = $("demo-kind").value !== "agents"; });
   $("use-viewer-camera").addEventListener("click", useViewerCamera);
-  $("use-last-pose").addEventListener("click", useLastPose);
-  $("pose-from-numbers").addEventListener("click", poseFromNumbers);
+  $("use-last-pose").addEventListener("click", () => useLastPose());
+  $("pose-from-numbers").addEventListener("click", () => { cameraChosen = true; poseFromNumbers(); });
+  $("cam-matrix").addEventListener("input", () => { cameraChosen = true; });
+  $("plots-agent").addEventListener("change", chooseAgent);
   $("render-button").addEventListener("click", renderView);
   $("depth-download").addEventListener("click", downloadDepth);
   $("render-color").addEventListener("click", pickSurface);
@@ -686,6 +754,8 @@ function start() {
   $("ar-button").addEventListener("click", composite);
   $("ar-auto").addEventListener("click", () => { AR_POSITION.forEach((id) => { $(id).value = ""; }); composite(); });
   window.addEventListener("resize", () => { plotsShown = null; refreshPlots(); });
+  $("viewer-size").addEventListener("click", () => toggleViewerSize());
+  if (localStorage.getItem("voxfusion_viewer_tall")) toggleViewerSize(false);
   setUpViewer();
   refreshSessions();
   setInterval(refreshSessions, 1000);

@@ -143,3 +143,63 @@ def test_page_upload_viewer_and_render(server_url, tmp_path):
         assert sizes[0] > 0 and sizes[1] > 0
         assert not errors, errors
         browser.close()
+
+
+def test_render_panel_follows_the_session_and_plots_show_each_agent(server_url, tmp_path):
+    """Issue 44 items 2, 3, 7, 8: the render panel starts at the selected session's last tracked
+    frame with its camera (fields in step), a collaborative session's plots offer each agent, the
+    header names no port, and the viewer can be made taller."""
+    from playwright.sync_api import sync_playwright
+
+    api = httpx.Client(base_url=server_url, timeout=30)
+    spec = [f"agents?agent={k}&agents=2&frames=6&width=160&height=120" for k in range(2)]
+    session_id = api.post("/api/sessions", json={"source": "synthetic", "preset": "test", "spec": spec}).json()["id"]
+    deadline = time.monotonic() + 150
+    while api.get(f"/api/sessions/{session_id}").json()["status"] != "finished":
+        assert time.monotonic() < deadline, "collaborative session did not finish"
+        time.sleep(0.5)
+    expected = api.get(f"/api/sessions/{session_id}/camera").json()
+
+    with sync_playwright() as playwright:
+        browser = playwright.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
+        page = browser.new_page(viewport={"width": 1400, "height": 1000})
+        errors: list[str] = []
+        page.on("pageerror", lambda error: errors.append(str(error)))
+        page.goto(server_url + f"/?session={session_id}")
+        # The fields follow the session's camera: 160x120 input -> 320x240 at the panel's width.
+        page.wait_for_function("document.getElementById('cam-height').value === '240' && "
+                               "document.getElementById('cam-fov').value !== '60'", timeout=20_000)
+        fov = float(page.input_value("#cam-fov"))
+        i = expected["intrinsics"]
+        assert abs(fov - 2 * np.degrees(np.arctan(i["height"] / 2 / i["fy"]))) < 0.1
+        position = [float(page.input_value(f"#cam-{axis}")) for axis in "xyz"]
+        assert np.allclose(position, np.array(expected["T_world_cam"])[:3, 3], atol=0.006)
+        page.click("#render-button")
+        page.wait_for_function("document.getElementById('render-message').textContent.startsWith('Rendered')",
+                               timeout=60_000)
+        shot = page.locator("#render-color").screenshot()
+        (tmp_path / "render.png").write_bytes(shot)
+        image = cv2.imdecode(np.frombuffer(shot, np.uint8), cv2.IMREAD_COLOR)
+        assert (image.max(axis=2) > 20).mean() > 0.8, f"the view at the last pose shows the scene ({tmp_path})"
+
+        # Per-agent plots: agent 1's series and its own ATE.
+        page.wait_for_selector("#plots-agent-label:not([hidden])", timeout=20_000)
+        assert page.eval_on_selector_all("#plots-agent option", "o => o.map(x => x.textContent)") == \
+            ["agent 0", "agent 1"]
+        page.select_option("#plots-agent", "1")
+        page.wait_for_function("document.getElementById('plots-note').textContent.startsWith('agent 1: ATE')",
+                               timeout=20_000)
+        ate_1 = api.get(f"/api/sessions/{session_id}/series", params={"agent": 1}).json()["ate_rmse_m"]
+        assert f"{ate_1 * 100:.2f} cm" in page.inner_text("#plots-note")
+
+        # The header names no port; "taller" grows the viewer and is remembered.
+        assert "port" not in page.inner_text(".viewer-card h2")
+        before = page.locator("#viewer-box").bounding_box()["height"]
+        page.click("#viewer-size")
+        after = page.locator("#viewer-box").bounding_box()["height"]
+        assert after > before + 200, (before, after)
+        page.reload()
+        page.wait_for_selector("#viewer-box.tall", timeout=10_000)
+        page.screenshot(path=str(tmp_path / "page.png"))
+        assert not errors, errors
+        browser.close()
