@@ -8,6 +8,7 @@ from fastapi import HTTPException, status
 from starlette.requests import HTTPConnection
 
 from server.assets import AssetStore
+from server.path_jobs import PathJobs
 from server.rendering import MapCache, MeshFiles
 from server.sessions import SessionManager
 from server.settings import Settings
@@ -34,6 +35,10 @@ def get_map_cache(conn: HTTPConnection) -> MapCache:
 
 def get_mesh_files(conn: HTTPConnection) -> MeshFiles:
     return conn.app.state.mesh_files
+
+
+def get_path_jobs(conn: HTTPConnection) -> PathJobs:
+    return conn.app.state.path_jobs
 
 
 def get_assets(conn: HTTPConnection) -> AssetStore:

@@ -22,6 +22,7 @@ from server.assets import AssetStore
 from server.budget import RequestBudget
 from server.decoding import shared_helper
 from server.errors import error_text, validation_message
+from server.path_jobs import PathJobs
 from server.rendering import MapCache, MeshFiles, NoMapYet
 from server.routes_pages import STATIC_DIR
 from server.sessions import SessionConflict, SessionManager, SessionNotFound, register_error_handlers
@@ -145,6 +146,7 @@ def create_app(settings: Settings | None = None, demo: DemoSession | None = None
         routes_assets,
         routes_docs,
         routes_pages,
+        routes_paths,
         routes_render,
         routes_series,
         routes_sessions,
@@ -175,6 +177,7 @@ def create_app(settings: Settings | None = None, demo: DemoSession | None = None
         app.state.map_cache = map_cache
         app.state.mesh_files = MeshFiles()
         app.state.assets = AssetStore(settings.assets_dir)
+        app.state.path_jobs = PathJobs()
         if demo is not None:
             from server.sessions import new_session_id
 
@@ -185,6 +188,7 @@ def create_app(settings: Settings | None = None, demo: DemoSession | None = None
         try:
             yield
         finally:
+            app.state.path_jobs.close()
             manager.stop(grace_s=min(settings.cancel_grace_s, 5.0))
             if viewer is not None:
                 viewer.stop()
@@ -201,8 +205,8 @@ def create_app(settings: Settings | None = None, demo: DemoSession | None = None
     app.state.settings = settings
     app.add_middleware(RequestBudget, max_upload_bytes=settings.max_upload_bytes)
     _error_handlers(app)
-    for module in (routes_sessions, routes_series, routes_stream, routes_render, routes_ar, routes_assets, routes_pages,
-                   routes_docs):
+    for module in (routes_sessions, routes_series, routes_stream, routes_render, routes_paths, routes_ar, routes_assets,
+                   routes_pages, routes_docs):
         app.include_router(module.router)
     app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
     routes_docs.mount_assets(app)

@@ -292,6 +292,44 @@ class SessionCameraOut(BaseModel):
     intrinsics: Intrinsics = Field(description="the input camera, at the resolution it was tracked")
 
 
+class PathRequest(Strict):
+    """A fly-through video: keyframe poses (camera-to-world, OpenCV axes), the camera every frame
+    is rendered with, and how to play the path (see ``slam.camera_path``)."""
+
+    keyframes: list[Matrix4] = Field(min_length=2, max_length=64, examples=[[EXAMPLE_POSE, EXAMPLE_POSE]],
+                                     description="2 to 64 poses T_world_cam the path passes through, in order")
+    intrinsics: Intrinsics
+    duration_s: float = Field(6.0, gt=0, le=150, examples=[6.0])
+    fps: float = Field(24.0, ge=1, le=60, examples=[24.0])
+    loop: bool = Field(False, description="return to the first keyframe (a closed path)")
+    outputs: list[Literal["color", "depth", "normals"]] = Field(
+        ["color", "depth", "normals"], min_length=1, max_length=3,
+        description="panels side by side, in this order: rendered colour, depth (turbo colour map), normals")
+    depth_range: tuple[float, float] | None = Field(None, examples=[[0.3, 4.0]],
+                                                    description="metres shown from blue to red (default: the first "
+                                                                "frame's 2nd-98th percentile)")
+
+    _matrices = field_validator("keyframes")(lambda value: [_check_matrix(m) for m in value])
+
+    @model_validator(mode="after")
+    def _sane(self) -> "PathRequest":
+        if self.intrinsics.width * self.intrinsics.height > 640 * 480:
+            raise ValueError("a video frame may have at most 640x480 pixels per panel")
+        if self.depth_range is not None and not 0 <= self.depth_range[0] < self.depth_range[1]:
+            raise ValueError("depth_range: near must be at least 0 and below far")
+        return self
+
+
+class PathJobOut(BaseModel):
+    id: str = Field(examples=["a1b2c3d4e5f6"])
+    state: Literal["queued", "rendering", "finished", "failed"]
+    frames_done: int = Field(examples=[48])
+    frames_total: int = Field(examples=[144])
+    error: str | None = Field(None, examples=[None])
+    video: str = Field(examples=["/api/sessions/3f2a9c0d1b7e/render/path/a1b2c3d4e5f6/video"],
+                       description="where the MP4 is served once finished")
+
+
 class ViewerInfo(BaseModel):
     enabled: bool
     port: int | None = Field(description="viser's own port (its client files; its WebSocket admits only the "

@@ -151,6 +151,59 @@ def cmd_render(args: argparse.Namespace) -> int:
     return 0
 
 
+def add_render_path_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("run_dir", type=Path, help="a run's output folder (map.pt, trajectory.txt)")
+    p.add_argument("--out", required=True, type=Path, help="MP4 file")
+    p.add_argument("--keyframes", default=None,
+                   help="JSON file: a list of 4x4 T_world_cam the path passes through (default: --every-th pose "
+                        "of the run's trajectory, a fly-through of the run)")
+    p.add_argument("--every", type=int, default=30, help="without --keyframes: every N-th tracked pose (default 30)")
+    p.add_argument("--duration", type=float, default=None, help="seconds (default: 1 s per keyframe gap)")
+    p.add_argument("--fps", type=float, default=24.0)
+    p.add_argument("--loop", action="store_true", help="return to the first keyframe")
+    p.add_argument("--intrinsics", default="262.5,262.5,160,120,320,240", metavar="fx,fy,cx,cy,width,height",
+                   type=lambda s: _floats(s, (6,), "--intrinsics"), help="each panel's camera (default 320x240, "
+                                                                         "a Kinect's field of view)")
+    p.add_argument("--outputs", default="color,depth,normals", help="panels side by side: color, depth, normals")
+
+
+def cmd_render_path(args: argparse.Namespace) -> int:
+    import json
+
+    import numpy as np
+    from tqdm import tqdm
+
+    from .camera_path import CameraPath
+    from .checkpoint import CheckpointError, load_checkpoint
+    from .eval.trajectory import read_tum
+    from .path_video import path_frames, write_mp4
+
+    try:
+        maps = load_checkpoint(args.run_dir / "map.pt")
+        if args.keyframes:
+            keyframes = np.array(json.loads(Path(args.keyframes).read_text()), dtype=np.float64)
+        else:
+            poses = read_tum(args.run_dir / "trajectory.txt").poses
+            keyframes = poses[:: max(args.every, 1)]
+            if len(poses) > 1 and (len(poses) - 1) % max(args.every, 1):
+                keyframes = np.concatenate([keyframes, poses[-1:]])
+        gaps = len(keyframes) - (0 if args.loop else 1)
+        path = CameraPath(keyframes, args.duration or float(max(gaps, 1)), args.fps, args.loop)
+        outputs = tuple(o.strip() for o in args.outputs.split(",") if o.strip())
+        fx, fy, cx, cy, w, h = args.intrinsics
+        K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
+        bar = tqdm(total=path.frame_count, unit="frame")
+        frames = path_frames(maps, path, K, int(w), int(h), outputs, on_frame=lambda done, total: bar.update(1))
+        write_mp4(frames, args.out, args.fps)
+        bar.close()
+    except (CheckpointError, ValueError, OSError) as exc:
+        print(f"voxfusion render-path: {exc}", file=sys.stderr)
+        return 2
+    print(f"wrote {args.out}: {path.frame_count} frames through {len(keyframes)} keyframes, "
+          f"{' | '.join(outputs)}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="voxfusion", description="Vox-Fusion++ neural implicit RGB-D SLAM")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -166,6 +219,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("render", help="render a view of a saved map")
     add_render_arguments(p)
     p.set_defaults(handler=cmd_render)
+    p = sub.add_parser("render-path", help="render a fly-through video (MP4) of a saved map along a camera path")
+    add_render_path_arguments(p)
+    p.set_defaults(handler=cmd_render_path)
     return parser
 
 

@@ -621,6 +621,72 @@ async function pickSurface(event) {
   }
 }
 
+// ------------------------------------------------------------------ camera path video
+let pathKeys = [];  // T_world_cam of the path's keyframes, in order
+let pathSession = null;
+const PATH_POLL_MS = 700;
+
+function showPathKeys() {
+  $("path-count").textContent = pathKeys.length ? plural(pathKeys.length, "keyframe") : "no keyframes";
+}
+
+function addPathKey(T) {
+  if (pathSession !== selectedId) { pathKeys = []; pathSession = selectedId; }  // keyframes belong to one map
+  pathKeys.push(T);
+  showPathKeys();
+  say("path-message", pathKeys.length < 2 ? "Add at least one more keyframe." : "", "ok");
+}
+
+async function addViewerKey() {
+  try {
+    addPathKey((await api("/api/viewer/camera?width=64")).T_world_cam);
+  } catch (error) {
+    say("path-message", error.message, "error");
+  }
+}
+
+function addRenderKey() {
+  try { addPathKey(readMatrix()); } catch (error) { say("path-message", error.message, "error"); }
+}
+
+async function renderPath() {
+  if (!selectedId) return say("path-message", "Select a session first.", "error");
+  if (pathKeys.length < 2 || pathSession !== selectedId) return say("path-message", "Add two keyframes or more of this session first.", "error");
+  const outputs = ["color", "depth", "normals"].filter((o) => $(`path-${o}`).checked);
+  let camera;
+  try { camera = currentCamera(); } catch (error) { return say("path-message", error.message, "error"); }
+  const body = { keyframes: pathKeys, intrinsics: camera.intrinsics, duration_s: Number($("path-duration").value),
+                 fps: Number($("path-fps").value), loop: $("path-loop").checked, outputs };
+  $("path-button").disabled = true;
+  try {
+    let job = await api(`/api/sessions/${selectedId}/render/path`, { method: "POST", json: body });
+    const bar = $("path-progress");
+    bar.hidden = false;
+    while (job.state === "queued" || job.state === "rendering") {
+      bar.max = job.frames_total;
+      bar.value = job.frames_done;
+      say("path-message", `Rendering frame ${job.frames_done} of ${job.frames_total}…`);
+      await new Promise((resolve) => setTimeout(resolve, PATH_POLL_MS));
+      job = await api(job.video.replace(/\/video$/, ""));
+    }
+    bar.hidden = true;
+    if (job.state !== "finished") throw new Error(job.error || job.state);
+    const blob = await api(job.video, { expect: "blob" });
+    const url = URL.createObjectURL(blob);
+    $("path-video").src = url;
+    $("path-video").hidden = false;
+    $("path-download").href = url;
+    $("path-download").download = `${selectedId}_path.mp4`;
+    $("path-download").hidden = false;
+    say("path-message", `Rendered ${job.frames_total} frames (${outputs.join(" | ")}).`, "ok");
+  } catch (error) {
+    $("path-progress").hidden = true;
+    say("path-message", error.message, "error");
+  } finally {
+    $("path-button").disabled = false;
+  }
+}
+
 // ------------------------------------------------------------------ accuracy and speed plots
 const PLOT_EVERY_MS = 3000;
 const MIN_FPS_SPAN_S = 0.25;  // as the server's: the first poses can arrive with the phase's start
@@ -755,6 +821,10 @@ function start() {
   $("ar-auto").addEventListener("click", () => { AR_POSITION.forEach((id) => { $(id).value = ""; }); composite(); });
   window.addEventListener("resize", () => { plotsShown = null; refreshPlots(); });
   $("viewer-size").addEventListener("click", () => toggleViewerSize());
+  $("path-add-viewer").addEventListener("click", addViewerKey);
+  $("path-add-render").addEventListener("click", addRenderKey);
+  $("path-clear").addEventListener("click", () => { pathKeys = []; showPathKeys(); say("path-message", ""); });
+  $("path-button").addEventListener("click", renderPath);
   if (localStorage.getItem("voxfusion_viewer_tall")) toggleViewerSize(false);
   setUpViewer();
   refreshSessions();

@@ -203,3 +203,43 @@ def test_render_panel_follows_the_session_and_plots_show_each_agent(server_url, 
         page.screenshot(path=str(tmp_path / "page.png"))
         assert not errors, errors
         browser.close()
+
+
+def test_camera_path_panel_renders_a_video_the_browser_plays(server_url, tmp_path):
+    """Issue 44 item 9: two keyframes from the render panel's camera, a one-second path, the
+    server's MP4 plays in the page's video element."""
+    from playwright.sync_api import sync_playwright
+
+    api = httpx.Client(base_url=server_url, timeout=30)
+    session_id = api.post("/api/sessions", json={"source": "synthetic", "preset": "test",
+                                                 "spec": "orbit?frames=8&width=160&height=120"}).json()["id"]
+    deadline = time.monotonic() + 150
+    while api.get(f"/api/sessions/{session_id}").json()["status"] != "finished":
+        assert time.monotonic() < deadline, "synthetic session did not finish"
+        time.sleep(0.5)
+    with sync_playwright() as playwright:
+        browser = playwright.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
+        page = browser.new_page(viewport={"width": 1400, "height": 1000})
+        errors: list[str] = []
+        page.on("pageerror", lambda error: errors.append(str(error)))
+        page.goto(server_url + f"/?session={session_id}")
+        page.wait_for_function("document.getElementById('cam-height').value === '240'", timeout=20_000)
+        page.fill("#cam-width", "160")
+        page.fill("#cam-height", "120")
+        page.click("#path-add-render")
+        page.fill("#cam-yaw", str(float(page.input_value("#cam-yaw")) + 30))
+        page.click("#pose-from-numbers")
+        page.click("#path-add-render")
+        assert page.inner_text("#path-count") == "2 keyframes"
+        page.fill("#path-duration", "1")
+        page.fill("#path-fps", "6")
+        page.click("#path-button")
+        page.wait_for_function("document.getElementById('path-message').textContent.startsWith('Rendered')",
+                               timeout=90_000)
+        page.wait_for_function("document.getElementById('path-video').readyState >= 2", timeout=20_000)
+        size = page.evaluate("[document.getElementById('path-video').videoWidth,"
+                             " document.getElementById('path-video').videoHeight]")
+        assert size == [480, 120], size
+        page.locator("#path-panel").screenshot(path=str(tmp_path / "path.png"))
+        assert not errors, errors
+        browser.close()

@@ -1,0 +1,78 @@
+"""Camera-path videos (issue 44 item 9): ``POST /api/sessions/{id}/render/path`` starts one,
+``GET .../render/path/{job}`` tells its progress, ``GET .../render/path/{job}/video`` serves the
+MP4 (colour | depth | normals side by side) once it is written."""
+
+from __future__ import annotations
+
+import numpy as np
+from fastapi import APIRouter, Depends, HTTPException, status
+from fastapi.responses import FileResponse
+
+from server.deps import get_manager, get_map_cache, get_path_jobs, require_token
+from server.path_jobs import PathJob, PathJobs, PathRender
+from server.rendering import MapCache, check_pose, intrinsics_matrix
+from server.routes_render import load_map
+from server.schemas import ErrorOut, PathJobOut, PathRequest
+from server.sessions import SessionManager, check_session_id
+from slam.camera_path import CameraPath
+
+router = APIRouter(prefix="/api/sessions", tags=["render"], dependencies=[Depends(require_token)],
+                   responses={401: {"model": ErrorOut}, 404: {"model": ErrorOut}})
+
+
+def job_out(job: PathJob) -> PathJobOut:
+    return PathJobOut(id=job.id, state=job.state, frames_done=job.frames_done, frames_total=job.frames_total,
+                      error=job.error, video=f"/api/sessions/{job.session_id}/render/path/{job.id}/video")
+
+
+def camera_path(request: PathRequest) -> CameraPath:
+    """The request's path; 422 naming the keyframe that is not a rigid pose."""
+    keyframes = []
+    for k, matrix in enumerate(request.keyframes):
+        try:
+            keyframes.append(check_pose(np.array(matrix, dtype=np.float64)))
+        except ValueError as error:
+            raise HTTPException(422, f"keyframes[{k}]: {error}") from None
+    try:
+        return CameraPath(np.stack(keyframes), request.duration_s, request.fps, request.loop)
+    except ValueError as error:
+        raise HTTPException(422, str(error)) from None
+
+
+@router.post("/{session_id}/render/path", response_model=PathJobOut, status_code=status.HTTP_202_ACCEPTED,
+             responses={409: {"model": ErrorOut}, 422: {"model": ErrorOut}},
+             summary="Render a video along a smooth camera path through keyframe poses (MP4, in the background)")
+async def start_path_video(session_id: str, request: PathRequest, manager: SessionManager = Depends(get_manager),
+                           maps: MapCache = Depends(get_map_cache),
+                           jobs: PathJobs = Depends(get_path_jobs)) -> PathJobOut:
+    """The map as it is now (a running session's newest ``map.pt``); poll the job for progress."""
+    path = camera_path(request)
+    mapset = await load_map(manager, maps, session_id)
+    i = request.intrinsics
+    render = PathRender(mapset, path, intrinsics_matrix(i.fx, i.fy, i.cx, i.cy), i.width, i.height,
+                        tuple(request.outputs), request.depth_range)
+    return job_out(jobs.start(session_id, manager.session_dir(session_id), render))
+
+
+def _job(session_id: str, job_id: str, jobs: PathJobs) -> PathJob:
+    job = jobs.get(check_session_id(session_id), job_id)
+    if job is None:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"session {session_id} has no video job {job_id!r}")
+    return job
+
+
+@router.get("/{session_id}/render/path/{job_id}", response_model=PathJobOut, summary="Progress of a path video")
+def path_video_status(session_id: str, job_id: str, jobs: PathJobs = Depends(get_path_jobs)) -> PathJobOut:
+    return job_out(_job(session_id, job_id, jobs))
+
+
+@router.get("/{session_id}/render/path/{job_id}/video", response_class=FileResponse,
+            responses={200: {"content": {"video/mp4": {}}}, 409: {"model": ErrorOut}},
+            summary="The MP4 of a finished path video")
+def path_video(session_id: str, job_id: str, jobs: PathJobs = Depends(get_path_jobs)) -> FileResponse:
+    job = _job(session_id, job_id, jobs)
+    if job.state != "finished" or not job.file.is_file():
+        detail = f"video {job_id} is {job.state}" + (f": {job.error}" if job.error else
+                                                     f" ({job.frames_done} of {job.frames_total} frames)")
+        raise HTTPException(status.HTTP_409_CONFLICT, detail)
+    return FileResponse(job.file, media_type="video/mp4", filename=f"{session_id}_path_{job_id}.mp4")
