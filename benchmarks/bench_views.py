@@ -12,6 +12,12 @@ also compared with the full one (PSNR between the two renders).
     (b) TUM fr1/rpy: map frames 0, 2, ..., 38; views of 1, 5, 9, ..., 37.
 
     python benchmarks/bench_views.py [--scenes room0,rpy] [--threads 2] [--json FILE]
+
+With ``--quality`` it measures how the views look instead (issue 43; ``view_quality.py``):
+PSNR, SSIM and sharpness of training views at tracked poses on every real sequence of
+``bench_real.py``, and Replica room0's held-out views, per preset, with pictures:
+
+    python benchmarks/bench_views.py --quality [--presets cpu] [--sequences desk,room0] [--out DIR]
 """
 
 from __future__ import annotations
@@ -39,6 +45,7 @@ from common import (
     require,
     write_json,
 )
+from view_quality import psnr
 
 SCENES = {
     "room0": (lambda: REPLICA / "room0", list(range(0, 20, 2)), list(range(1, 20, 2))),
@@ -56,10 +63,6 @@ class ViewStats:
     psnr_db: float
     depth_l1_cm: float
     coverage: float
-
-
-def psnr(a: np.ndarray, b: np.ndarray) -> float:
-    return float(-10 * np.log10(max(float(np.mean((a - b) ** 2)), 1e-12)))
 
 
 def render_stats(maps, frames, method: str, precision: str) -> tuple[ViewStats, list]:
@@ -121,7 +124,20 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--scenes", default=",".join(SCENES), help=f"comma list of {tuple(SCENES)}")
     parser.add_argument("--threads", type=int, default=2, help="torch threads while rendering")
     parser.add_argument("--json", type=Path, default=None, help="also write the figures here")
+    parser.add_argument("--quality", action="store_true", help="view quality (PSNR, SSIM, sharpness) instead")
+    parser.add_argument("--presets", default="cpu", help="--quality: comma list of presets")
+    parser.add_argument("--sequences", default="", help="--quality: comma list (default: all of bench_real.py)")
+    parser.add_argument("--out", type=Path, default=Path("out/view-quality"), help="--quality: runs and pictures")
+    parser.add_argument("--timeout", type=float, default=3600, help="--quality: seconds a run may take")
     args = parser.parse_args(argv)
+    if args.quality:
+        import view_quality
+
+        rows = view_quality.run([s for s in args.sequences.split(",") if s], args.presets.split(","), args.out,
+                                args.timeout)
+        print()
+        print(view_quality.table(rows))
+        return 0
 
     import torch
 

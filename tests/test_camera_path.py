@@ -10,19 +10,18 @@ import numpy as np
 import pytest
 
 from slam.camera_path import CameraPath, keyframe_times, normals_from_depth, path_poses
+from tests.test_server_api import (
+    camera_looking_at,
+    client,  # noqa: F401 - fixtures
+    data_dir,  # noqa: F401
+    needs_runtime,
+    synthetic_session,  # noqa: F401
+)
 
 
 def look_at(eye, target) -> np.ndarray:
     """T_world_cam at ``eye`` looking at ``target``, world z up, OpenCV axes."""
-    forward = np.asarray(target, float) - np.asarray(eye, float)
-    forward /= np.linalg.norm(forward)
-    right = np.cross(forward, [0, 0, 1.0])
-    right /= np.linalg.norm(right)
-    down = np.cross(forward, right)
-    T = np.eye(4)
-    T[:3, :3] = np.stack([right, down, forward], axis=1)
-    T[:3, 3] = eye
-    return T
+    return np.array(camera_looking_at(target, eye)["T_world_cam"])
 
 
 def circle_keys(n: int = 4, radius: float = 1.0) -> np.ndarray:
@@ -86,12 +85,6 @@ def test_normals_of_a_tilted_plane():
     assert (normals[0] == 0).all() and (normals[:, -1] == 0).all(), "no normal without both neighbours"
 
 
-from tests.test_server_api import (  # noqa: E402
-    client,  # noqa: F401 - fixtures
-    data_dir,  # noqa: F401
-    needs_runtime,
-    synthetic_session,  # noqa: F401
-)
 
 
 @needs_runtime

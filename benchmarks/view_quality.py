@@ -1,0 +1,195 @@
+"""How views of a map look (issue 43 item 1): PSNR, SSIM and sharpness of rendered views
+against the input, with pictures (input | render | error).
+
+``bench_views.py --quality`` runs this. Per real sequence of the real-data benchmark
+(``bench_real.sequences``: fr1/rpy 150, fr1/desk, Replica room0 and the cache's unseen
+fr1/rpy windows) and preset: one ``voxfusion run`` (process mode, ``--deterministic 1`` so
+that the map does not depend on machine load), then **training views**: every k-th input
+frame (at most ``VIEWS``) rendered at its *tracked* pose at 320 pixels wide, as a user of the
+server sees them. For Replica room0 also **held-out views**: a map from the even frames at
+their ground-truth poses, rendered at the odd ones (``bench_views.py``'s latency protocol).
+
+Sharpness is the gradient energy ratio, mean squared Sobel gradient of the rendered grey
+image over the input's: 1 is as sharp as the input, a smeared view is far below.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import REPLICA, pipeline_frame  # noqa: E402
+
+VIEW_WIDTH = 320
+VIEWS = 12
+"""Training views per sequence (evenly spaced over the run)."""
+PICTURE_VIEWS = 3
+"""Views per picture (columns)."""
+
+
+@dataclass(frozen=True)
+class ViewScores:
+    """Means over the views of one sequence."""
+
+    psnr_db: float
+    ssim: float
+    sharpness: float
+    depth_l1_cm: float
+    count: int
+
+
+def psnr(rendered: np.ndarray, target: np.ndarray) -> float:
+    """(H, W, 3) colours in [0, 1] -> dB over every pixel."""
+    return float(-10 * np.log10(max(float(np.mean((rendered - target) ** 2)), 1e-12)))
+
+
+def ssim(rendered: np.ndarray, target: np.ndarray) -> float:
+    """Mean structural similarity of (H, W, 3) colours in [0, 1] (scikit-image, 7x7 windows)."""
+    from skimage.metrics import structural_similarity
+
+    return float(structural_similarity(rendered, target, channel_axis=2, data_range=1.0))
+
+
+def gradient_energy(rgb: np.ndarray) -> float:
+    """Mean squared Sobel gradient of the grey image of (H, W, 3) colours in [0, 1]."""
+    import cv2
+
+    grey = cv2.cvtColor(rgb.astype(np.float32), cv2.COLOR_RGB2GRAY)
+    gx = cv2.Sobel(grey, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(grey, cv2.CV_32F, 0, 1, ksize=3)
+    return float(np.mean(gx * gx + gy * gy))
+
+
+def sharpness(rendered: np.ndarray, target: np.ndarray) -> float:
+    """Gradient energy of the render over the input's (1: as sharp as the input)."""
+    return gradient_energy(rendered) / max(gradient_energy(target), 1e-12)
+
+
+def score_views(pairs: list[tuple[object, object]]) -> ViewScores:
+    """``pairs`` of (RenderedView, input Frame) of the same size -> their mean scores."""
+    p, s, g, l1 = [], [], [], []
+    for view, frame in pairs:
+        rgb = np.clip(view.rgb, 0, 1).astype(np.float32)
+        target = frame.rgb.astype(np.float32)
+        p.append(psnr(rgb, target))
+        s.append(ssim(rgb, target))
+        g.append(sharpness(rgb, target))
+        both = (frame.depth > 0) & view.valid
+        if both.any():
+            l1.append(float(np.abs(view.depth[both] - frame.depth[both]).mean() * 100))
+    return ViewScores(float(np.mean(p)), float(np.mean(s)), float(np.mean(g)),
+                      float(np.mean(l1)) if l1 else float("nan"), len(pairs))
+
+
+def picture(pairs: list[tuple[object, object]], path: Path) -> Path:
+    """Rows input | render | error (absolute colour difference x3, 0 black) of a few views,
+    side by side, as a PNG."""
+    import cv2
+
+    picks = [pairs[i] for i in np.linspace(0, len(pairs) - 1, min(PICTURE_VIEWS, len(pairs))).round().astype(int)]
+    columns = []
+    for view, frame in picks:
+        rgb = np.clip(view.rgb, 0, 1)
+        error = np.clip(3 * np.abs(rgb - frame.rgb), 0, 1)
+        columns.append(np.concatenate([frame.rgb, rgb, error], axis=0))
+    sheet = (np.concatenate(columns, axis=1) * 255).round().astype(np.uint8)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(path), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR))
+    return path
+
+
+def training_views(run_dir: Path, sequence, width: int = VIEW_WIDTH, views: int = VIEWS):
+    """(RenderedView, input Frame) pairs: every k-th input frame rendered from ``run_dir``'s
+    ``map.pt`` at its pose in ``trajectory.txt``."""
+    from slam import load_checkpoint, read_tum
+    from slam.eval.trajectory import associate
+    from slam.views import render_view
+
+    mapset = load_checkpoint(run_dir / "map.pt")
+    trajectory = read_tum(run_dir / "trajectory.txt")
+    stamps = np.array([sequence[i].timestamp for i in range(len(sequence))]) if not hasattr(
+        sequence, "timestamps") else np.asarray(sequence.timestamps, np.float64)
+    estimate_idx, frame_idx = associate(trajectory.timestamps, stamps, max_dt=1e-3)
+    order = np.argsort(frame_idx)
+    estimate_idx, frame_idx = estimate_idx[order], frame_idx[order]
+    chosen = np.linspace(0, len(frame_idx) - 1, min(views, len(frame_idx))).round().astype(int)
+    pairs = []
+    for c in chosen:
+        frame = pipeline_frame(sequence[int(frame_idx[c])], width)
+        view = render_view(mapset, trajectory.poses[estimate_idx[c]], frame.K, frame.width, frame.height)
+        pairs.append((view, frame))
+    return pairs
+
+
+def held_out_views(config, width: int = VIEW_WIDTH):
+    """Replica room0: a map of frames 0, 2, ..., 18 at their GT poses, views of 1, 3, ..., 19."""
+    from common import map_with_gt_poses
+
+    from slam.data import open_sequence
+    from slam.views import render_view
+
+    sequence = open_sequence(REPLICA / "room0")
+    mapped = [pipeline_frame(sequence[i], config.runtime.input_width) for i in range(0, 20, 2)]
+    mapper = map_with_gt_poses(mapped, config)
+    pairs = []
+    for i in range(1, 20, 2):
+        frame = pipeline_frame(sequence[i], width)
+        pairs.append((render_view(mapper.maps, frame.T_world_cam, frame.K, frame.width, frame.height), frame))
+    return pairs
+
+
+def scores_row(name: str, preset: str, kind: str, scores: ViewScores, picture_path: Path | None) -> dict:
+    return {"sequence": name, "preset": preset, "kind": kind, **scores.__dict__,
+            "picture": str(picture_path) if picture_path else None}
+
+
+def table(rows: list[dict]) -> str:
+    lines = ["| sequence | preset | views | n | PSNR dB | SSIM | sharpness | depth L1 cm | picture |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for r in rows:
+        lines.append(f"| {r['sequence']} | {r['preset']} | {r['kind']} | {r['count']} | {r['psnr_db']:.2f} | "
+                     f"{r['ssim']:.3f} | {r['sharpness']:.2f} | {r['depth_l1_cm']:.2f} | {r['picture'] or ''} |")
+    return "\n".join(lines)
+
+
+def run(sequence_names: list[str] | None, presets: list[str], out: Path, timeout: float) -> list[dict]:
+    """Every sequence x preset: one deterministic run, its training views (and room0's held-out
+    views); prints a line per result and returns the rows."""
+    from bench_real import Variant, run_voxfusion, sequences
+
+    from slam.config import load_config
+    from slam.data import open_sequence
+
+    rows = []
+    for seq in sequences(None):
+        if sequence_names and seq.name not in sequence_names:
+            continue
+        for preset in presets:
+            run_dir = out / f"{seq.name}-{preset}"
+            run_voxfusion(seq, Variant(preset, preset), run_dir, ["--deterministic", "1"], timeout)
+            sequence = open_sequence(seq.path, max_frames=seq.max_frames)
+            pairs = training_views(run_dir, sequence)
+            scores = score_views(pairs)
+            row = scores_row(seq.name, preset, "training", scores, picture(pairs, out / f"{seq.name}-{preset}.png"))
+            rows.append(row)
+            print(_line(row), flush=True)
+            if seq.name == "room0":
+                config = load_config(preset)
+                pairs = held_out_views(config)
+                row = scores_row(seq.name, preset, "held-out", score_views(pairs),
+                                 picture(pairs, out / f"{seq.name}-{preset}-held-out.png"))
+                rows.append(row)
+                print(_line(row), flush=True)
+    (out / "quality.json").write_text(json.dumps(rows, indent=1))
+    return rows
+
+
+def _line(row: dict) -> str:
+    return (f"{row['sequence']} {row['preset']} {row['kind']} views: PSNR {row['psnr_db']:.2f} dB, SSIM "
+            f"{row['ssim']:.3f}, sharpness {row['sharpness']:.2f}, depth L1 {row['depth_l1_cm']:.2f} cm -> "
+            f"{row['picture']}")
