@@ -45,6 +45,7 @@ class PathRender:
     height: int
     outputs: tuple[str, ...]
     depth_range: tuple[float, float] | None = None
+    crop: tuple | None = None
 
 
 @dataclass
@@ -96,7 +97,7 @@ class PathJobs:
         partial = job.file.with_suffix(".part.mp4")
         try:
             frames = path_frames(render.mapset, render.path, render.K, render.width, render.height, render.outputs,
-                                 depth_range=render.depth_range,
+                                 depth_range=render.depth_range, crop=render.crop,
                                  on_frame=lambda done, total: self._update(job_id, frames_done=done))
             write_mp4(frames, partial, render.path.fps)
             partial.replace(job.file)

@@ -50,7 +50,8 @@ async def start_path_video(session_id: str, request: PathRequest, manager: Sessi
     mapset = await load_map(manager, maps, session_id)
     i = request.intrinsics
     render = PathRender(mapset, path, intrinsics_matrix(i.fx, i.fy, i.cx, i.cy), i.width, i.height,
-                        tuple(request.outputs), request.depth_range)
+                        tuple(request.outputs), request.depth_range,
+                        None if request.crop is None else (request.crop.min, request.crop.max))
     return job_out(jobs.start(session_id, manager.session_dir(session_id), render))
 
 

@@ -77,7 +77,8 @@ async def render_view(session_id: str, request: CameraRequest,
     """Works while the session runs (the newest ``map.pt``) and after it ended."""
     camera = camera_from(request)
     mapset = await load_map(manager, maps, session_id)
-    view = await run_in_threadpool(render, mapset, camera)
+    crop = None if request.crop is None else (request.crop.min, request.crop.max)
+    view = await run_in_threadpool(render, mapset, camera, crop=crop)
     if output == "color":
         data = await run_in_threadpool(png_from_rgb, view.rgb)
     elif output == "depth":

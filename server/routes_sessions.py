@@ -7,6 +7,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Literal
 
+import numpy as np
 from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response, status
 from fastapi.responses import FileResponse, PlainTextResponse
 from pydantic import ValidationError
@@ -360,14 +361,53 @@ def get_trajectory(session_id: str,
     return PlainTextResponse(format_tum(Trajectory(stamps, poses)))
 
 
+def parse_crop(text: str | None) -> tuple[list[float], list[float]] | None:
+    """``xmin,ymin,zmin,xmax,ymax,zmax`` -> (min, max); 422 saying what is wrong."""
+    if text is None or not text.strip():
+        return None
+    try:
+        values = [float(v) for v in text.replace(" ", "").split(",")]
+    except ValueError:
+        values = []
+    if len(values) != 6 or not all(np.isfinite(values)):
+        raise HTTPException(422, f"crop: expected six numbers xmin,ymin,zmin,xmax,ymax,zmax, got {text!r}")
+    if not all(lo < hi for lo, hi in zip(values[:3], values[3:])):
+        raise HTTPException(422, f"crop: every min must be below its max, got {text!r}")
+    return values[:3], values[3:]
+
+
+def crop_mesh_bytes(ply: bytes, box: tuple[list[float], list[float]], file_format: str) -> bytes:
+    """A PLY's faces inside ``box`` in ``file_format``; 409 when none is."""
+    import io
+
+    import trimesh
+
+    from slam import crop_mesh, mesh_to_bytes
+
+    mesh = crop_mesh(trimesh.load(io.BytesIO(ply), file_type="ply", process=False), *box)
+    if len(mesh.faces) == 0:
+        raise HTTPException(status.HTTP_409_CONFLICT, "crop: no face of the mesh lies inside the box")
+    return mesh_to_bytes(mesh, file_format)
+
+
 @router.get("/{session_id}/mesh", responses={200: {"content": {t: {} for t in set(MESH_MEDIA_TYPES.values())}},
                                              409: {"model": ErrorOut}},
             summary="The current mesh (world frame, vertex colours), also while running")
 async def get_mesh(session_id: str, format: Literal["ply", "glb", "obj"] = Query("ply"),
+                   crop: str | None = Query(None, examples=["-1,-1,0,1,1,2"],
+                                            description="xmin,ymin,zmin,xmax,ymax,zmax (world frame, metres): only "
+                                                        "the faces inside this box"),
                    manager: SessionManager = Depends(get_manager), maps: MapCache = Depends(get_map_cache),
                    mesh_files: MeshFiles = Depends(get_mesh_files)) -> Response:
     """Finished sessions serve ``mesh.ply`` (converted for GLB/OBJ). Running sessions serve the
     latest live meshes of their maps, or extract one from the latest ``map.pt``."""
+    box = parse_crop(crop)
+    if box is not None:
+        ply = await get_mesh(session_id, "ply", None, manager, maps, mesh_files)
+        data = ply.body if not isinstance(ply, FileResponse) else Path(ply.path).read_bytes()
+        cropped = await run_in_threadpool(crop_mesh_bytes, data, box, format)
+        return Response(cropped, media_type=MESH_MEDIA_TYPES[format],
+                        headers={"Content-Disposition": f'attachment; filename="{session_id}_mesh_crop.{format}"'})
     directory = manager.session_dir(check_session_id(session_id))
     state = manager.get(session_id)
     filename = f"{session_id}_mesh.{format}"

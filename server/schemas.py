@@ -68,11 +68,27 @@ def _check_matrix(value: Matrix4) -> Matrix4:
     return value
 
 
+class CropBox(Strict):
+    """An axis-aligned box in the world frame (metres): only what lies inside it is rendered."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    min: tuple[float, float, float] = Field(examples=[[-1.0, -1.0, 0.0]])
+    max: tuple[float, float, float] = Field(examples=[[1.0, 1.0, 2.0]])
+
+    @model_validator(mode="after")
+    def _ordered(self) -> "CropBox":
+        if not all(lo < hi for lo, hi in zip(self.min, self.max)):
+            raise ValueError("every min must be below its max")
+        return self
+
+
 class CameraRequest(Strict):
     """A camera to render: ``T_world_cam`` is camera-to-world (OpenCV axes: x right, y down, z forward)."""
 
     T_world_cam: Matrix4 = Field(examples=[EXAMPLE_POSE])
     intrinsics: Intrinsics
+    crop: CropBox | None = Field(None, description="render only what lies inside this box (the render call)")
 
     _matrix = field_validator("T_world_cam")(_check_matrix)
 
@@ -308,6 +324,7 @@ class PathRequest(Strict):
     depth_range: tuple[float, float] | None = Field(None, examples=[[0.3, 4.0]],
                                                     description="metres shown from blue to red (default: the first "
                                                                 "frame's 2nd-98th percentile)")
+    crop: "CropBox | None" = Field(None, description="render only what lies inside this box")
 
     _matrices = field_validator("keyframes")(lambda value: [_check_matrix(m) for m in value])
 

@@ -34,7 +34,7 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     "slam.maps": ("MapSet",),
     "slam.checkpoint": ("CheckpointError", "load_checkpoint", "save_checkpoint"),
     "slam.views": ("render_view",),
-    "slam.mesh": ("extract_mesh", "mesh_to_bytes"),
+    "slam.mesh": ("crop_mesh", "extract_mesh", "mesh_to_bytes"),
     "slam.geometry": ("matrix_to_quat_wxyz", "parse_pose", "quat_wxyz_to_matrix"),
     "slam.eval": ("ATEResult", "MeshMetrics", "Trajectory", "associate", "ate", "ate_from_pairs", "format_tum",
                   "mesh_metrics", "read_tum", "umeyama_alignment", "write_tum"),
@@ -69,7 +69,7 @@ if TYPE_CHECKING:  # what the names are, for type checkers and editors; nothing 
                              PosesUpdatedEvent, StatsEvent, SubmapEvent)
     from slam.geometry import matrix_to_quat_wxyz, parse_pose, quat_wxyz_to_matrix
     from slam.maps import MapSet
-    from slam.mesh import extract_mesh, mesh_to_bytes
+    from slam.mesh import crop_mesh, extract_mesh, mesh_to_bytes
     from slam.outputs import RunResult, read_run_json, trajectory_frames, write_json_atomic
     from slam.runtime import AgentStream, run_slam
     from slam.views import render_view

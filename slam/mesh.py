@@ -364,6 +364,22 @@ def mesh_to_bytes(mesh: trimesh.Trimesh, file_format: str) -> bytes:
     return buffer.getvalue()
 
 
+def crop_mesh(mesh: trimesh.Trimesh, box_min, box_max) -> trimesh.Trimesh:
+    """The faces of ``mesh`` whose three vertices lie inside the axis-aligned box (3,) min,
+    (3,) max, with their vertices and colours (unreferenced vertices dropped)."""
+    box_min, box_max = np.asarray(box_min, np.float64), np.asarray(box_max, np.float64)
+    vertices = np.asarray(mesh.vertices)
+    inside = np.all((vertices >= box_min) & (vertices <= box_max), axis=1)
+    faces = np.asarray(mesh.faces)
+    kept = faces[inside[faces].all(axis=1)]
+    used = np.unique(kept)
+    remap = np.full(len(vertices), -1, dtype=np.int64)
+    remap[used] = np.arange(len(used))
+    colors = getattr(mesh.visual, "vertex_colors", None)
+    return trimesh.Trimesh(vertices[used], remap[kept], process=False,
+                           vertex_colors=None if colors is None or len(colors) != len(vertices) else colors[used])
+
+
 def export_mesh(mesh: trimesh.Trimesh, path_or_format: str | Path) -> bytes | Path:
     """A format name (``"ply"``, ``"glb"``, ``"obj"``) returns bytes; a path writes the file.
 

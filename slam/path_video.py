@@ -39,11 +39,13 @@ def auto_depth_range(depth: np.ndarray) -> tuple[float, float]:
 
 def path_frames(mapset, path: CameraPath, K: np.ndarray, width: int, height: int,
                 outputs: Sequence[str] = OUTPUTS, *, depth_range: tuple[float, float] | None = None,
-                on_frame: Callable[[int, int], None] | None = None) -> Iterator[np.ndarray]:
+                crop: tuple | None = None, on_frame: Callable[[int, int], None] | None = None
+                ) -> Iterator[np.ndarray]:
     """Render every frame of ``path`` with intrinsics K (3, 3) of a ``width`` x ``height``
     image; yields (height, width * len(outputs), 3) uint8 frames, the outputs side by side in
     the order given. The depth colours keep one range for the whole video (``depth_range``,
-    else the first view's). ``on_frame(done, total)`` after each frame."""
+    else the first view's). ``crop``: (min, max) world box, as ``render_view``'s.
+    ``on_frame(done, total)`` after each frame."""
     from slam.views import render_view
 
     unknown = [o for o in outputs if o not in OUTPUTS]
@@ -51,7 +53,7 @@ def path_frames(mapset, path: CameraPath, K: np.ndarray, width: int, height: int
         raise ValueError(f"outputs must be some of {OUTPUTS}, got {list(outputs)}")
     poses = path_poses(path)
     for i, T_world_cam in enumerate(poses):
-        view = render_view(mapset, T_world_cam, K, width, height)
+        view = render_view(mapset, T_world_cam, K, width, height, crop=crop)
         depth = np.where(view.valid, view.depth, 0.0)
         if depth_range is None:
             depth_range = auto_depth_range(depth)

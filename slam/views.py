@@ -230,16 +230,44 @@ def _render_submap_chunk(submap, T_map_cam: torch.Tensor, dirs_cam: torch.Tensor
     return out.color, out.depth, surface
 
 
+CROP_SLACK = 1e-3
+"""Metres a cropped view's depth may lie outside the crop's range along its ray (float error)."""
+
+
+def crop_range(T_world_cam: torch.Tensor, dirs_cam: torch.Tensor, box_min: torch.Tensor, box_max: torch.Tensor,
+               near: float, far: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Where each ray is inside a world box: (R, 3) camera-frame directions (z = 1, so ``t``
+    is z-depth in every frame), the box's (3,) corners -> near (R,), far (R,) within [near,
+    far]; a ray that misses the box gets far = near (nothing to render)."""
+    dirs = dirs_cam @ T_world_cam[:3, :3].transpose(0, 1)
+    origin = T_world_cam[:3, 3]
+    safe = torch.where(dirs.abs() < 1e-12, torch.full_like(dirs, 1e-12), dirs)
+    t0 = (box_min - origin) / safe
+    t1 = (box_max - origin) / safe
+    ray_near = torch.minimum(t0, t1).amax(1).clamp(min=near)
+    ray_far = torch.maximum(t0, t1).amin(1).clamp(max=far)
+    return ray_near, torch.maximum(ray_far, ray_near)
+
+
+def _ray_range(dirs_cam: torch.Tensor, config, near: float, ray_range) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each ray's [near, far]: ``ray_range`` (a crop's), else ``near`` to D_max."""
+    if ray_range is not None:
+        return ray_range
+    return torch.full_like(dirs_cam[:, 0], near), torch.full_like(dirs_cam[:, 0], config.render.max_distance)
+
+
 def _render_submap_full(submap, T_map_cam: torch.Tensor, dirs_cam: torch.Tensor, config,
-                        near: float, chunk: int, *, with_color: bool = True, decoder=None, view=None
+                        near: float, chunk: int, *, with_color: bool = True, decoder=None, view=None,
+                        ray_range: tuple[torch.Tensor, torch.Tensor] | None = None
                         ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Every ray of (N, 3) ``dirs_cam`` from ``near`` to D_max, in chunks -> colour, depth, surface."""
-    far = config.render.max_distance
+    """Every ray of (N, 3) ``dirs_cam`` from ``near`` to D_max (or over ``ray_range``, (N,)
+    near and far each), in chunks -> colour, depth, surface."""
+    ray_near, ray_far = _ray_range(dirs_cam, config, near, ray_range)
     parts = []
     for start in range(0, dirs_cam.shape[0], chunk):
         d = dirs_cam[start:start + chunk]
-        parts.append(_render_submap_chunk(submap, T_map_cam, d, config, torch.full_like(d[:, 0], near),
-                                          torch.full_like(d[:, 0], far), with_color=with_color,
+        parts.append(_render_submap_chunk(submap, T_map_cam, d, config, ray_near[start:start + chunk],
+                                          ray_far[start:start + chunk], with_color=with_color,
                                           decoder=decoder, view=view))
     if not parts:
         empty = dirs_cam.new_zeros(0)
@@ -382,15 +410,17 @@ def _coarse_config(config):
 
 def _pixel_bands(submap, T_map_cam: torch.Tensor, dirs_cam: torch.Tensor, config, near: float, chunk: int,
                  width: int, height: int, stride: int, decoder=None, view=None,
-                 planar_tolerance: float = PLANAR_TOLERANCE) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+                 planar_tolerance: float = PLANAR_TOLERANCE, ray_range=None
+                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The coarse pass and the bands it gives: (H * W, 3) directions -> the pixels with a band
-    (P,) int64 and its [near, far) (P,) in metres of ``t``."""
+    (P,) int64 and its [near, far) (P,) in metres of ``t``, within ``ray_range`` if given."""
     device = dirs_cam.device
+    ray_near, ray_far = _ray_range(dirs_cam, config, near, ray_range)
     cu, cv = coarse_grid(width, stride).to(device), coarse_grid(height, stride).to(device)
     coarse_index = (cv[:, None] * width + cu[None, :]).reshape(-1)
-    _, coarse_depth, coarse_surface = _render_submap_full(submap, T_map_cam, dirs_cam[coarse_index],
-                                                          _coarse_config(config), near, chunk, with_color=False,
-                                                          decoder=decoder, view=view)
+    _, coarse_depth, coarse_surface = _render_submap_full(
+        submap, T_map_cam, dirs_cam[coarse_index], _coarse_config(config), near, chunk, with_color=False,
+        decoder=decoder, view=view, ray_range=(ray_near[coarse_index], ray_far[coarse_index]))
     coarse_depth = coarse_depth.reshape(len(cv), len(cu))
     coarse_surface = coarse_surface.reshape(len(cv), len(cu))
     lo, hi = depth_bands(coarse_depth, coarse_surface, cu, cv, width, height)
@@ -404,18 +434,19 @@ def _pixel_bands(submap, T_map_cam: torch.Tensor, dirs_cam: torch.Tensor, config
     margin = max(BAND_WEIGHT_WIDTHS * config.render.truncation ** 2,
                  BAND_MIN_STEPS * config.render.step_ratio * submap.voxels.voxel_size)
     banded = torch.nonzero(torch.isfinite(lo), as_tuple=True)[0]
-    band_near = (lo[banded] - margin).clamp(min=near)
-    band_far = (hi[banded] + margin).clamp(max=config.render.max_distance)
+    band_near = torch.maximum(lo[banded] - margin, ray_near[banded])
+    band_far = torch.maximum(torch.minimum(hi[banded] + margin, ray_far[banded]), band_near)
     return banded, band_near, band_far
 
 
 def _render_submap_banded(submap, T_map_cam: torch.Tensor, dirs_cam: torch.Tensor, config,
                           near: float, chunk: int, width: int, height: int, stride: int, decoder=None,
-                          view=None, planar_tolerance: float = PLANAR_TOLERANCE
+                          view=None, planar_tolerance: float = PLANAR_TOLERANCE, ray_range=None
                           ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The ``banded`` method for one submap: (H * W, 3) directions -> colour, depth, surface."""
     banded, band_near, band_far = _pixel_bands(submap, T_map_cam, dirs_cam, config, near, chunk, width, height,
-                                               stride, decoder=decoder, view=view, planar_tolerance=planar_tolerance)
+                                               stride, decoder=decoder, view=view, planar_tolerance=planar_tolerance,
+                                               ray_range=ray_range)
     step = config.render.step_ratio * submap.voxels.voxel_size
     num_pixels = width * height
     device = dirs_cam.device
@@ -434,7 +465,8 @@ def _render_submap_banded(submap, T_map_cam: torch.Tensor, dirs_cam: torch.Tenso
 def render_view(mapset, T_world_cam, K, width: int, height: int, *, chunk_rays: int | None = None,
                 device: str | torch.device | None = None, near: float = DEFAULT_NEAR,
                 method: str = "banded", coarse_stride: int = DEFAULT_COARSE_STRIDE,
-                precision: str = "auto", planar_tolerance: float = PLANAR_TOLERANCE) -> RenderedView:
+                precision: str = "auto", planar_tolerance: float = PLANAR_TOLERANCE,
+                crop: tuple | None = None) -> RenderedView:
     """Render colour and depth of the whole map set seen by one pinhole camera.
 
     T_world_cam (4, 4) camera-to-world, OpenCV axes; K (3, 3) intrinsics of a
@@ -444,7 +476,8 @@ def render_view(mapset, T_world_cam, K, width: int, height: int, *, chunk_rays: 
     pass, then a depth band per pixel) or ``full`` (the reference); see the module docstring.
     ``precision`` is the decoder's: ``auto`` (bfloat16 on a CPU that multiplies it natively,
     ``Bfloat16Decoder``; else float32), ``float32`` or ``bfloat16``. ``planar_tolerance``
-    (metres, ``banded`` only; 0: off): see ``PLANAR_TOLERANCE``.
+    (metres, ``banded`` only; 0: off): see ``PLANAR_TOLERANCE``. ``crop`` (min (3,), max (3,))
+    world-frame corners of a box: only what lies inside it is rendered.
     """
     width, height = int(width), int(height)
     if width <= 0 or height <= 0:
@@ -469,6 +502,13 @@ def render_view(mapset, T_world_cam, K, width: int, height: int, *, chunk_rays: 
 
     num_pixels = width * height
     dirs_cam = camera_rays(K.to(torch.float32), pixel_centres(width, height)).to(device)
+    ray_range = None
+    if crop is not None:
+        box_min, box_max = (_as_tensor(c, "crop", (3,)).to(device, torch.float32) for c in crop)
+        if not bool((box_min < box_max).all()):
+            raise ValueError(f"crop: every min must be below its max, got {box_min.tolist()} and {box_max.tolist()}")
+        ray_range = crop_range(T_world_cam.to(device, torch.float32), dirs_cam, box_min, box_max, near,
+                               config.render.max_distance)
     best_depth = torch.full((num_pixels,), float("inf"), device=device)
     rgb = torch.zeros(num_pixels, 3, device=device)
     source = torch.full((num_pixels,), -1, dtype=torch.int32, device=device)
@@ -481,11 +521,14 @@ def render_view(mapset, T_world_cam, K, width: int, height: int, *, chunk_rays: 
         voxels = rendered_voxels(submap)
         if method == "full" or coarse_stride == 1:
             color, depth, surface = _render_submap_full(submap, T_map_cam, dirs_cam, config, near, chunk,
-                                                        decoder=decoder, view=voxels)
+                                                        decoder=decoder, view=voxels, ray_range=ray_range)
         else:
             color, depth, surface = _render_submap_banded(submap, T_map_cam, dirs_cam, config, near, chunk,
                                                           width, height, int(coarse_stride), decoder=decoder,
-                                                          view=voxels, planar_tolerance=float(planar_tolerance))
+                                                          view=voxels, planar_tolerance=float(planar_tolerance),
+                                                          ray_range=ray_range)
+        if ray_range is not None:  # samples snap to the voxels' step grid: keep only depths inside the crop
+            surface = surface & (depth >= ray_range[0] - CROP_SLACK) & (depth <= ray_range[1] + CROP_SLACK)
         nearer = surface & (depth < best_depth)
         best_depth = torch.where(nearer, depth, best_depth)
         rgb = torch.where(nearer[:, None], color.clamp(0.0, 1.0), rgb)

@@ -414,11 +414,44 @@ function toggleViewerSize(save = true) {
 // ------------------------------------------------------------------ render panel
 let lastCamera = null;
 
+const CROP_FIELDS = ["crop-x0", "crop-y0", "crop-z0", "crop-x1", "crop-y1", "crop-z1"];
+
+// The crop box of the render panel: null when its fields are empty.
+function cropBox() {
+  const values = CROP_FIELDS.map((id) => $(id).value.trim());
+  if (values.every((v) => v === "")) return null;
+  if (values.some((v) => v === "" || !Number.isFinite(Number(v)))) throw new Error("crop box: give all six numbers, or none");
+  const v = values.map(Number);
+  if (!(v[0] < v[3] && v[1] < v[4] && v[2] < v[5])) throw new Error("crop box: every min must be below its max");
+  return { min: v.slice(0, 3), max: v.slice(3) };
+}
+
 function currentCamera() {
   const width = Number($("cam-width").value), height = Number($("cam-height").value);
   const fov = deg(Number($("cam-fov").value));
   const f = (0.5 * height) / Math.tan(fov / 2);
-  return { T_world_cam: readMatrix(), intrinsics: { fx: f, fy: f, cx: width / 2, cy: height / 2, width, height } };
+  const camera = { T_world_cam: readMatrix(), intrinsics: { fx: f, fy: f, cx: width / 2, cy: height / 2, width, height } };
+  const crop = cropBox();
+  if (crop) camera.crop = crop;
+  return camera;
+}
+
+async function downloadCroppedMesh(event) {
+  event.preventDefault();
+  if (!selectedId) return say("render-message", "Select a session first.", "error");
+  try {
+    const crop = cropBox();
+    if (!crop) throw new Error("crop box: fill in its six numbers first");
+    const query = [...crop.min, ...crop.max].join(",");
+    const blob = await api(`/api/sessions/${selectedId}/mesh?format=ply&crop=${encodeURIComponent(query)}`, { expect: "blob" });
+    const a = document.createElement("a");
+    a.href = URL.createObjectURL(blob);
+    a.download = `${selectedId}_mesh_crop.ply`;
+    a.click();
+    say("render-message", "Cropped mesh downloaded.", "ok");
+  } catch (error) {
+    say("render-message", error.message, "error");
+  }
 }
 
 // The viewer's pose and vertical field of view; the render size stays what the user set (the
@@ -583,7 +616,10 @@ async function composite() {
   if ($("ar-background").value === "frame") {
     request.background = `frame:${Number($("ar-frame").value)}`;
   } else {
-    try { Object.assign(request, currentCamera()); } catch (error) { return say("ar-message", error.message, "error"); }
+    try {
+      const { crop, ...camera } = currentCamera();  // the composite shows the whole map
+      Object.assign(request, camera);
+    } catch (error) { return say("ar-message", error.message, "error"); }
     request.background = "render";
   }
   say("ar-message", "Compositing…");
@@ -655,7 +691,7 @@ async function renderPath() {
   const outputs = ["color", "depth", "normals"].filter((o) => $(`path-${o}`).checked);
   let camera;
   try { camera = currentCamera(); } catch (error) { return say("path-message", error.message, "error"); }
-  const body = { keyframes: pathKeys, intrinsics: camera.intrinsics, duration_s: Number($("path-duration").value),
+  const body = { keyframes: pathKeys, intrinsics: camera.intrinsics, crop: camera.crop, duration_s: Number($("path-duration").value),
                  fps: Number($("path-fps").value), loop: $("path-loop").checked, outputs };
   $("path-button").disabled = true;
   try {
@@ -825,6 +861,8 @@ function start() {
   $("path-add-render").addEventListener("click", addRenderKey);
   $("path-clear").addEventListener("click", () => { pathKeys = []; showPathKeys(); say("path-message", ""); });
   $("path-button").addEventListener("click", renderPath);
+  $("crop-mesh").addEventListener("click", downloadCroppedMesh);
+  $("crop-clear").addEventListener("click", () => { CROP_FIELDS.forEach((id) => { $(id).value = ""; }); });
   if (localStorage.getItem("voxfusion_viewer_tall")) toggleViewerSize(false);
   setUpViewer();
   refreshSessions();

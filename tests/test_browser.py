@@ -7,6 +7,7 @@ from __future__ import annotations
 import io
 import time
 import zipfile
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator
 
@@ -145,27 +146,42 @@ def test_page_upload_viewer_and_render(server_url, tmp_path):
         browser.close()
 
 
-def test_render_panel_follows_the_session_and_plots_show_each_agent(server_url, tmp_path):
-    """Issue 44 items 2, 3, 7, 8: the render panel starts at the selected session's last tracked
-    frame with its camera (fields in step), a collaborative session's plots offer each agent, the
-    header names no port, and the viewer can be made taller."""
-    from playwright.sync_api import sync_playwright
-
-    api = httpx.Client(base_url=server_url, timeout=30)
-    spec = [f"agents?agent={k}&agents=2&frames=6&width=160&height=120" for k in range(2)]
+def finished_synthetic(api: httpx.Client, spec) -> str:
+    """A synthetic session (a spec, or a list: one agent each) with the test preset, run to its end."""
     session_id = api.post("/api/sessions", json={"source": "synthetic", "preset": "test", "spec": spec}).json()["id"]
     deadline = time.monotonic() + 150
     while api.get(f"/api/sessions/{session_id}").json()["status"] != "finished":
-        assert time.monotonic() < deadline, "collaborative session did not finish"
+        assert time.monotonic() < deadline, f"synthetic session {spec} did not finish"
         time.sleep(0.5)
-    expected = api.get(f"/api/sessions/{session_id}/camera").json()
+    return session_id
+
+
+@contextmanager
+def browser_page(url: str) -> Iterator:
+    """Chromium on ``url`` at 1400x1000; fails the test if the page raised an error."""
+    from playwright.sync_api import sync_playwright
 
     with sync_playwright() as playwright:
         browser = playwright.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
         page = browser.new_page(viewport={"width": 1400, "height": 1000})
         errors: list[str] = []
         page.on("pageerror", lambda error: errors.append(str(error)))
-        page.goto(server_url + f"/?session={session_id}")
+        page.goto(url)
+        yield page
+        assert not errors, errors
+        browser.close()
+
+
+def test_render_panel_follows_the_session_and_plots_show_each_agent(server_url, tmp_path):
+    """Issue 44 items 2, 3, 7, 8: the render panel starts at the selected session's last tracked
+    frame with its camera (fields in step), a collaborative session's plots offer each agent, the
+    header names no port, and the viewer can be made taller."""
+    api = httpx.Client(base_url=server_url, timeout=30)
+    session_id = finished_synthetic(api, [f"agents?agent={k}&agents=2&frames=6&width=160&height=120"
+                                          for k in range(2)])
+    expected = api.get(f"/api/sessions/{session_id}/camera").json()
+
+    with browser_page(server_url + f"/?session={session_id}") as page:
         # The fields follow the session's camera: 160x120 input -> 320x240 at the panel's width.
         page.wait_for_function("document.getElementById('cam-height').value === '240' && "
                                "document.getElementById('cam-fov').value !== '60'", timeout=20_000)
@@ -201,28 +217,14 @@ def test_render_panel_follows_the_session_and_plots_show_each_agent(server_url, 
         page.reload()
         page.wait_for_selector("#viewer-box.tall", timeout=10_000)
         page.screenshot(path=str(tmp_path / "page.png"))
-        assert not errors, errors
-        browser.close()
 
 
 def test_camera_path_panel_renders_a_video_the_browser_plays(server_url, tmp_path):
     """Issue 44 item 9: two keyframes from the render panel's camera, a one-second path, the
     server's MP4 plays in the page's video element."""
-    from playwright.sync_api import sync_playwright
-
     api = httpx.Client(base_url=server_url, timeout=30)
-    session_id = api.post("/api/sessions", json={"source": "synthetic", "preset": "test",
-                                                 "spec": "orbit?frames=8&width=160&height=120"}).json()["id"]
-    deadline = time.monotonic() + 150
-    while api.get(f"/api/sessions/{session_id}").json()["status"] != "finished":
-        assert time.monotonic() < deadline, "synthetic session did not finish"
-        time.sleep(0.5)
-    with sync_playwright() as playwright:
-        browser = playwright.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
-        page = browser.new_page(viewport={"width": 1400, "height": 1000})
-        errors: list[str] = []
-        page.on("pageerror", lambda error: errors.append(str(error)))
-        page.goto(server_url + f"/?session={session_id}")
+    session_id = finished_synthetic(api, "orbit?frames=8&width=160&height=120")
+    with browser_page(server_url + f"/?session={session_id}") as page:
         page.wait_for_function("document.getElementById('cam-height').value === '240'", timeout=20_000)
         page.fill("#cam-width", "160")
         page.fill("#cam-height", "120")
@@ -241,5 +243,32 @@ def test_camera_path_panel_renders_a_video_the_browser_plays(server_url, tmp_pat
                              " document.getElementById('path-video').videoHeight]")
         assert size == [480, 120], size
         page.locator("#path-panel").screenshot(path=str(tmp_path / "path.png"))
-        assert not errors, errors
-        browser.close()
+
+
+def test_crop_box_bounds_the_render(server_url, tmp_path):
+    """Issue 44 item 11: a crop box in the render panel hides what lies outside it."""
+    api = httpx.Client(base_url=server_url, timeout=30)
+    session_id = finished_synthetic(api, "orbit?frames=8&width=160&height=120")
+    with browser_page(server_url + f"/?session={session_id}") as page:
+        page.wait_for_function("document.getElementById('cam-height').value === '240'", timeout=20_000)
+
+        def rendered_share() -> float:
+            page.click("#render-button")
+            page.wait_for_function("document.getElementById('render-message').textContent.startsWith('Rendered')",
+                                   timeout=60_000)
+            page.evaluate("document.getElementById('render-message').textContent = ''")
+            shot = page.locator("#render-color").screenshot()
+            image = cv2.imdecode(np.frombuffer(shot, np.uint8), cv2.IMREAD_COLOR)
+            return float((image.max(axis=2) > 40).mean())
+
+        whole = rendered_share()
+        page.click("#crop-details summary")
+        x = float(page.input_value("#cam-x"))
+        for field, value in zip(["x0", "y0", "z0", "x1", "y1", "z1"], [x - 100, -100, -100, x, 100, 100]):
+            page.fill(f"#crop-{field}", str(value))
+        cropped = rendered_share()
+        assert cropped < 0.8 * whole, (whole, cropped)
+        page.fill("#crop-x1", str(x - 200))
+        page.click("#render-button")
+        page.wait_for_function("document.getElementById('render-message').textContent.includes('below its max')",
+                               timeout=10_000)
