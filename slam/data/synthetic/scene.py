@@ -4,7 +4,7 @@ World frame (used by the whole synthetic source): metres, **z up**, origin at th
 floor. The default room spans x in [-3, 3], y in [-2.5, 2.5], z in [0, 3]. Furniture stays in a
 band within :data:`WALL_BAND` metres of the walls plus one table at the room centre (its footprint
 inside :data:`TABLE_MAX_HALF_SIZE`), which leaves a free ring around the table where the synthetic
-trajectories move (see ``synthetic_trajectory.py``).
+trajectories move (see ``trajectory.py``).
 
 The ``hall`` kind is a ring corridor around a solid full-height central block, for
 loop-closure benchmarks, in two sizes (:data:`HALL_LAYOUTS`): ``compact`` (the default), 4.4 x 3.6
