@@ -210,6 +210,41 @@ def training_far(depth: torch.Tensor, truncation: float, max_distance: float) ->
     return torch.clamp(depth + 2.0 * truncation, max=max_distance)
 
 
+
+@dataclass(frozen=True)
+class _JointWindow:
+    """What the iterations of one joint optimisation share (``Mapper._joint_optimisation``):
+    the S source frames (stacked) and their starting T_map_cam (S, 4, 4); the indices ``free``
+    (P) of the free poses, as a tensor in ``free_rows``, their twists (P, 6) and optimiser
+    (None when none is free); the loss weights; the exposures; the map's view and sample step;
+    where the generator draws; the padded samples' shape with static shapes, else None."""
+
+    sources: list[TensorFrame]
+    stack: FrameStack | None
+    rays_per_frame: int
+    T_start: torch.Tensor
+    free: list[int]
+    free_rows: torch.Tensor
+    twists: torch.Tensor
+    pose_opt: torch.optim.Optimizer | None
+    weights: LossWeights
+    exposure: _WindowExposure | None
+    view: object
+    step: float
+    gen_device: torch.device
+    shape: tuple[int, int, int] | None
+
+
+def _window_rays(batch: PixelBatch, T: torch.Tensor, frames: int, rays_per_frame: int,
+                 ) -> tuple[torch.Tensor, torch.Tensor]:
+    """World (map) origins and directions (R, 3) of a batch of ``rays_per_frame`` rays of each
+    of ``frames`` frames posed at ``T`` (frames, 4, 4)."""
+    dirs_cam = batch.dirs_cam.reshape(frames, rays_per_frame, 3)
+    d = (dirs_cam @ T[:, :3, :3].transpose(1, 2)).reshape(-1, 3)
+    o = T[:, None, :3, 3].expand(-1, rays_per_frame, 3).reshape(-1, 3)
+    return o, d
+
+
 class Mapper:
     """Owns the map set and optimises it as tracked frames arrive.
 
@@ -442,8 +477,34 @@ class Mapper:
         ``free_frames`` the ``fixed`` frames' poses get twists too. Returns the last
         iteration's losses and the ``fixed`` frames' T_map_cam (4, 4) after it (moved only
         with ``free_frames``)."""
-        m, r = self.config.mapping, self.config.render
         optimizer = self._ensure_optimizer(submap)
+        w = self._joint_window(submap, keyframes, fixed, rays_per_frame, free_frames)
+        losses: Losses | None = None
+        self.last_iterations = 0
+        for _ in range(iterations):
+            with scope(MAPPING_ITERATION):
+                tq = time.perf_counter()
+                if (deadline is not None and tq > deadline) or (interrupted is not None and interrupted()):
+                    break
+                self.last_iterations += 1
+                losses = self._joint_losses(submap, w)
+                tb = time.perf_counter()
+                self._joint_step(submap, optimizer, w, losses)
+                self.timer.add("render", tb - tq)
+                self.timer.add("backward", time.perf_counter() - tb)
+        frame_poses = [T for _, T in fixed]
+        if w.exposure is not None:
+            w.exposure.store(keyframes)
+        if w.free:
+            self._move_free_poses(w, keyframes, frame_poses)
+        return ({} if losses is None else losses.as_floats()), frame_poses
+
+    def _joint_window(self, submap: SubMap, keyframes: list[Keyframe],
+                      fixed: list[tuple[TensorFrame, torch.Tensor]], rays_per_frame: int,
+                      free_frames: bool) -> "_JointWindow":
+        """What the iterations of ``_joint_optimisation`` share (``_JointWindow``); with static
+        shapes this reads the device once (``_sample_shape``)."""
+        m, r = self.config.mapping, self.config.render
         sources = [kf.frame for kf in keyframes] + [frame for frame, _ in fixed]
         T_start = torch.stack([kf.T_map_cam for kf in keyframes] + [T for _, T in fixed])  # (S, 4, 4)
         first_kf = submap.keyframes[0]
@@ -457,89 +518,89 @@ class Mapper:
         pose_opt = torch.optim.Adam([twists], lr=m.lr_pose, fused=True if self.static else None) if free else None
         weights = self._loss_weights()
         stack = stack_frames(sources)
-        losses: Losses | None = None
-        self.last_iterations = 0
         exposure = _WindowExposure.of(m, keyframes, first_kf, len(sources), self.device, self.static)
         view = submap.view()  # the map does not change inside the loop (no allocation)
         step = r.step_ratio * submap.voxels.voxel_size
         gen_device = draw_device(self._gen, self.device)
         shape = self._sample_shape(sources, stack, rays_per_frame, T_start, view) if self.static else None
+        return _JointWindow(sources, stack, rays_per_frame, T_start, free, free_rows, twists, pose_opt, weights,
+                            exposure, view, step, gen_device, shape)
 
-        def rays(batch: PixelBatch, T: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-            dirs_cam = batch.dirs_cam.reshape(len(sources), rays_per_frame, 3)
-            d = (dirs_cam @ T[:, :3, :3].transpose(1, 2)).reshape(-1, 3)
-            o = T[:, None, :3, 3].expand(-1, rays_per_frame, 3).reshape(-1, 3)
-            return o, d
+    def _joint_losses(self, submap: SubMap, w: "_JointWindow") -> Losses:
+        """One iteration's forward pass: a batch of rays of every source from its pose with the
+        twists applied, rendered (with the exposures) and scored."""
+        batch = self._sample(w.sources, w.stack, w.rays_per_frame)
+        T = w.T_start
+        if w.free:
+            xi = torch.zeros(len(w.sources), 6, device=self.device).index_copy(0, w.free_rows, w.twists)
+            T = w.T_start @ (se3_exp_compact(xi) if self.static else se3_exp(xi))
+        o, d = _window_rays(batch, T, len(w.sources), w.rays_per_frame)
+        c_gt, d_gt = batch.rgb, batch.depth
+        out = self._render_window(submap, w, o, d, d_gt)
+        if w.exposure is not None:
+            out = w.exposure.applied(out, c_gt, w.rays_per_frame)
+        r = self.config.render
+        losses = compute_losses(out, c_gt, d_gt, r.truncation, w.weights, max_depth=r.max_distance,
+                                normalisation=self.config.loss.normalisation)
+        if w.exposure is not None:
+            losses = w.exposure.regularised(losses)
+        return losses
 
-        for _ in range(iterations):
-            with scope(MAPPING_ITERATION):
-                tq = time.perf_counter()
-                if (deadline is not None and tq > deadline) or (interrupted is not None and interrupted()):
-                    break
-                self.last_iterations += 1
-                batch = self._sample(sources, stack, rays_per_frame)
-                T = T_start
-                if free:
-                    xi = torch.zeros(len(sources), 6, device=self.device).index_copy(0, free_rows, twists)
-                    T = T_start @ (se3_exp_compact(xi) if self.static else se3_exp(xi))
-                o, d = rays(batch, T)
-                c_gt, d_gt = batch.rgb, batch.depth
-                n = o.shape[0]
-                thinning = None
-                if m.thin_samples:
-                    phase = torch.randint(m.free_space_stride, (n,), generator=self._gen, device=gen_device).to(self.device)
-                    thinning = TrainingThinning(d_gt, r.truncation, r.max_distance, m.free_space_stride, phase)
-                near = torch.full((n,), 0.05, device=self.device)
-                far = training_far(d_gt, r.truncation, r.max_distance)
-                offsets = torch.rand(n, generator=self._gen, device=gen_device).to(self.device)
-                if shape is not None:
-                    grid, slots, colour = shape
-                    with torch.no_grad():
-                        samples = pack_samples(grid_samples(o.detach(), d.detach(), near, far, step, view, grid,
-                                                            max_hits=r.max_hits, offsets=offsets,
-                                                            thinning=thinning), slots)
-                    out = render_padded(o, d, view, submap.decoder, samples, truncation=r.truncation,
-                                        color_weight_eps=m.color_weight_eps, color_slots=colour,
-                                        mask_in_front=r.mask_in_front, renormalise_color=True)
-                else:
-                    out = render_rays(o, d, view, submap.decoder, near=near, far=far,
-                                      step=step, truncation=r.truncation,
-                                      max_hits=r.max_hits, offsets=offsets,
-                                      mask_in_front=r.mask_in_front, thinning=thinning,
-                                      color_weight_eps=m.color_weight_eps, renormalise_color=True)
-                if exposure is not None:
-                    out = exposure.applied(out, c_gt, rays_per_frame)
-                losses = compute_losses(out, c_gt, d_gt, r.truncation, weights, max_depth=r.max_distance,
-                                        normalisation=self.config.loss.normalisation)
-                if exposure is not None:
-                    losses = exposure.regularised(losses)
-                tb = time.perf_counter()
-                optimizer.zero_grad(set_to_none=True)
-                if pose_opt is not None:
-                    pose_opt.zero_grad(set_to_none=True)
-                if exposure is not None:
-                    exposure.optimizer.zero_grad(set_to_none=True)
-                losses.total.backward()
-                self._count_corner_updates(submap)
-                optimizer.step()
-                if pose_opt is not None:
-                    pose_opt.step()
-                if exposure is not None:
-                    exposure.optimizer.step()
-                self.timer.add("render", tb - tq)
-                self.timer.add("backward", time.perf_counter() - tb)
-        frame_poses = [T for _, T in fixed]
-        if exposure is not None:
-            exposure.store(keyframes)
-        if free:
+    def _render_window(self, submap: SubMap, w: "_JointWindow", o: torch.Tensor, d: torch.Tensor,
+                       d_gt: torch.Tensor):
+        """The window's rays ``o``, ``d`` (R, 3) rendered for training: thinned free space
+        (``mapping.thin_samples``), random sample offsets; padded samples with static shapes."""
+        m, r = self.config.mapping, self.config.render
+        n = o.shape[0]
+        thinning = None
+        if m.thin_samples:
+            phase = torch.randint(m.free_space_stride, (n,), generator=self._gen, device=w.gen_device).to(self.device)
+            thinning = TrainingThinning(d_gt, r.truncation, r.max_distance, m.free_space_stride, phase)
+        near = torch.full((n,), 0.05, device=self.device)
+        far = training_far(d_gt, r.truncation, r.max_distance)
+        offsets = torch.rand(n, generator=self._gen, device=w.gen_device).to(self.device)
+        if w.shape is not None:
+            grid, slots, colour = w.shape
             with torch.no_grad():
-                moved = T_start[free_rows] @ se3_exp(twists.detach())
-                for i, T_new in zip(free, moved):
-                    if i < len(keyframes):
-                        keyframes[i].T_map_cam = T_new
-                    else:
-                        frame_poses[i - len(keyframes)] = T_new
-        return ({} if losses is None else losses.as_floats()), frame_poses
+                samples = pack_samples(grid_samples(o.detach(), d.detach(), near, far, w.step, w.view, grid,
+                                                    max_hits=r.max_hits, offsets=offsets,
+                                                    thinning=thinning), slots)
+            return render_padded(o, d, w.view, submap.decoder, samples, truncation=r.truncation,
+                                 color_weight_eps=m.color_weight_eps, color_slots=colour,
+                                 mask_in_front=r.mask_in_front, renormalise_color=True)
+        return render_rays(o, d, w.view, submap.decoder, near=near, far=far,
+                           step=w.step, truncation=r.truncation,
+                           max_hits=r.max_hits, offsets=offsets,
+                           mask_in_front=r.mask_in_front, thinning=thinning,
+                           color_weight_eps=m.color_weight_eps, renormalise_color=True)
+
+    def _joint_step(self, submap: SubMap, optimizer, w: "_JointWindow", losses: Losses) -> None:
+        """One iteration's backward pass and the steps of the map's, the poses' and the
+        exposures' optimisers."""
+        optimizer.zero_grad(set_to_none=True)
+        if w.pose_opt is not None:
+            w.pose_opt.zero_grad(set_to_none=True)
+        if w.exposure is not None:
+            w.exposure.optimizer.zero_grad(set_to_none=True)
+        losses.total.backward()
+        self._count_corner_updates(submap)
+        optimizer.step()
+        if w.pose_opt is not None:
+            w.pose_opt.step()
+        if w.exposure is not None:
+            w.exposure.optimizer.step()
+
+    @staticmethod
+    def _move_free_poses(w: "_JointWindow", keyframes: list[Keyframe], frame_poses: list[torch.Tensor]) -> None:
+        """The free poses take their twists: keyframes' in place, the other frames' in
+        ``frame_poses``."""
+        with torch.no_grad():
+            moved = w.T_start[w.free_rows] @ se3_exp(w.twists.detach())
+            for i, T_new in zip(w.free, moved):
+                if i < len(keyframes):
+                    keyframes[i].T_map_cam = T_new
+                else:
+                    frame_poses[i - len(keyframes)] = T_new
 
     def _sample_shape(self, sources: list[TensorFrame], stack: FrameStack | None, rays_per_frame: int,
                       T_start: torch.Tensor, view) -> tuple[int, int, int]:

@@ -26,6 +26,7 @@ guess to their PnP pose.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import Callable
 
 import numpy as np
 import torch
@@ -33,7 +34,7 @@ import torch
 from .config import SLAMConfig, TrackingConfig
 from .decoder import Decoder
 from .features import Correspondences, huber_threshold, reprojection_cost, reprojection_terms
-from .frames import TensorFrame, sample_pixels
+from .frames import PixelBatch, TensorFrame, sample_pixels
 from .gauss_newton import (Linearisation, MotionPrior, RenderedJacobians, damped_step, damped_step_tensor, limit_step,
                            limit_step_tensor, linearise_rendered, render_with_jacobians,
                            render_with_jacobians_padded)
@@ -178,6 +179,58 @@ def _select(take: torch.Tensor, a: Linearisation, b: Linearisation) -> Linearisa
                          pick(a.hit, b.hit), pick(a.residual, b.residual))
 
 
+@dataclass
+class _LMProblem:
+    """One frame's damped Gauss-Newton problem: its rays (``batch``), the render at a pose
+    (``render_at(T, jacobians=True)``, plain or padded), the loss's weights, depth limit and
+    miss cost, and what the start fixes: the colour model, the features (None without, or
+    once the dense check dropped them), the start pose T0_map (4, 4) and the motion prior."""
+
+    batch: PixelBatch
+    render_at: Callable[..., RenderedJacobians]
+    weights: LossWeights
+    max_depth: float
+    miss_cost: float
+    colour: ColourModel
+    sparse: _SparseTerm | None
+    T0_map: torch.Tensor
+    prior: MotionPrior | None = None
+
+    def dense_of(self, rendered: RenderedJacobians, ray_weight: torch.Tensor | None) -> Linearisation:
+        return linearise_rendered(rendered, self.batch.rgb, self.batch.depth, ray_weight, weights=self.weights,
+                                  max_depth=self.max_depth, miss_cost=self.miss_cost, colour=self.colour)
+
+    def linearise_at(self, T: torch.Tensor, ray_weight: torch.Tensor | None,
+                     rendered: RenderedJacobians | None = None) -> Linearisation:
+        """The loss at pose ``T`` (rendered there unless ``rendered`` is given), features and
+        motion prior included."""
+        lin = self.dense_of(rendered if rendered is not None else self.render_at(T), ray_weight)
+        if self.sparse is not None:
+            lin = self.sparse.added_to(lin, T)
+        return lin if self.prior is None else self.prior.added_to(lin, se3_log(se3_inverse(self.T0_map) @ T))
+
+    def curvature(self, best: Linearisation) -> torch.Tensor:
+        """The data terms' (6, 6) curvature of ``best``: its H less the motion prior's."""
+        return best.H if self.prior is None else best.H - torch.diag(2 * self.prior.w).to(best.H.dtype)
+
+
+def _adam_static_step(opt: torch.optim.Optimizer, sched, rho: torch.Tensor, phi: torch.Tensor,
+                      total: torch.Tensor, live: torch.Tensor, convergence_tol: float) -> torch.Tensor:
+    """One Adam step of the static tracker on ``total``, undone where the iterate is not
+    ``live``; returns whether the next iterate is alive (live and still moving)."""
+    opt.zero_grad(set_to_none=True)
+    total.backward()
+    prev = torch.cat([rho, phi]).detach().clone()
+    opt.step()
+    sched.step()
+    with torch.no_grad():
+        # A stopped iteration (no ray hit, or after a stop) leaves the pose.
+        rho.copy_(torch.where(live, rho, prev[:3]))
+        phi.copy_(torch.where(live, phi, prev[3:]))
+    moved = (torch.cat([rho, phi]).detach() - prev).norm()
+    return live & ~(moved < convergence_tol)
+
+
 class Tracker:
     def __init__(self, config: SLAMConfig, device: torch.device, seed: int = 0):
         self.config = config
@@ -240,56 +293,85 @@ class Tracker:
         the dense loss is lower at the guess than at their pose: repeated texture can make
         RANSAC agree on a pose one period off, which the depth does not support."""
         c, r = self.config.tracking, self.config.render
-        batch = sample_pixels(frame, c.num_rays, self._gen)
-        near, far = tracking_bounds(batch.depth, r.truncation, c.sample_band, r.max_distance)
-        # A ray that leaves the map costs as much as one off by the truncation in depth and SDF.
-        miss_cost = self.weights.depth * r.truncation + self.weights.sdf * r.truncation ** 2
+        batch, near, far = self._tracking_batch(frame)
 
         def render_at(T: torch.Tensor, jacobians: bool = True) -> RenderedJacobians:
             return render_with_jacobians(T, batch.dirs_cam, fmap.view, fmap.decoder, near=near, far=far,
-                                         step=r.step_ratio * fmap.view.voxel_size, truncation=r.truncation,
+                                         step=self._step(fmap), truncation=r.truncation,
                                          max_hits=r.max_hits, color_weight_eps=c.color_weight_eps,
                                          mask_in_front=r.mask_in_front, jacobians=jacobians,
                                          renormalise_color=True)
 
-        colour = self.colour
-
-        def dense_of(rendered: RenderedJacobians, ray_weight: torch.Tensor | None) -> Linearisation:
-            return linearise_rendered(rendered, batch.rgb, batch.depth, ray_weight, weights=self.weights,
-                                      max_depth=r.max_distance, miss_cost=miss_cost, colour=colour)
-
-        prior: MotionPrior | None = None
-
-        def linearise_at(T: torch.Tensor, ray_weight: torch.Tensor | None,
-                         rendered: RenderedJacobians | None = None) -> Linearisation:
-            lin = dense_of(rendered if rendered is not None else render_at(T), ray_weight)
-            if sparse is not None:
-                lin = sparse.added_to(lin, T)
-            return lin if prior is None else prior.added_to(lin, se3_log(se3_inverse(T0_map) @ T))
-
-        rendered0 = render_at(T0_map)
-        first = dense_of(rendered0, None)
-        if sparse is not None and T_guess_map is not None and c.feature_dense_check:
-            # Only the loss decides; the guess's model is rendered only if the guess wins.
-            if dense_of(render_at(T_guess_map, jacobians=False), None).cost < first.cost:
-                rendered0 = render_at(T_guess_map)
-                sparse, T0_map, first = None, T_guess_map, dense_of(rendered0, None)
+        lm = self._lm_problem(batch, render_at, sparse, T0_map)
+        rendered0, first = self._lm_first(lm, T_guess_map)
         if not bool(first.hit.any()):
-            return 0, float("inf"), T0_map, 0.0, float("inf"), T0_map, None
+            return 0, float("inf"), lm.T0_map, 0.0, float("inf"), lm.T0_map, None
         med = first.residual[first.hit].median()
         inlier = first.hit & (first.residual <= c.outlier_factor * med + 1e-6)
         if c.border_margin > 0:
-            inner = inlier & interior_rays(T0_map, batch.dirs_cam, batch.depth, fmap.view, c.border_margin)
+            inner = inlier & interior_rays(lm.T0_map, batch.dirs_cam, batch.depth, fmap.view, c.border_margin)
             if int(inner.sum()) >= c.min_valid_ratio * inlier.numel():
                 inlier = inner
         inlier = inlier.float()
-        colour = self.colour.fixed_at(rendered0.color, batch.rgb, rendered0.hit * inlier, COLOR_EPS)
         # The same render as ``first``, weighed again without the outliers.
-        start = linearise_at(T0_map, inlier, rendered0)
+        start = self._lm_start(lm, rendered0, inlier)
+        it, T, best = self._lm_iterate(lm, start, inlier)
+        hit_ratio = float(best.hit.float().mean())
+        residual_med = float(best.residual[best.hit].median()) if bool(best.hit.any()) else float("inf")
+        H = lm.curvature(best)
+        return it, best.cost, T, hit_ratio, residual_med, lm.T0_map, H.detach().cpu().numpy().astype(np.float64)
+
+    def _tracking_batch(self, frame: TensorFrame) -> tuple[PixelBatch, torch.Tensor, torch.Tensor]:
+        """``tracking.num_rays`` pixels of ``frame`` and their near, far bounds (R,)."""
+        c, r = self.config.tracking, self.config.render
+        batch = sample_pixels(frame, c.num_rays, self._gen)
+        near, far = tracking_bounds(batch.depth, r.truncation, c.sample_band, r.max_distance)
+        return batch, near, far
+
+    def _step(self, fmap: FrozenMap) -> float:
+        """The sample step along a ray (metres)."""
+        return self.config.render.step_ratio * fmap.view.voxel_size
+
+    def _lm_problem(self, batch: PixelBatch, render_at, sparse: _SparseTerm | None,
+                    T0_map: torch.Tensor) -> "_LMProblem":
+        r = self.config.render
+        # A ray that leaves the map costs as much as one off by the truncation in depth and SDF.
+        miss_cost = self.weights.depth * r.truncation + self.weights.sdf * r.truncation ** 2
+        return _LMProblem(batch, render_at, self.weights, r.max_distance, miss_cost, self.colour, sparse, T0_map)
+
+    def _lm_first(self, lm: "_LMProblem", T_guess_map: torch.Tensor | None
+                  ) -> tuple[RenderedJacobians, Linearisation]:
+        """The render at the start and its dense linearisation. With the features' pose as
+        the start and ``tracking.feature_dense_check``, the guess replaces it (and the
+        features are dropped: ``lm.sparse``, ``lm.T0_map``) when its dense loss is lower."""
+        rendered0 = lm.render_at(lm.T0_map)
+        first = lm.dense_of(rendered0, None)
+        if lm.sparse is not None and T_guess_map is not None and self.config.tracking.feature_dense_check:
+            # Only the loss decides; the guess's model is rendered only if the guess wins.
+            if bool(lm.dense_of(lm.render_at(T_guess_map, jacobians=False), None).cost < first.cost):
+                rendered0 = lm.render_at(T_guess_map)
+                first = lm.dense_of(rendered0, None)
+                lm.sparse, lm.T0_map = None, T_guess_map
+        return rendered0, first
+
+    def _lm_start(self, lm: "_LMProblem", rendered0: RenderedJacobians, inlier: torch.Tensor) -> Linearisation:
+        """The linearisation the iterations start from: the first render weighed by ``inlier``
+        (R,) float, with the frame's colour fit fixed there and the motion prior (when
+        ``tracking.motion_prior`` > 0) scaled to it and set in ``lm.prior``."""
+        c = self.config.tracking
+        lm.colour = self.colour.fixed_at(rendered0.color, lm.batch.rgb, rendered0.hit * inlier, COLOR_EPS)
+        start = lm.linearise_at(lm.T0_map, inlier, rendered0)
         if c.motion_prior > 0:
-            prior = MotionPrior.scaled_to(start, c.motion_prior)
-            start = prior.added_to(start, torch.zeros(6, dtype=T0_map.dtype, device=T0_map.device))
-        T, best = T0_map, start
+            lm.prior = MotionPrior.scaled_to(start, c.motion_prior)
+            start = lm.prior.added_to(start, torch.zeros(6, dtype=lm.T0_map.dtype, device=lm.T0_map.device))
+        return start
+
+    def _lm_iterate(self, lm: "_LMProblem", start: Linearisation, inlier: torch.Tensor
+                    ) -> tuple[int, torch.Tensor, Linearisation]:
+        """Levenberg-Marquardt steps from ``start``, decided on the host: (iterations, pose,
+        its linearisation)."""
+        c = self.config.tracking
+        T, best = lm.T0_map, start
         damping = c.lm_damping
         it = 0
         for it in range(1, c.iterations + 1):
@@ -303,7 +385,7 @@ class Tracker:
                     # fr1/rpy the third step is 1e-7-1e-5 and changes the loss by < 1e-5).
                     break
                 T_new = T @ se3_exp(delta)
-                cand = linearise_at(T_new, inlier)
+                cand = lm.linearise_at(T_new, inlier)
                 if cand.cost < best.cost:
                     T, best = T_new, cand
                     damping = max(damping / 3.0, 1e-7)
@@ -311,10 +393,7 @@ class Tracker:
                     damping *= 10.0
                     if damping > 1e3:
                         break
-        hit_ratio = float(best.hit.float().mean())
-        residual_med = float(best.residual[best.hit].median()) if bool(best.hit.any()) else float("inf")
-        H = best.H if prior is None else best.H - torch.diag(2 * prior.w).to(best.H.dtype)
-        return it, best.cost, T, hit_ratio, residual_med, T0_map, H.detach().cpu().numpy().astype(np.float64)
+        return it, T, best
 
     def _adam(self, frame: TensorFrame, fmap: FrozenMap, T0_map: torch.Tensor, sparse: _SparseTerm | None):
         """The paper's optimiser: Adam on the twist, new rays every iteration if configured."""
@@ -406,56 +485,48 @@ class Tracker:
         ``tracking.check_every`` iterations (an iteration after a stop changes nothing).
         The reads before and after the loop are a few per frame."""
         c, r = self.config.tracking, self.config.render
-        batch = sample_pixels(frame, c.num_rays, self._gen)
-        near, far = tracking_bounds(batch.depth, r.truncation, c.sample_band, r.max_distance)
+        batch, near, far = self._tracking_batch(frame)
         G, N, C = self._sample_shape(frame, fmap, batch.dirs_cam, near, far, T0_map)
-        miss_cost = self.weights.depth * r.truncation + self.weights.sdf * r.truncation ** 2
 
         def render_at(T: torch.Tensor, jacobians: bool = True) -> RenderedJacobians:
             return render_with_jacobians_padded(T, batch.dirs_cam, fmap.view, fmap.decoder, near=near, far=far,
-                                                step=r.step_ratio * fmap.view.voxel_size, truncation=r.truncation,
+                                                step=self._step(fmap), truncation=r.truncation,
                                                 max_hits=r.max_hits, grid=G, slots=N, color_slots=C,
                                                 color_weight_eps=c.color_weight_eps, mask_in_front=r.mask_in_front,
                                                 jacobians=jacobians, renormalise_color=True)
 
-        colour = self.colour
-
-        def dense_of(rendered: RenderedJacobians, ray_weight: torch.Tensor | None) -> Linearisation:
-            return linearise_rendered(rendered, batch.rgb, batch.depth, ray_weight, weights=self.weights,
-                                      max_depth=r.max_distance, miss_cost=miss_cost, colour=colour)
-
-        prior: MotionPrior | None = None
-
-        def linearise_at(T: torch.Tensor, ray_weight: torch.Tensor | None,
-                         rendered: RenderedJacobians | None = None) -> Linearisation:
-            lin = dense_of(rendered if rendered is not None else render_at(T), ray_weight)
-            if sparse is not None:
-                lin = sparse.added_to(lin, T)
-            return lin if prior is None else prior.added_to(lin, se3_log(se3_inverse(T0_map) @ T))
-
-        rendered0 = render_at(T0_map)
-        first = dense_of(rendered0, None)
-        if sparse is not None and T_guess_map is not None and c.feature_dense_check:
-            if bool(dense_of(render_at(T_guess_map, jacobians=False), None).cost < first.cost):
-                rendered0 = render_at(T_guess_map)
-                sparse, T0_map, first = None, T_guess_map, dense_of(rendered0, None)
+        lm = self._lm_problem(batch, render_at, sparse, T0_map)
+        rendered0, first = self._lm_first(lm, T_guess_map)
         if not bool(first.hit.any()):
-            return 0, float("inf"), T0_map, 0.0, float("inf"), T0_map, None
+            return 0, float("inf"), lm.T0_map, 0.0, float("inf"), lm.T0_map, None
         med = masked_median(first.residual, first.hit)
         inlier = first.hit & (first.residual <= c.outlier_factor * med + 1e-6)
         if c.border_margin > 0:
-            inner = inlier & interior_rays(T0_map, batch.dirs_cam, batch.depth, fmap.view, c.border_margin)
+            inner = inlier & interior_rays(lm.T0_map, batch.dirs_cam, batch.depth, fmap.view, c.border_margin)
             inlier = torch.where(inner.sum() >= c.min_valid_ratio * inlier.numel(), inner, inlier)
         inlier = inlier.float()
-        colour = self.colour.fixed_at(rendered0.color, batch.rgb, rendered0.hit * inlier, COLOR_EPS)
-        start = linearise_at(T0_map, inlier, rendered0)
-        if c.motion_prior > 0:
-            prior = MotionPrior.scaled_to(start, c.motion_prior)
-            start = prior.added_to(start, torch.zeros(6, dtype=T0_map.dtype, device=T0_map.device))
-        T, best = T0_map, start
-        damping = torch.tensor(c.lm_damping, dtype=torch.float64, device=T0_map.device)
-        done = torch.zeros((), dtype=torch.bool, device=T0_map.device)
-        count = torch.zeros((), dtype=torch.int64, device=T0_map.device)
+        start = self._lm_start(lm, rendered0, inlier)
+        T, best, count = self._lm_iterate_static(lm, start, inlier)
+        H = lm.curvature(best)
+        # One read of the device: the statistics ride along with the curvature.
+        H = H.detach().to(torch.float64)
+        stats = torch.stack([best.hit.float().mean().to(H.dtype), masked_median(best.residual, best.hit).to(H.dtype),
+                             count.to(H.dtype), torch.as_tensor(best.cost).to(H.dtype)])
+        host = torch.cat([H.reshape(-1), stats]).cpu().numpy()
+        hit_ratio, residual_med, it, cost = (float(v) for v in host[36:])
+        return int(it), cost, T, hit_ratio, residual_med, lm.T0_map, host[:36].reshape(6, 6).copy()
+
+    def _lm_iterate_static(self, lm: "_LMProblem", start: Linearisation, inlier: torch.Tensor
+                           ) -> tuple[torch.Tensor, Linearisation, torch.Tensor]:
+        """Levenberg-Marquardt steps from ``start`` decided on the device: (pose, its
+        linearisation, the 0-dim count of live iterations). An iteration reads nothing back;
+        the host reads the stop flag every ``tracking.check_every`` iterations."""
+        c = self.config.tracking
+        device = lm.T0_map.device
+        T, best = lm.T0_map, start
+        damping = torch.tensor(c.lm_damping, dtype=torch.float64, device=device)
+        done = torch.zeros((), dtype=torch.bool, device=device)
+        count = torch.zeros((), dtype=torch.int64, device=device)
         for it in range(1, c.iterations + 1):
             with scope(TRACKING_ITERATION):
                 delta = limit_step_tensor(damped_step_tensor(best, damping), c.max_step_m, c.max_step_rad)
@@ -463,7 +534,7 @@ class Tracker:
                 count = count + (~done).long()
                 delta = torch.where(stop, torch.zeros_like(delta), delta)
                 T_new = T @ se3_exp_compact(delta)
-                cand = linearise_at(T_new, inlier)
+                cand = lm.linearise_at(T_new, inlier)
                 accept = ~stop & (cand.cost < best.cost)
                 T = torch.where(accept, T_new, T)
                 best = _select(accept, cand, best)
@@ -471,31 +542,22 @@ class Tracker:
                 done = stop | (~accept & (damping > 1e3))
             if c.check_every > 0 and it % c.check_every == 0 and it < c.iterations and bool(done):
                 break
-        H = best.H if prior is None else best.H - torch.diag(2 * prior.w).to(best.H.dtype)
-        # One read of the device: the statistics ride along with the curvature.
-        H = H.detach().to(torch.float64)
-        stats = torch.stack([best.hit.float().mean().to(H.dtype), masked_median(best.residual, best.hit).to(H.dtype),
-                             count.to(H.dtype), torch.as_tensor(best.cost).to(H.dtype)])
-        host = torch.cat([H.reshape(-1), stats]).cpu().numpy()
-        hit_ratio, residual_med, it, cost = (float(v) for v in host[36:])
-        return int(it), cost, T, hit_ratio, residual_med, T0_map, host[:36].reshape(6, 6).copy()
+        return T, best, count
 
     def _adam_static(self, frame: TensorFrame, fmap: FrozenMap, T0_map: torch.Tensor, sparse: _SparseTerm | None):
         """``_adam`` on padded samples with its bookkeeping on the device: the lowest loss
         and its pose, the last iterate's statistics and the stop conditions (no ray hits,
         convergence) are tensors; an iteration after a stop leaves the pose where it was.
         The host reads the stop flag every ``tracking.check_every`` iterations."""
-        c, r = self.config.tracking, self.config.render
+        c = self.config.tracking
         device = T0_map.device
         rho = torch.zeros(3, device=device, requires_grad=True)
         phi = torch.zeros(3, device=device, requires_grad=True)
         opt = torch.optim.Adam([{"params": [rho], "lr": c.lr_trans}, {"params": [phi], "lr": c.lr_rot}], fused=True)
         gamma = c.lr_decay ** (1.0 / max(c.iterations - 1, 1))
         sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma)
-        step = r.step_ratio * fmap.view.voxel_size
-        batch = sample_pixels(frame, c.num_rays, self._gen)
-        near, far = tracking_bounds(batch.depth, r.truncation, c.sample_band, r.max_distance)
-        G, N, C = self._sample_shape(frame, fmap, batch.dirs_cam, near, far, T0_map)
+        batch, near, far = self._tracking_batch(frame)
+        shape = self._sample_shape(frame, fmap, batch.dirs_cam, near, far, T0_map)
         colour = self.colour
         # (loss, hit ratio, median residual) of the lowest-loss and of the last live iterate
         inf = float("inf")
@@ -514,44 +576,14 @@ class Tracker:
                 count = count + alive.long()
                 T = T0_map @ se3_exp_compact(torch.cat([rho, phi]))
                 if c.resample_rays and it > 1:
-                    batch = sample_pixels(frame, c.num_rays, self._gen)
-                    near, far = tracking_bounds(batch.depth, r.truncation, c.sample_band, r.max_distance)
-                n = batch.depth.shape[0]
-                dirs = batch.dirs_cam @ T[:3, :3].T
-                origins = T[:3, 3].expand(n, 3)
-                with torch.no_grad():
-                    samples = pack_samples(grid_samples(origins.detach(), dirs.detach(), near, far, step, fmap.view,
-                                                        G, max_hits=r.max_hits), N)
-                out = render_padded(origins, dirs, fmap.view, fmap.decoder, samples, truncation=r.truncation,
-                                    color_weight_eps=c.color_weight_eps, color_slots=C,
-                                    mask_in_front=r.mask_in_front, renormalise_color=True)
-                residual = (out.depth.detach() - batch.depth).abs()
-                hit = out.hit & (out.weight_sum.detach() > 1e-3)
-                hit_ratio = hit.to(residual.dtype).mean()
-                live = alive & hit.any()
-                med = masked_median(residual, hit)
-                inlier = hit & (residual <= c.outlier_factor * med + 1e-6)
-                if colour.scale is None:  # the frame's first render fixes the colour scale and weight
-                    colour = self.colour.fixed_at(out.color.detach(), batch.rgb, inlier.float(), COLOR_EPS)
-                losses = compute_losses(out, batch.rgb, batch.depth, r.truncation, self.weights,
-                                        ray_weight=inlier.float(), max_depth=r.max_distance, colour=colour)
-                total = losses.total if sparse is None else losses.total + sparse.cost(T)
-                now = torch.stack([total.detach(), hit_ratio, med]).to(torch.float64)
+                    batch, near, far = self._tracking_batch(frame)
+                out = self._render_padded(fmap, T, batch, near, far, shape)
+                total, now, live, colour = self._adam_static_loss(out, batch, T, sparse, colour, alive)
                 better = live & (now[0] < best[0])
                 best = torch.where(better, now, best)
                 best_T = torch.where(better, T.detach(), best_T)
                 last = torch.where(live, now, last)
-                opt.zero_grad(set_to_none=True)
-                total.backward()
-                prev = torch.cat([rho, phi]).detach().clone()
-                opt.step()
-                sched.step()
-                with torch.no_grad():
-                    # A stopped iteration (no ray hit, or after a stop) leaves the pose.
-                    rho.copy_(torch.where(live, rho, prev[:3]))
-                    phi.copy_(torch.where(live, phi, prev[3:]))
-                moved = (torch.cat([rho, phi]).detach() - prev).norm()
-                alive = live & ~(moved < c.convergence_tol)
+                alive = _adam_static_step(opt, sched, rho, phi, total, live, c.convergence_tol)
             if check > 0 and it % check == 0 and it < c.iterations and not bool(alive):
                 break
         it, best_loss, best_hit, best_med, last_loss, last_hit, last_med = (
@@ -561,6 +593,42 @@ class Tracker:
             T_last = (T0_map @ se3_exp_compact(torch.cat([rho, phi]))).detach()
             return it, last_loss, T_last, last_hit, last_med
         return it, best_loss, best_T, best_hit, best_med
+
+    def _render_padded(self, fmap: FrozenMap, T: torch.Tensor, batch: PixelBatch, near: torch.Tensor,
+                       far: torch.Tensor, shape: tuple[int, int, int]):
+        """The batch's rays from pose ``T`` (4, 4) rendered on padded samples of ``shape``
+        (grid points, slots, colour slots; ``_sample_shape``)."""
+        r = self.config.render
+        G, N, C = shape
+        n = batch.depth.shape[0]
+        dirs = batch.dirs_cam @ T[:3, :3].T
+        origins = T[:3, 3].expand(n, 3)
+        with torch.no_grad():
+            samples = pack_samples(grid_samples(origins.detach(), dirs.detach(), near, far, self._step(fmap),
+                                                fmap.view, G, max_hits=r.max_hits), N)
+        return render_padded(origins, dirs, fmap.view, fmap.decoder, samples, truncation=r.truncation,
+                             color_weight_eps=self.config.tracking.color_weight_eps, color_slots=C,
+                             mask_in_front=r.mask_in_front, renormalise_color=True)
+
+    def _adam_static_loss(self, out, batch: PixelBatch, T: torch.Tensor, sparse: _SparseTerm | None,
+                          colour: ColourModel, alive: torch.Tensor):
+        """The loss of one static Adam iterate: (its total, (3,) float64 of its value, hit
+        ratio and median depth residual, whether the iterate is live (alive with a hit),
+        the colour model (fixed at the frame's first render))."""
+        c, r = self.config.tracking, self.config.render
+        residual = (out.depth.detach() - batch.depth).abs()
+        hit = out.hit & (out.weight_sum.detach() > 1e-3)
+        hit_ratio = hit.to(residual.dtype).mean()
+        live = alive & hit.any()
+        med = masked_median(residual, hit)
+        inlier = hit & (residual <= c.outlier_factor * med + 1e-6)
+        if colour.scale is None:  # the frame's first render fixes the colour scale and weight
+            colour = self.colour.fixed_at(out.color.detach(), batch.rgb, inlier.float(), COLOR_EPS)
+        losses = compute_losses(out, batch.rgb, batch.depth, r.truncation, self.weights,
+                                ray_weight=inlier.float(), max_depth=r.max_distance, colour=colour)
+        total = losses.total if sparse is None else losses.total + sparse.cost(T)
+        now = torch.stack([total.detach(), hit_ratio, med]).to(torch.float64)
+        return total, now, live, colour
 
     def _result(self, fmap: FrozenMap, T0_map: torch.Tensor, T_best_map: torch.Tensor, it: int,
                 loss: float, hit_ratio: float, residual_med: float) -> TrackingResult:

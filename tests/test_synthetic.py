@@ -28,7 +28,7 @@ from slam.data.synthetic import (
     render_rgbd,
     render_view,
 )
-from slam.data.synthetic_scene import (
+from slam.data.synthetic.scene import (
     Box,
     Cylinder,
     Sphere,

@@ -282,6 +282,39 @@ def optimise_pose_graph(
     """
     nodes = list(nodes)
     edges = list(edges)
+    width, outlier_threshold = _checked_options(robust_kernel, kernel_width, outlier_threshold, max_iterations)
+    initial = _initial_poses(nodes, edges)
+    anchor_sigmas = _anchor_sigmas(anchors, initial)
+    comps = components(nodes, edges)
+    auto = _anchor_free_components(comps, anchor_sigmas, auto_anchor)
+    if not nodes:
+        return PoseGraphResult({}, 0.0, 0.0, 0, (), (), (), ())
+
+    graph, values, factors, kernels = _factor_graph(initial, anchor_sigmas, edges, robust_kernel, width)
+    initial_error = float(graph.error(values))
+    solution, iterations = _levenberg_marquardt(graph, values, max_iterations, relative_error_tol,
+                                                absolute_error_tol)
+    final_error = float(graph.error(solution))
+
+    poses = {k: np.array(solution.atPose3(k).matrix(), dtype=np.float64) for k in initial}
+    residuals = tuple(_edge_residual(i, e, f, kernel, poses, solution, outlier_threshold)
+                      for i, (e, f, kernel) in enumerate(zip(edges, factors, kernels)))
+    return PoseGraphResult(
+        poses=poses,
+        initial_error=initial_error,
+        final_error=final_error,
+        iterations=iterations,
+        residuals=residuals,
+        anchored=tuple(sorted(anchor_sigmas)),
+        auto_anchored=tuple(sorted(auto)),
+        components=tuple(frozenset(c) for c in comps),
+    )
+
+
+def _checked_options(robust_kernel: str | None, kernel_width: float | None, outlier_threshold: float,
+                     max_iterations: int) -> tuple[float | None, float]:
+    """The robust kernel's width (None without a kernel) and the outlier threshold, validated;
+    ValueError on an unknown kernel, a non-positive width or threshold, or no iterations."""
     if robust_kernel is not None and robust_kernel not in ROBUST_KERNELS:
         raise ValueError(f"robust_kernel must be one of {ROBUST_KERNELS} or None, got {robust_kernel!r}")
     width = None
@@ -291,7 +324,12 @@ def optimise_pose_graph(
     outlier_threshold = _positive(outlier_threshold, "outlier_threshold")
     if int(max_iterations) < 1:
         raise ValueError(f"max_iterations must be >= 1, got {max_iterations}")
+    return width, outlier_threshold
 
+
+def _initial_poses(nodes: list[PoseNode], edges: list[RelativePoseEdge]) -> dict[int, np.ndarray]:
+    """key -> input pose of each node; ValueError on a non-node, a duplicate key, a non-edge
+    or an edge to an unknown key."""
     initial: dict[int, np.ndarray] = {}
     for n in nodes:
         if not isinstance(n, PoseNode):
@@ -305,7 +343,13 @@ def optimise_pose_graph(
         missing = [k for k in (e.a, e.b) if k not in initial]
         if missing:
             raise ValueError(f"edge {i} ({e.a}->{e.b}, {e.kind}) refers to unknown node keys {missing}")
+    return initial
 
+
+def _anchor_sigmas(anchors: Mapping[int, tuple[float, float]] | Iterable[int],
+                   initial: dict[int, np.ndarray]) -> dict[int, tuple[float, float]]:
+    """key -> (sigma_translation_m, sigma_rotation_rad) of each anchor's prior; ValueError on
+    an anchor of no node."""
     if isinstance(anchors, Mapping):
         anchor_sigmas = {_as_key(k, "anchor"): (_positive(v[0], "anchor sigma_t"), _positive(v[1], "anchor sigma_r"))
                          for k, v in anchors.items()}
@@ -314,8 +358,14 @@ def optimise_pose_graph(
     unknown = sorted(k for k in anchor_sigmas if k not in initial)
     if unknown:
         raise ValueError(f"anchors refer to unknown node keys {unknown}")
+    return anchor_sigmas
 
-    comps = components(nodes, edges)
+
+def _anchor_free_components(comps: list[set[int]], anchor_sigmas: dict[int, tuple[float, float]],
+                            auto_anchor: bool) -> list[int]:
+    """Anchors the smallest key of each component without an anchor (added to
+    ``anchor_sigmas``) and returns those keys; without ``auto_anchor`` such a component is a
+    ValueError naming the keys."""
     auto: list[int] = []
     unanchored = [c for c in comps if not (c & anchor_sigmas.keys())]
     if unanchored:
@@ -328,10 +378,13 @@ def optimise_pose_graph(
         for c in unanchored:
             anchor_sigmas[min(c)] = DEFAULT_ANCHOR_SIGMAS
             auto.append(min(c))
+    return auto
 
-    if not nodes:
-        return PoseGraphResult({}, 0.0, 0.0, 0, (), (), (), ())
 
+def _factor_graph(initial: dict[int, np.ndarray], anchor_sigmas: dict[int, tuple[float, float]],
+                  edges: list[RelativePoseEdge], robust_kernel: str | None, width: float | None):
+    """gtsam's graph (the anchors' priors, then one between-factor an edge) and initial values;
+    also each edge's factor and robust kernel (None where the edge is not robust)."""
     graph = gtsam.NonlinearFactorGraph()
     values = gtsam.Values()
     for k, T in initial.items():
@@ -349,43 +402,40 @@ def optimise_pose_graph(
         graph.add(f)
         factors.append(f)
         kernels.append(kernel)
+    return graph, values, factors, kernels
 
+
+def _levenberg_marquardt(graph, values, max_iterations: int, relative_error_tol: float,
+                         absolute_error_tol: float):
+    """gtsam's Levenberg-Marquardt solution of ``graph`` from ``values`` and its iteration
+    count; RuntimeError when gtsam fails (e.g. an indeterminant linear system)."""
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(int(max_iterations))
     params.setRelativeErrorTol(float(relative_error_tol))
     params.setAbsoluteErrorTol(float(absolute_error_tol))
-    initial_error = float(graph.error(values))
     optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
     try:
         solution = optimizer.optimize()
     except RuntimeError as exc:  # e.g. gtsam IndeterminantLinearSystemException
         raise RuntimeError(f"pose graph optimisation failed: {exc}") from exc
-    final_error = float(graph.error(solution))
+    return solution, int(optimizer.iterations())
 
-    poses = {k: np.array(solution.atPose3(k).matrix(), dtype=np.float64) for k in initial}
-    residuals = []
-    for i, (e, f, kernel) in enumerate(zip(edges, factors, kernels)):
-        Ta, Tb = poses[e.a], poses[e.b]
-        Rm, tm = e.T_a_b[:3, :3], e.T_a_b[:3, 3]
-        T_ab = np.linalg.solve(Ta, Tb)
-        E_R = Rm.T @ T_ab[:3, :3]
-        E_t = Rm.T @ (T_ab[:3, 3] - tm)
-        err = np.asarray(f.unwhitenedError(solution), dtype=np.float64)
-        wn = e.whitened(err)
-        weight = 1.0 if kernel is None else float(kernel.weight(wn))
-        residuals.append(EdgeResidual(
-            index=i, a=e.a, b=e.b, kind=e.kind,
-            translation_m=float(np.linalg.norm(E_t)), rotation_rad=_rotation_angle(E_R),
-            whitened_norm=wn, weight=weight, robust=kernel is not None,
-            rejected=kernel is not None and wn > outlier_threshold,
-        ))
-    return PoseGraphResult(
-        poses=poses,
-        initial_error=initial_error,
-        final_error=final_error,
-        iterations=int(optimizer.iterations()),
-        residuals=tuple(residuals),
-        anchored=tuple(sorted(anchor_sigmas)),
-        auto_anchored=tuple(sorted(auto)),
-        components=tuple(frozenset(c) for c in comps),
+
+def _edge_residual(i: int, e: RelativePoseEdge, f, kernel, poses: dict[int, np.ndarray], solution,
+                   outlier_threshold: float) -> EdgeResidual:
+    """Edge ``i``'s residual at the solution (``EdgeResidual``); ``f`` its factor, ``kernel``
+    its robust kernel or None."""
+    Ta, Tb = poses[e.a], poses[e.b]
+    Rm, tm = e.T_a_b[:3, :3], e.T_a_b[:3, 3]
+    T_ab = np.linalg.solve(Ta, Tb)
+    E_R = Rm.T @ T_ab[:3, :3]
+    E_t = Rm.T @ (T_ab[:3, 3] - tm)
+    err = np.asarray(f.unwhitenedError(solution), dtype=np.float64)
+    wn = e.whitened(err)
+    weight = 1.0 if kernel is None else float(kernel.weight(wn))
+    return EdgeResidual(
+        index=i, a=e.a, b=e.b, kind=e.kind,
+        translation_m=float(np.linalg.norm(E_t)), rotation_rad=_rotation_angle(E_R),
+        whitened_norm=wn, weight=weight, robust=kernel is not None,
+        rejected=kernel is not None and wn > outlier_threshold,
     )

@@ -14,13 +14,16 @@ The kind names the trajectory; the scene is the one that trajectory is made for
 (``TRAJECTORY_SCENES``): the 6 x 5 x 3 m ``room`` for all but ``laps``, which walks the
 ``hall`` of its ``size``: ``compact`` (default; 4.4 x 3.6 x 3 m, about 18 m in 780 frames) or
 ``large`` (10 x 8 x 3 m, about 51 m in 2200 frames). World frame: metres, z up, origin at the floor centre (see
-``synthetic_scene``); poses are camera-to-world with OpenCV camera axes. Frames are rendered
-lazily by a numpy ray caster (``synthetic_render``), exact unless ``noise=1`` adds Kinect-like
+``scene``); poses are camera-to-world with OpenCV camera axes. Frames are rendered
+lazily by a numpy ray caster (``render``), exact unless ``noise=1`` adds Kinect-like
 depth noise and holes, ``exposure=A`` a per-frame random exposure and white balance and
 ``color_shift=P`` colour P pixels off its depth (``camera_colour``); ``gt_mesh()`` gives the
-matching coloured mesh (``synthetic_mesh``).
+matching coloured mesh (``mesh``).
 
-This module re-exports the pieces so callers need one import.
+The package: ``scene`` (rooms, halls, primitives and textures), ``trajectory`` (the camera
+paths), ``render`` (the ray caster and depth noise), ``mesh`` (the ground-truth mesh); this
+module holds the spec parser and the sequence and re-exports the pieces so callers need one
+import.
 """
 
 from __future__ import annotations
@@ -35,8 +38,8 @@ import numpy as np
 import trimesh
 
 from slam.data.frame import DataError, Frame
-from slam.data.synthetic_mesh import gt_mesh
-from slam.data.synthetic_render import (
+from slam.data.synthetic.mesh import gt_mesh
+from slam.data.synthetic.render import (
     DepthNoiseModel,
     RayHits,
     RenderedView,
@@ -46,8 +49,8 @@ from slam.data.synthetic_render import (
     render_rgbd,
     render_view,
 )
-from slam.data.synthetic_scene import HALL_LAYOUTS, HALL_SIZES, SCENE_KINDS, Scene, make_scene
-from slam.data.synthetic_trajectory import (
+from slam.data.synthetic.scene import HALL_LAYOUTS, HALL_SIZES, SCENE_KINDS, Scene, make_scene
+from slam.data.synthetic.trajectory import (
     LAPS_NOMINAL_FRAMES,
     NOMINAL_FRAMES,
     TRAJECTORY_KINDS,

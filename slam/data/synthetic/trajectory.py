@@ -1,4 +1,4 @@
-"""Camera trajectories through the synthetic scenes (world frame of ``synthetic_scene``: z up).
+"""Camera trajectories through the synthetic scenes (world frame of ``scene``: z up).
 
 Every kind is a fixed smooth path ``p(s)`` with a look-at target ``q(s)`` for ``s`` in [0, 1];
 ``n_frames`` only sets how finely it is sampled, so more frames mean smaller steps. At
@@ -25,7 +25,7 @@ from typing import Callable
 import numpy as np
 
 from slam.data.frame import DataError
-from slam.data.synthetic_scene import HALL_LAYOUTS, HALL_SIZES, hall_size
+from slam.data.synthetic.scene import HALL_LAYOUTS, HALL_SIZES, hall_size
 
 TRAJECTORY_KINDS = ("orbit", "walk", "loop", "agents", "laps")
 LAPS_NOMINAL_FRAMES = {"compact": 780, "large": 2200}
@@ -37,7 +37,7 @@ NOMINAL_FRAMES = {"orbit": 100, "walk": 100, "loop": 500, "agents": 100, "laps":
 """Default frame count of each kind, at which it moves <= ~1.5 cm and ~1 deg per frame (``laps``:
 <= 2.5 cm and 1.5 deg, for its default size ``compact``; see :func:`nominal_frames`)."""
 TRAJECTORY_SCENES = {"orbit": "room", "walk": "room", "loop": "room", "agents": "room", "laps": "hall"}
-"""The scene kind (``synthetic_scene.make_scene``) each trajectory kind is made for; ``laps`` walks
+"""The scene kind (``scene.make_scene``) each trajectory kind is made for; ``laps`` walks
 the ``hall`` of its own ``size``."""
 TABLE_TARGET = np.array([0.0, 0.0, 0.85])
 """Where inward-looking paths aim: just above the table top at the room centre."""
@@ -137,7 +137,7 @@ LAPS = 2
 
 @dataclass(frozen=True)
 class LapsStyle:
-    """How the ``laps`` path walks one hall size (``synthetic_scene.HALL_LAYOUTS``); see :func:`_laps`.
+    """How the ``laps`` path walks one hall size (``scene.HALL_LAYOUTS``); see :func:`_laps`.
 
     Lengths in metres; ``(amplitude, cycles per lap)`` pairs are sine swings along the lap
     coordinate (0 at the start, 1 after one lap, 2 at the end).

@@ -14,7 +14,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from slam.data.synthetic_scene import Box, Cylinder, Primitive, Room, Scene, Sphere, group_indices, surface_colour
+from slam.data.synthetic.scene import Box, Cylinder, Primitive, Room, Scene, Sphere, group_indices, surface_colour
 
 _T_EPS = 1e-9
 """Hits closer than this ray parameter are ignored (self-intersection guard)."""

@@ -4,7 +4,7 @@ World frame (used by the whole synthetic source): metres, **z up**, origin at th
 floor. The default room spans x in [-3, 3], y in [-2.5, 2.5], z in [0, 3]. Furniture stays in a
 band within :data:`WALL_BAND` metres of the walls plus one table at the room centre (its footprint
 inside :data:`TABLE_MAX_HALF_SIZE`), which leaves a free ring around the table where the synthetic
-trajectories move (see ``synthetic_trajectory.py``).
+trajectories move (see ``trajectory.py``).
 
 The ``hall`` kind is a ring corridor around a solid full-height central block, for
 loop-closure benchmarks, in two sizes (:data:`HALL_LAYOUTS`): ``compact`` (the default), 4.4 x 3.6
@@ -23,7 +23,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import lru_cache
-from typing import Literal, Union
+from typing import Callable, Literal, Union
 
 import numpy as np
 
@@ -644,38 +644,78 @@ def _hall(seed: int) -> Scene:
     """
     layout = HALL_LAYOUTS["large"]
     rng = np.random.default_rng([seed, 0x4A11])
-    hx, hy = layout.half_size
-    bx, by = layout.block_half_size
-    h = HALL_HEIGHT
     tex = lambda: _random_texture(rng, scale_range=(0.06, 0.2), patterns=("checker", "stripes", "noise", "wood"))  # noqa: E731
-    a, b = _pair(rng)
-    south = Texture("wood", a, b, scale=float(rng.uniform(0.3, 0.4)), direction=(1.0, 0.0, 0.0), seed=int(rng.integers(0, 2**31 - 1)))
-    east = Texture("solid", (0.86, 0.84, 0.78), grain=0.0)
-    north = Texture("checker", (0.90, 0.88, 0.80), (0.60, 0.35, 0.70), scale=0.3, seed=44, grain=0.0)
-    west = Texture("solid", (0.72, 0.80, 0.86), grain=0.0)
-    floor = Texture("checker", (0.55, 0.40, 0.25), (0.75, 0.80, 0.35), scale=0.3, seed=45, grain=0.0)
-    ceiling = Texture("noise", (0.92, 0.92, 0.88), (0.70, 0.72, 0.78), scale=0.5, seed=int(rng.integers(0, 2**31 - 1)))
-    room = Room((-hx, -hy, 0.0), (hx, hy, h), (west, east, south, north, floor, ceiling))
+    room = _hall_room(rng, layout, wood_scale=(0.3, 0.4), checker_scale=0.3, ceiling_scale=0.5)
+    block, facades, mat = _hall_block(rng, layout, stripe_scale=0.4, facade_scale=(0.25, 0.4), mat_overhang=0.0)
+    repeats = [_repeat_set(x, y) for x, y in layout.repeat_spots]
+    return _hall_scene(room, block, facades, mat, repeats, _large_hall_pieces(layout, tex), f"hall-{seed}")
 
-    half_h = h / 2
+
+def _hall_room(rng: np.random.Generator, layout: HallLayout, *, wood_scale: tuple[float, float],
+               checker_scale: float, ceiling_scale: float) -> Room:
+    """A hall's walls, floor and ceiling: wood south (a random pair of colours, a scale drawn in
+    ``wood_scale``), plain east and west, a grainless checker north wall and floor of period
+    ``2 * checker_scale``, a noisy ceiling. Draws from ``rng`` in a fixed order."""
+    hx, hy = layout.half_size
+    a, b = _pair(rng)
+    south = Texture("wood", a, b, scale=float(rng.uniform(*wood_scale)), direction=(1.0, 0.0, 0.0),
+                    seed=int(rng.integers(0, 2**31 - 1)))
+    east = Texture("solid", (0.86, 0.84, 0.78), grain=0.0)
+    north = Texture("checker", (0.90, 0.88, 0.80), (0.60, 0.35, 0.70), scale=checker_scale, seed=44, grain=0.0)
+    west = Texture("solid", (0.72, 0.80, 0.86), grain=0.0)
+    floor = Texture("checker", (0.55, 0.40, 0.25), (0.75, 0.80, 0.35), scale=checker_scale, seed=45, grain=0.0)
+    ceiling = Texture("noise", (0.92, 0.92, 0.88), (0.70, 0.72, 0.78), scale=ceiling_scale,
+                      seed=int(rng.integers(0, 2**31 - 1)))
+    return Room((-hx, -hy, 0.0), (hx, hy, HALL_HEIGHT), (west, east, south, north, floor, ceiling))
+
+
+def _hall_block(rng: np.random.Generator, layout: HallLayout, *, stripe_scale: float,
+                facade_scale: tuple[float, float], mat_overhang: float) -> tuple[Box, list[Box], Box]:
+    """A hall's central block (grainless stripes of ``stripe_scale``), its east, north and west
+    facades (plain, noise and wood, scales drawn in ``facade_scale``) and the east corridor's
+    plain floor mat, reaching ``mat_overhang`` past the block's ends. Draws from ``rng`` in a
+    fixed order."""
+    hx, _ = layout.half_size
+    bx, by = layout.block_half_size
+    half_h = HALL_HEIGHT / 2
     block = Box((0.0, 0.0, half_h), (bx, by, half_h),
-                Texture("stripes", (0.30, 0.55, 0.80), (0.90, 0.88, 0.80), scale=0.4, direction=(1.0, 0.0, 0.0), seed=46, grain=0.0),
+                Texture("stripes", (0.30, 0.55, 0.80), (0.90, 0.88, 0.80), scale=stripe_scale, direction=(1.0, 0.0, 0.0),
+                        seed=46, grain=0.0),
                 mesh_bottom=False)
     t = _FACADE / 2
     a, b = _pair(rng)
     facades = [
         Box((bx + t, 0.0, half_h), (t, by + _FACADE, half_h), Texture("solid", (0.80, 0.80, 0.82), grain=0.0), mesh_bottom=False),
         Box((0.0, by + t, half_h), (bx, t, half_h),
-            Texture("noise", a, b, scale=float(rng.uniform(0.25, 0.4)), seed=int(rng.integers(0, 2**31 - 1))), mesh_bottom=False),
+            Texture("noise", a, b, scale=float(rng.uniform(*facade_scale)), seed=int(rng.integers(0, 2**31 - 1))),
+            mesh_bottom=False),
         Box((-bx - t, 0.0, half_h), (t, by + _FACADE, half_h),
-            Texture("wood", *_pair(rng), scale=float(rng.uniform(0.25, 0.4)), direction=(0.0, 0.0, 1.0),
+            Texture("wood", *_pair(rng), scale=float(rng.uniform(*facade_scale)), direction=(0.0, 0.0, 1.0),
                     seed=int(rng.integers(0, 2**31 - 1))), mesh_bottom=False),
     ]
-    mat = Box(((bx + _FACADE + hx) / 2, 0.0, 0.005), ((hx - bx - _FACADE) / 2 - 0.02, by, 0.005),
+    mat = Box(((bx + _FACADE + hx) / 2, 0.0, 0.005), ((hx - bx - _FACADE) / 2 - 0.02, by + mat_overhang, 0.005),
               Texture("solid", (0.45, 0.50, 0.48), grain=0.0), mesh_bottom=False)
-    repeats = [_repeat_set(x, y) for x, y in layout.repeat_spots]
+    return block, facades, mat
+
+
+def _hall_scene(room: Room, block: Box, facades: list[Box], mat: Box, repeats: list[list[Primitive]],
+                unique: list[Primitive], name: str) -> Scene:
+    """The hall ``name``: its objects in the order block, facades, mat, the repeated sets, the
+    other pieces, with its groups (:func:`_hall_groups`)."""
+    objects: list[Primitive] = [block, *facades, mat]
+    for piece in repeats:
+        objects.extend(piece)
+    objects.extend(unique)
+    return Scene(room, tuple(objects), name=name, groups=_hall_groups(objects, repeats, block, facades, mat))
+
+
+def _large_hall_pieces(layout: HallLayout, tex: Callable[[], Texture]) -> list[Primitive]:
+    """The large hall's furniture but the repeated sets (see :func:`_hall`), textured by
+    ``tex()`` in this order."""
+    hx, hy = layout.half_size
+    bx, by = layout.block_half_size
     face = by + _FACADE  # the north and west pieces stand against the facades
-    unique: list[Primitive] = [
+    return [
         # South corridor: bench, poster and plant on the outer wall; extinguisher at the block.
         Box((-2.6, -hy + 0.2, 0.22), (0.7, 0.2, 0.22), tex(), mesh_bottom=False),
         Box((0.3, -hy + 0.02, 1.6), (0.5, 0.02, 0.35), tex()),
@@ -693,12 +733,6 @@ def _hall(seed: int) -> Scene:
         Sphere((-4.1, hy - 0.22, 0.2), 0.2, tex()),
         Cylinder((-4.2, -hy + 0.22, 0.0), 0.2, 0.6, tex(), mesh_bottom=False),
     ]
-    objects: list[Primitive] = [block, *facades, mat]
-    for piece in repeats:
-        objects.extend(piece)
-    objects.extend(unique)
-    return Scene(room, tuple(objects), name=f"hall-{seed}", groups=_hall_groups(objects, repeats, block, facades, mat))
-
 
 def _compact_repeat_set(x: float, y_back: float) -> list[Primitive]:
     """The compact hall's repeated furniture: a cabinet (0.5 x 0.24 x 0.7 m) against the surface
@@ -745,39 +779,22 @@ def _compact_hall(seed: int) -> Scene:
     """
     layout = HALL_LAYOUTS["compact"]
     rng = np.random.default_rng([seed, 0xC0A11])
-    hx, hy = layout.half_size
-    bx, by = layout.block_half_size
-    h = HALL_HEIGHT
     tex = lambda: _random_texture(rng, scale_range=(0.05, 0.12), patterns=("checker", "stripes", "noise", "wood"))  # noqa: E731
-    a, b = _pair(rng)
-    south = Texture("wood", a, b, scale=float(rng.uniform(0.15, 0.2)), direction=(1.0, 0.0, 0.0), seed=int(rng.integers(0, 2**31 - 1)))
-    east = Texture("solid", (0.86, 0.84, 0.78), grain=0.0)
-    north = Texture("checker", (0.90, 0.88, 0.80), (0.60, 0.35, 0.70), scale=0.15, seed=44, grain=0.0)
-    west = Texture("solid", (0.72, 0.80, 0.86), grain=0.0)
-    floor = Texture("checker", (0.55, 0.40, 0.25), (0.75, 0.80, 0.35), scale=0.15, seed=45, grain=0.0)
-    ceiling = Texture("noise", (0.92, 0.92, 0.88), (0.70, 0.72, 0.78), scale=0.3, seed=int(rng.integers(0, 2**31 - 1)))
-    room = Room((-hx, -hy, 0.0), (hx, hy, h), (west, east, south, north, floor, ceiling))
-
-    half_h = h / 2
-    block = Box((0.0, 0.0, half_h), (bx, by, half_h),
-                Texture("stripes", (0.30, 0.55, 0.80), (0.90, 0.88, 0.80), scale=0.15, direction=(1.0, 0.0, 0.0), seed=46, grain=0.0),
-                mesh_bottom=False)
-    t = _FACADE / 2
-    a, b = _pair(rng)
-    facades = [
-        Box((bx + t, 0.0, half_h), (t, by + _FACADE, half_h), Texture("solid", (0.80, 0.80, 0.82), grain=0.0), mesh_bottom=False),
-        Box((0.0, by + t, half_h), (bx, t, half_h),
-            Texture("noise", a, b, scale=float(rng.uniform(0.12, 0.18)), seed=int(rng.integers(0, 2**31 - 1))), mesh_bottom=False),
-        Box((-bx - t, 0.0, half_h), (t, by + _FACADE, half_h),
-            Texture("wood", *_pair(rng), scale=float(rng.uniform(0.12, 0.18)), direction=(0.0, 0.0, 1.0),
-                    seed=int(rng.integers(0, 2**31 - 1))), mesh_bottom=False),
-    ]
-    mat = Box(((bx + _FACADE + hx) / 2, 0.0, 0.005), ((hx - bx - _FACADE) / 2 - 0.02, by + 0.5, 0.005),
-              Texture("solid", (0.45, 0.50, 0.48), grain=0.0), mesh_bottom=False)
+    room = _hall_room(rng, layout, wood_scale=(0.15, 0.2), checker_scale=0.15, ceiling_scale=0.3)
+    block, facades, mat = _hall_block(rng, layout, stripe_scale=0.15, facade_scale=(0.12, 0.18), mat_overhang=0.5)
     repeats = [_compact_repeat_set(x, y) for x, y in layout.repeat_spots]
     panel = lambda: _random_texture(rng, scale_range=(0.06, 0.15), patterns=("checker", "noise", "wood"))  # noqa: E731
+    return _hall_scene(room, block, facades, mat, repeats, _compact_hall_pieces(layout, tex, panel),
+                       f"hall-compact-{seed}")
+
+
+def _compact_hall_pieces(layout: HallLayout, tex: Callable[[], Texture], panel: Callable[[], Texture]) -> list[Primitive]:
+    """The compact hall's furniture but the repeated sets (see :func:`_compact_hall`),
+    textured by ``tex()`` and ``panel()`` in this order."""
+    hx, hy = layout.half_size
+    bx, by = layout.block_half_size
     face = by + _FACADE  # the north and west pieces stand against the facades
-    unique: list[Primitive] = [
+    return [
         # South corridor: bench, poster and plant on the outer wall; extinguisher at the block.
         Box((-1.25, -hy + 0.15, 0.2), (0.4, 0.15, 0.2), tex(), mesh_bottom=False),
         Box((-0.15, -hy + 0.01, 1.45), (0.3, 0.01, 0.22), tex()),
@@ -798,9 +815,3 @@ def _compact_hall(seed: int) -> Scene:
         Sphere((-hx + 0.2, hy - 0.2, 0.18), 0.18, tex()),
         Cylinder((-hx + 0.2, -hy + 0.2, 0.0), 0.16, 0.5, tex(), mesh_bottom=False),
     ]
-    objects: list[Primitive] = [block, *facades, mat]
-    for piece in repeats:
-        objects.extend(piece)
-    objects.extend(unique)
-    return Scene(room, tuple(objects), name=f"hall-compact-{seed}",
-                 groups=_hall_groups(objects, repeats, block, facades, mat))

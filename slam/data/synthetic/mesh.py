@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
-from slam.data.synthetic_scene import Box, Cylinder, Primitive, Room, Scene, Sphere, surface_colour
+from slam.data.synthetic.scene import Box, Cylinder, Primitive, Room, Scene, Sphere, surface_colour
 
 SPHERE_SUBDIVISIONS = 5
 """Icosphere level: 20 * 4^5 faces; chord error below 1e-4 * radius."""
