@@ -126,17 +126,21 @@ def png_from_depth(depth: np.ndarray) -> bytes:
     return data.tobytes()
 
 
-def png_from_depth_preview(depth: np.ndarray) -> bytes:
-    """(H, W) float metres -> colour-mapped 8-bit PNG for display (near red, far blue, none black)."""
+def png_from_depth_preview(depth: np.ndarray, depth_range: tuple[float, float] | None = None) -> bytes:
+    """(H, W) float metres -> colour-mapped 8-bit PNG for display (turbo over ``depth_range``,
+    default the view's 2nd-98th percentile: near red, far blue, no surface black)."""
+    from slam.path_video import auto_depth_range, depth_image
+
     depth = np.nan_to_num(np.asarray(depth, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0)
-    valid = depth > 0
-    far = float(np.percentile(depth[valid], 99)) if valid.any() else 1.0
-    scaled = np.clip(255.0 * (1.0 - depth / max(far, 1e-6)), 0, 255).astype(np.uint8)
-    colored = cv2.applyColorMap(scaled, cv2.COLORMAP_TURBO)
-    colored[~valid] = 0
-    ok, data = cv2.imencode(".png", colored)
-    assert ok, "PNG encoding of a uint8 image cannot fail"
-    return data.tobytes()
+    return png_from_rgb(depth_image(depth, depth_range or auto_depth_range(depth)))
+
+
+def png_from_normals(depth: np.ndarray, K: np.ndarray) -> bytes:
+    """(H, W) float metres and its (3, 3) intrinsics -> the normals image as PNG (facing the
+    camera blue, up green, no surface black)."""
+    from slam.camera_path import normals_from_depth, normals_image
+
+    return png_from_rgb(normals_image(normals_from_depth(np.asarray(depth, dtype=np.float64), K)))
 
 
 @dataclass(frozen=True)

@@ -20,6 +20,7 @@ from server.rendering import (
     pick_surface,
     png_from_depth,
     png_from_depth_preview,
+    png_from_normals,
     png_from_rgb,
     render,
 )
@@ -65,16 +66,35 @@ async def load_map(manager: SessionManager, maps: MapCache, session_id: str):
         raise HTTPException(status.HTTP_409_CONFLICT, f"session {session_id}: {error}") from None
 
 
+def depth_range(depth: np.ndarray, low: float | None, high: float | None) -> tuple[float, float] | None:
+    """The preview's colour range: the given ends, the view's own percentiles for the rest;
+    422 when they cross."""
+    if low is None and high is None:
+        return None
+    from slam.path_video import auto_depth_range
+
+    auto = auto_depth_range(depth)
+    near, far = (auto[0] if low is None else low), (auto[1] if high is None else high)
+    if not near < far:
+        raise HTTPException(422, f"depth_min ({near:g} m) must be below depth_max ({far:g} m)")
+    return near, far
+
+
 @router.post("/api/sessions/{session_id}/render", response_class=Response,
              responses={200: PNG, 409: {"model": ErrorOut}, 422: {"model": ErrorOut}},
              summary="Render the map from a camera: colour PNG, or depth as a 16-bit PNG in millimetres")
 async def render_view(session_id: str, request: CameraRequest,
-                      output: Literal["color", "depth", "depth_preview"] = Query(
+                      output: Literal["color", "depth", "depth_preview", "normals"] = Query(
                           "color", description="color: RGB PNG; depth: 16-bit PNG in millimetres (0 = no surface); "
-                                               "depth_preview: colour-mapped 8-bit PNG for display"),
+                                               "depth_preview: colour-mapped 8-bit PNG for display; normals: the "
+                                               "surface normals (from the rendered depth) as colours"),
+                      depth_min: float | None = Query(None, ge=0, description="depth_preview: metres shown red"),
+                      depth_max: float | None = Query(None, gt=0, description="depth_preview: metres shown blue"),
                       manager: SessionManager = Depends(get_manager),
                       maps: MapCache = Depends(get_map_cache)) -> Response:
     """Works while the session runs (the newest ``map.pt``) and after it ended."""
+    if depth_min is not None and depth_max is not None and not depth_min < depth_max:
+        raise HTTPException(422, f"depth_min ({depth_min:g} m) must be below depth_max ({depth_max:g} m)")
     camera = camera_from(request)
     mapset = await load_map(manager, maps, session_id)
     crop = None if request.crop is None else (request.crop.min, request.crop.max)
@@ -83,8 +103,10 @@ async def render_view(session_id: str, request: CameraRequest,
         data = await run_in_threadpool(png_from_rgb, view.rgb)
     elif output == "depth":
         data = await run_in_threadpool(png_from_depth, view.depth)
+    elif output == "normals":
+        data = await run_in_threadpool(png_from_normals, view.depth, camera.K)
     else:
-        data = await run_in_threadpool(png_from_depth_preview, view.depth)
+        data = await run_in_threadpool(png_from_depth_preview, view.depth, depth_range(view.depth, depth_min, depth_max))
     return Response(data, media_type="image/png")
 
 

@@ -19,11 +19,11 @@ OUTPUTS = ("color", "depth", "normals")
 
 def depth_image(depth: np.ndarray, depth_range: tuple[float, float]) -> np.ndarray:
     """(H, W) metres -> (H, W, 3) colours in [0, 1] (turbo colour map over ``depth_range``,
-    near is blue), black where there is no surface."""
+    near red, far blue, as the page's depth previews), black where there is no surface."""
     import cv2
 
     near, far = depth_range
-    scaled = np.clip((depth - near) / max(far - near, 1e-6), 0, 1)
+    scaled = np.clip((far - depth) / max(far - near, 1e-6), 0, 1)
     colours = cv2.applyColorMap((255 * scaled).astype(np.uint8), cv2.COLORMAP_TURBO)[..., ::-1] / 255.0
     return np.where((depth > 0)[..., None], colours, 0.0)
 

@@ -529,7 +529,7 @@ async function renderView() {
     const path = `/api/sessions/${selectedId}/render`;
     const [color, preview] = await Promise.all([
       api(path, { method: "POST", json: camera, expect: "blob" }),
-      api(path + "?output=depth_preview", { method: "POST", json: camera, expect: "blob" }),
+      api(path + secondImageQuery(), { method: "POST", json: camera, expect: "blob" }),
     ]);
     $("render-color").src = URL.createObjectURL(color);
     $("render-depth").src = URL.createObjectURL(preview);
@@ -540,6 +540,16 @@ async function renderView() {
   } finally {
     $("render-button").disabled = false;
   }
+}
+
+// The second image: depth (colour-mapped, over min-max metres when given) or normals.
+function secondImageQuery() {
+  if ($("render-second").value === "normals") return "?output=normals";
+  let query = "?output=depth_preview";
+  for (const [id, name] of [["depth-min", "depth_min"], ["depth-max", "depth_max"]]) {
+    if ($(id).value.trim() !== "") query += `&${name}=${Number($(id).value)}`;
+  }
+  return query;
 }
 
 async function downloadDepth(event) {
@@ -862,6 +872,10 @@ function start() {
   $("path-clear").addEventListener("click", () => { pathKeys = []; showPathKeys(); say("path-message", ""); });
   $("path-button").addEventListener("click", renderPath);
   $("crop-mesh").addEventListener("click", downloadCroppedMesh);
+  $("render-second").addEventListener("change", () => {
+    $("depth-range").hidden = $("render-second").value !== "depth";
+    if (lastCamera) renderView();
+  });
   $("crop-clear").addEventListener("click", () => { CROP_FIELDS.forEach((id) => { $(id).value = ""; }); });
   if (localStorage.getItem("voxfusion_viewer_tall")) toggleViewerSize(false);
   setUpViewer();

@@ -268,6 +268,11 @@ def test_crop_box_bounds_the_render(server_url, tmp_path):
             page.fill(f"#crop-{field}", str(value))
         cropped = rendered_share()
         assert cropped < 0.8 * whole, (whole, cropped)
+        # the second image: normals instead of depth re-renders, and hides the depth range
+        page.select_option("#render-second", "normals")
+        page.wait_for_function("document.getElementById('render-message').textContent.startsWith('Rendered')",
+                               timeout=60_000)
+        assert not page.is_visible("#depth-range")
         page.fill("#crop-x1", str(x - 200))
         page.click("#render-button")
         page.wait_for_function("document.getElementById('render-message').textContent.includes('below its max')",

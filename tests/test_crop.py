@@ -72,3 +72,21 @@ def test_mesh_and_render_crops(client, synthetic_session):  # noqa: F811
     assert np.mean(inside <= cut + 0.01) > 0.99, "what shows lies inside the box"
     reversed_box = client.post(f"{url}/render", json={**camera, "crop": {"min": [1, 1, 1], "max": [0, 2, 2]}})
     assert reversed_box.status_code == 422 and "below its max" in reversed_box.json()["detail"]
+
+
+@needs_runtime
+def test_render_normals_and_a_depth_preview_over_a_given_range(client, synthetic_session):  # noqa: F811
+    """Issue 44 item 10: the render call's outputs besides colour."""
+    url = f"/api/sessions/{synthetic_session}/render"
+    camera = first_pose_camera(client, synthetic_session)
+    normals = decode_png(client.post(url, json=camera, params={"output": "normals"}).content)
+    assert normals.shape == (60, 80, 3)
+    shown = normals.max(axis=2) > 0
+    assert shown.mean() > 0.5 and normals[shown].std() > 5, "normals vary over the surfaces"
+    near = decode_png(client.post(url, json=camera, params={"output": "depth_preview", "depth_min": 0.1,
+                                                            "depth_max": 0.5}).content)
+    far = decode_png(client.post(url, json=camera, params={"output": "depth_preview", "depth_min": 20,
+                                                           "depth_max": 30}).content)
+    assert not np.array_equal(near, far), "the range decides the colours"
+    crossed = client.post(url, json=camera, params={"output": "depth_preview", "depth_min": 3, "depth_max": 1})
+    assert crossed.status_code == 422 and "below depth_max" in crossed.json()["detail"]
