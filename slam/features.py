@@ -223,6 +223,25 @@ def reprojection_terms(T_map_cam: torch.Tensor, points_map: torch.Tensor, pixels
     return (cost if tensor_cost else float(cost)), H, g
 
 
+LOOP_FEATURE_COUNT = 1000
+"""The fewest ORB features the loop closer's appearance check detects per keyframe."""
+
+
+def loop_feature_count(config: SLAMConfig) -> int:
+    """ORB features per keyframe for the loop closer's appearance check (and its verification
+    detector's maximum): the tracker's count, at least ``LOOP_FEATURE_COUNT``."""
+    return max(config.tracking.feature_count, LOOP_FEATURE_COUNT)
+
+
+def tracking_features_serve_loops(config: SLAMConfig) -> bool:
+    """Whether the tracker's ORB detector (``FeatureOdometry``) is the loop closer's
+    appearance-check detector (default ORB parameters, the same count and depth limit): then,
+    on the same image, the features the tracker detected are the ones the loop closer would
+    detect, and they are sent along with the frame (``slam.messages.FrameMessage.features``)."""
+    count = config.tracking.feature_count
+    return count > 0 and count == loop_feature_count(config)
+
+
 class FeatureOdometry:
     """The previous tracked frame's features, and the correspondences of each new frame.
 
@@ -284,3 +303,8 @@ class FeatureOdometry:
         else:
             self._previous = (self._current, np.asarray(T_world_cam, np.float64))
         self._current = None
+
+    @property
+    def detected(self) -> FrameFeatures | None:
+        """The features ``correspondences`` detected on its frame, until ``remember``."""
+        return self._current

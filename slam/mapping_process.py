@@ -3,13 +3,13 @@
 For every tracked frame the mapping side integrates it into its agent's active map
 (``slam.mapping.Mapper``); for every new keyframe the loop closer (``slam.loop.closing``)
 runs the appearance check, geometric verification and, for an accepted loop, the
-hierarchical pose optimisation. It answers with map snapshots (by version), events, map
-poses after a loop, frame poses the window refined (``FramePose``), and at the end the
-statistics. At the end of a sequence every map gets its global bundle adjustment before the
-mesh and checkpoint are written.
+hierarchical pose optimisation. It answers (``slam.messages``) with map snapshots (by
+version), events, map poses after a loop, frame poses the window refined (``FramePose``), and
+at the end the statistics. At the end of a sequence every map gets its global bundle
+adjustment before the mesh and checkpoint are written.
 
-``_ProcessMapper`` runs all of this in a spawned process fed by a bounded queue
-(back-pressure instead of unbounded lag); ``_InlineMapper`` runs it in the caller
+``ProcessMapper`` runs all of this in a spawned process fed by a bounded queue
+(back-pressure instead of unbounded lag); ``InlineMapper`` runs it in the caller
 (``runtime.processes = False``: debugging and tests). Start-up and shutdown are handshakes on
 the queues, not sleeps. A mapper that dies or raises ends the run as ``failed``.
 """
@@ -23,25 +23,32 @@ import time
 import traceback
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 import torch
 
 from .config import SLAMConfig, config_from_dict
-from .data.frame import Frame
 from .events import KeyframeEvent, MapUpdateEvent, PosesUpdatedEvent
 from .frames import prepare_frame
-from .mapping import Mapper, MapSnapshot, NewMap, TrackedFrame
+from .mapping import Mapper, MappingStep, MapSnapshot, NewMap, TrackedFrame
+from .messages import (Done, EndOfInput, EventReply, Failed, FinalRefinement, FrameMessage, FramePose,
+                       KeyframeRecord, MapPosesReply, MapperStats, Ready, Reply, Request, SnapshotReply)
+
+if TYPE_CHECKING:
+    from .loop.closing import LoopCloser
+    from .maps import SubMap
+
+__all__ = ["END", "END_NOW", "FinalBudget", "FinalRefinement", "FrameMessage", "FramePose", "InlineMapper",
+           "KeyframeRecord", "MapperFailed", "MapperStats", "ProcessMapper", "final_budget",
+           "final_iterations_per_map", "map_poses", "map_update_event", "poses_event", "set_threads"]
 
 _POLL_SECONDS = 0.2
-END = None
-"""Frame-queue sentinel: the sequence ended; refine globally, then write the outputs."""
-END_NOW = "end-now"
-"""Frame-queue sentinel: the run was stopped; write the outputs without the refinement."""
+END = EndOfInput(refine=True)
+"""The last request when the sequence ended: refine globally, then write the outputs."""
+END_NOW = EndOfInput(refine=False)
+"""The last request when the run was stopped: write the outputs without the refinement."""
 _STARTUP_TIMEOUT = 300.0
-
-Reply = tuple[str, object]
 
 
 class MapperFailed(RuntimeError):
@@ -60,78 +67,6 @@ def set_threads(device: torch.device, processes: bool) -> None:
         cv2.setNumThreads(threads)  # ORB matching (slam.features) and loop verification
 
 
-# ----------------------------------------------------------------- messages
-@dataclass(frozen=True)
-class FrameMessage:
-    """A tracked frame at pipeline resolution, as plain arrays (pickles by value).
-
-    The pose is sent in the frame of the map it was tracked against (``map_id``,
-    ``T_map_cam`` (4, 4)): a loop may move that map while the message is queued, and the
-    mapper places the frame with the map's pose at the time it integrates it.
-    """
-
-    agent: int
-    frame: Frame
-    map_id: int
-    T_map_cam: np.ndarray
-    tracking_ok: bool
-    new_map: tuple[str, int, np.ndarray] | None = None
-    """(reason, map id, T_world_map) of a map this frame starts."""
-    covariance: np.ndarray | None = None
-    """(6, 6) the tracker's uncertainty of this frame's pose (``keyframe_graph.frame_covariance``)."""
-    optimize: bool = True
-    """Run the windowed optimisation after integrating it (deterministic mode integrates some
-    frames only, as a free-running mapper optimises once per batch of queued frames)."""
-
-
-@dataclass(frozen=True)
-class FramePose:
-    """A frame's pose as the mapper's window optimised it (``mapping.optimize_current_pose``),
-    in the frame of the map it was integrated into: ``map_id``, ``T_map_cam`` (4, 4) float64.
-    The tracking side puts it in place of the tracked pose (``slam.runtime``)."""
-
-    agent: int
-    frame_index: int
-    map_id: int
-    T_map_cam: np.ndarray
-
-
-@dataclass(frozen=True)
-class KeyframeRecord:
-    """A keyframe's final pose for the outputs: its map and world pose (4, 4) as 16 numbers."""
-
-    agent: int
-    frame_index: int
-    map_id: int
-    T_world_cam: list[float]
-
-
-@dataclass(frozen=True)
-class MapperStats:
-    keyframes: int
-    maps: int
-    voxels: int
-    map_bytes: int
-    decoder_bytes: int
-    busy_seconds: float
-    timings: dict[str, float]
-    keyframe_records: list[KeyframeRecord]
-    map_poses: dict[int, np.ndarray]
-    map_agents: dict[int, int]
-    map_groups: dict[int, int]
-    map_reasons: dict[int, str]
-    loop_closures: list[dict]
-    loop_candidates: list[dict]
-    """Every verified loop candidate with its scores, accepted or not."""
-    loop_candidates_rejected: int
-    loop_timings_ms: dict[str, float]
-    refinement: "FinalRefinement | None" = None
-    """What the end-of-run global bundle adjustment did (None before it ran)."""
-    keyframe_graph: dict | None = None
-    """What the end-of-run keyframe pose graph did (``KeyframeGraphResult.summary``; None
-    when it did not run: no verified loop, loops off, or a stopped run)."""
-
-
 @dataclass(frozen=True)
 class FinalBudget:
     """The end-of-run global bundle adjustment's budget: iterations over all maps, and
@@ -141,24 +76,12 @@ class FinalBudget:
     seconds: float | None
 
 
-@dataclass(frozen=True)
-class FinalRefinement:
-    """What the final bundle adjustment did: iterations asked and run, seconds, and whether
-    its time cap stopped it."""
-
-    iterations_budget: int
-    iterations_run: int
-    seconds: float
-    seconds_budget: float | None
-    stopped_by_time: bool
-
-
 @dataclass
 class _MapperSide:
     """The mapper, the loop closer and the output policy of the mapping side."""
 
     mapper: Mapper
-    closer: "object | None"
+    closer: "LoopCloser | None"
     out_dir: Path
     emit_meshes: bool
     keyframes_since_mesh: int = 0
@@ -228,71 +151,100 @@ def _save_map(side: _MapperSide) -> None:
 
 
 def _integrate(side: _MapperSide, msg: FrameMessage, optimize: bool) -> list[Reply]:
-    """Integrate one tracked frame (and close loops at a new keyframe); returns the replies."""
+    """Integrate one tracked frame into its agent's active map, as the paper's mapper does:
+    the mapper decides whether it becomes a keyframe; a keyframe is announced and looked for
+    loops; then the map's updates for the viewers and the checkpoint when one is due."""
     t0 = time.perf_counter()
     mapper = side.mapper
-    tf = prepare_frame(msg.frame, None, mapper.device, mapper.config.voxel.max_depth)
-    new_map = None
-    if msg.new_map is not None:
-        reason, map_id, T_wm = msg.new_map
-        new_map = NewMap(reason, map_id, torch.from_numpy(np.asarray(T_wm, np.float32)))
-    T_map_cam = torch.from_numpy(np.asarray(msg.T_map_cam, np.float32)).to(mapper.device)
-    if new_map is not None and new_map.map_id == msg.map_id:
-        T_world_cam = new_map.T_world_map.to(mapper.device) @ T_map_cam
-    else:
-        T_world_cam = mapper.maps.by_id(msg.map_id).T_world_map @ T_map_cam
-    step = mapper.process(TrackedFrame(tf, T_world_cam, msg.tracking_ok, msg.agent, new_map), optimize=optimize)
+    step = mapper.process(_tracked_frame(mapper, msg), optimize=optimize)
     out: list[Reply] = []
     if step.T_map_cam is not None:
-        out.append(("frame_pose", FramePose(msg.agent, step.frame_index, step.map_id,
-                                            step.T_map_cam.detach().cpu().numpy().astype(np.float64))))
-    submap = mapper.active[msg.agent]
-    cfg = mapper.config
+        out.append(FramePose(msg.agent, step.frame_index, step.map_id,
+                             step.T_map_cam.detach().cpu().numpy().astype(np.float64)))
     if msg.covariance is not None:
         side.odometry_covariance[msg.agent] = side.odometry_covariance.get(msg.agent, 0.0) + msg.covariance
+    submap = mapper.active[msg.agent]
     if step.is_keyframe:
-        # The frames since the camera's previous keyframe: this keyframe's odometry uncertainty.
-        summed = side.odometry_covariance.pop(msg.agent, None)
-        submap.keyframes[-1].odometry_covariance = None if summed is None else np.asarray(summed, np.float64)
-        kf_pose = (submap.T_world_map @ submap.keyframes[-1].T_map_cam).detach().cpu().numpy()
-        out.append(("event", KeyframeEvent(msg.agent, step.frame_index, submap.map_id, kf_pose.astype(np.float64))))
-        side.keyframes_since_mesh += 1
-        side.keyframes_since_checkpoint += 1
-        if side.closer is not None:
-            out += _close_loops(side, submap, msg.frame)
-    if side.emit_meshes and (step.started_map is not None or side.keyframes_since_mesh >= cfg.mesh.update_every_keyframes):
-        side.keyframes_since_mesh = 0
-        out.append(("event", map_update_event(mapper, submap, with_mesh=True)))
-    elif step.is_keyframe:
-        out.append(("event", map_update_event(mapper, submap, with_mesh=False)))
-    every = cfg.runtime.checkpoint_every_keyframes
-    if every > 0 and side.keyframes_since_checkpoint >= every:
-        side.keyframes_since_checkpoint = 0
-        _save_map(side)
+        out += _new_keyframe(side, msg, step, submap)
+    out += _map_updates(side, step, submap)
+    _checkpoint_if_due(side)
     side.busy += time.perf_counter() - t0
     side.frames_integrated += 1
     return out
 
 
-def _close_loops(side: _MapperSide, submap, frame: Frame) -> list[Reply]:
+def _tracked_frame(mapper: Mapper, msg: FrameMessage) -> TrackedFrame:
+    """The mapper's view of a tracked frame: on its device, placed in the world by its map's
+    pose now (or the pose of the map it starts)."""
+    tf = msg.prepared
+    if tf is None:
+        tf = prepare_frame(msg.frame, None, mapper.device, mapper.config.voxel.max_depth)
+    new_map = None
+    if msg.new_map is not None:
+        start = msg.new_map
+        new_map = NewMap(start.reason, start.map_id, torch.from_numpy(np.asarray(start.T_world_map, np.float32)))
+    T_map_cam = torch.from_numpy(np.asarray(msg.T_map_cam, np.float32)).to(mapper.device)
+    if new_map is not None and new_map.map_id == msg.map_id:
+        T_world_cam = new_map.T_world_map.to(mapper.device) @ T_map_cam
+    else:
+        T_world_cam = mapper.maps.by_id(msg.map_id).T_world_map @ T_map_cam
+    return TrackedFrame(tf, T_world_cam, msg.tracking_ok, msg.agent, new_map)
+
+
+def _new_keyframe(side: _MapperSide, msg: FrameMessage, step: MappingStep, submap: "SubMap") -> list[Reply]:
+    """The frame just integrated became ``submap``'s newest keyframe: its odometry
+    uncertainty (the frames since the camera's previous keyframe), its event, and loop
+    detection for it."""
+    summed = side.odometry_covariance.pop(msg.agent, None)
+    keyframe = submap.keyframes[-1]
+    keyframe.odometry_covariance = None if summed is None else np.asarray(summed, np.float64)
+    kf_pose = (submap.T_world_map @ keyframe.T_map_cam).detach().cpu().numpy()
+    out: list[Reply] = [EventReply(KeyframeEvent(msg.agent, step.frame_index, submap.map_id,
+                                                 kf_pose.astype(np.float64)))]
+    side.keyframes_since_mesh += 1
+    side.keyframes_since_checkpoint += 1
+    if side.closer is not None:
+        out += _close_loops(side, side.closer, submap, msg)
+    return out
+
+
+def _map_updates(side: _MapperSide, step: MappingStep, submap: "SubMap") -> list[Reply]:
+    """The viewers' update of ``submap``: with its mesh for a new map and every
+    ``mesh.update_every_keyframes`` keyframes (when meshes are wanted), else at a keyframe
+    without."""
+    every = side.mapper.config.mesh.update_every_keyframes
+    if side.emit_meshes and (step.started_map is not None or side.keyframes_since_mesh >= every):
+        side.keyframes_since_mesh = 0
+        return [EventReply(map_update_event(side.mapper, submap, with_mesh=True))]
+    if step.is_keyframe:
+        return [EventReply(map_update_event(side.mapper, submap, with_mesh=False))]
+    return []
+
+
+def _checkpoint_if_due(side: _MapperSide) -> None:
+    """``map.pt`` every ``runtime.checkpoint_every_keyframes`` keyframes."""
+    every = side.mapper.config.runtime.checkpoint_every_keyframes
+    if every > 0 and side.keyframes_since_checkpoint >= every:
+        side.keyframes_since_checkpoint = 0
+        _save_map(side)
+
+
+def _close_loops(side: _MapperSide, closer: "LoopCloser", submap: "SubMap", msg: FrameMessage) -> list[Reply]:
     """Loop detection for the keyframe just added to ``submap``; for an accepted loop the
     events, the new map poses and fresh snapshots of every active map."""
     mapper = side.mapper
-    closures = side.closer.add_keyframe(mapper, submap, submap.keyframes[-1], frame)  # type: ignore[union-attr]
-    out: list[Reply] = []
-    if closures:
-        # Poses first, so that a viewer already holds the moved maps when it draws the edge.
-        mapper.version += 1
-        out.append(("map_poses", map_poses(mapper)))
-        out.append(("event", poses_event(mapper, "loop")))
-    out += [("event", c) for c in closures]
-    if closures:
-        for active in mapper.active.values():
-            out.append(("snapshot", side.snapshot(active)))
-        if side.emit_meshes:
-            moved = {c.map_id for c in closures} | {c.match_map for c in closures}
-            for map_id in sorted(moved):
-                out.append(("event", map_update_event(mapper, mapper.maps.by_id(map_id), with_mesh=True)))
+    closures = closer.add_keyframe(mapper, submap, submap.keyframes[-1], msg.frame, features=msg.features)
+    if not closures:
+        return []
+    # Poses first, so that a viewer already holds the moved maps when it draws the edge.
+    mapper.version += 1
+    out: list[Reply] = [MapPosesReply(map_poses(mapper)), EventReply(poses_event(mapper, "loop"))]
+    out += [EventReply(c) for c in closures]
+    out += [SnapshotReply(side.snapshot(active)) for active in mapper.active.values()]
+    if side.emit_meshes:
+        moved = {c.map_id for c in closures} | {c.match_map for c in closures}
+        for map_id in sorted(moved):
+            out.append(EventReply(map_update_event(mapper, mapper.maps.by_id(map_id), with_mesh=True)))
     return out
 
 
@@ -310,10 +262,10 @@ def _stats(side: _MapperSide) -> MapperStats:
         sum(m.voxels.embeddings.numel() * 4 for m in maps), sum(m.decoder.num_bytes() for m in maps),
         side.busy, dict(mapper.timer.totals), records, map_poses(mapper),
         {m.map_id: m.agent for m in maps}, mapper.maps.groups(), {m.map_id: m.reason for m in maps},
-        closer.closures_json() if closer is not None else [],  # type: ignore[union-attr]
-        list(closer.candidates) if closer is not None else [],  # type: ignore[union-attr]
-        closer.rejected if closer is not None else 0,  # type: ignore[union-attr]
-        closer.timings_ms() if closer is not None else {},  # type: ignore[union-attr]
+        closer.closures_json() if closer is not None else [],
+        list(closer.candidates) if closer is not None else [],
+        closer.rejected if closer is not None else 0,
+        closer.timings_ms() if closer is not None else {},
         side.refinement, side.keyframe_graph)
 
 
@@ -342,49 +294,61 @@ def final_iterations_per_map(keyframes: list[int], total: int) -> list[int]:
 
 def _finish(side: _MapperSide, refine: bool) -> list[Reply]:
     """Final outputs: the global bundle adjustment of every map (``refine``; a stopped run
-    skips it to stop promptly), checkpoint and mesh, then the statistics."""
-    from .mesh import export_mesh, extract_mesh
-
+    skips it to stop promptly) and the keyframe pose graph, checkpoint and mesh, then the
+    statistics (the last reply)."""
     mapper = side.mapper
     out: list[Reply] = []
     if mapper.maps.maps:
-        m = mapper.config.mapping
-        t0 = time.perf_counter()
-        maps = mapper.maps.maps
-        budget = final_budget(m, mapper.maps.num_keyframes(), t0 - side.started)
-        runtime = mapper.config.runtime
-        if runtime.deterministic and budget.seconds is not None:
-            # A time cap would make the result depend on load: an iteration count instead.
-            budget = FinalBudget(min(budget.iterations, runtime.deterministic_final_iterations), None)
-        shares = final_iterations_per_map([len(s.keyframes) for s in maps], budget.iterations if refine else 0)
-        ran = 0
-        for submap, iterations in zip(maps, shares):
-            # Each map gets the share of the time that it gets of the iterations.
-            deadline = (None if budget.seconds is None or not sum(shares)
-                        else time.perf_counter() + budget.seconds * iterations / sum(shares))
-            mapper.global_bundle_adjustment(submap, iterations, m.final_rays, deadline=deadline)
-            ran += mapper.last_iterations  # 0 when it had nothing to do
-        mapper.version += 1
-        seconds = time.perf_counter() - t0
-        side.busy += seconds
-        mapper.timer.add("final_bundle_adjustment", seconds)
-        side.refinement = FinalRefinement(sum(shares), ran, seconds, budget.seconds, ran < sum(shares))
+        side.refinement = _final_bundle_adjustment(side, refine)
         if refine and side.closer is not None:
             # After the bundle adjustment: its keyframe poses are the odometry the graph keeps.
-            solved = side.closer.optimise_keyframes(mapper)  # type: ignore[union-attr]
+            solved = side.closer.optimise_keyframes(mapper)
             if solved is not None:
                 side.keyframe_graph = solved.summary()
                 mapper.version += 1
-        t0 = time.perf_counter()
-        _save_map(side)
-        export_mesh(extract_mesh(mapper.maps), side.out_dir / "mesh.ply")
-        mapper.timer.add("final_outputs", time.perf_counter() - t0)
-        out.append(("event", poses_event(mapper, "refinement")))
+        _write_final_map(side)
+        out.append(EventReply(poses_event(mapper, "refinement")))
         if side.emit_meshes:
-            for submap in maps:
-                out.append(("event", map_update_event(mapper, submap, with_mesh=True)))
-    out.append(("done", _stats(side)))
+            out += [EventReply(map_update_event(mapper, submap, with_mesh=True)) for submap in mapper.maps.maps]
+    out.append(Done(_stats(side)))
     return out
+
+
+def _final_bundle_adjustment(side: _MapperSide, refine: bool) -> FinalRefinement:
+    """The global bundle adjustment of every map within ``final_budget`` (no iterations
+    unless ``refine``), its iterations shared among the maps by keyframes."""
+    mapper = side.mapper
+    m = mapper.config.mapping
+    t0 = time.perf_counter()
+    maps = mapper.maps.maps
+    budget = final_budget(m, mapper.maps.num_keyframes(), t0 - side.started)
+    runtime = mapper.config.runtime
+    if runtime.deterministic and budget.seconds is not None:
+        # A time cap would make the result depend on load: an iteration count instead.
+        budget = FinalBudget(min(budget.iterations, runtime.deterministic_final_iterations), None)
+    shares = final_iterations_per_map([len(s.keyframes) for s in maps], budget.iterations if refine else 0)
+    ran = 0
+    for submap, iterations in zip(maps, shares):
+        # Each map gets the share of the time that it gets of the iterations.
+        deadline = (None if budget.seconds is None or not sum(shares)
+                    else time.perf_counter() + budget.seconds * iterations / sum(shares))
+        mapper.global_bundle_adjustment(submap, iterations, m.final_rays, deadline=deadline)
+        ran += mapper.last_iterations  # 0 when it had nothing to do
+    mapper.version += 1
+    seconds = time.perf_counter() - t0
+    side.busy += seconds
+    mapper.timer.add("final_bundle_adjustment", seconds)
+    return FinalRefinement(sum(shares), ran, seconds, budget.seconds, ran < sum(shares))
+
+
+def _write_final_map(side: _MapperSide) -> None:
+    """``map.pt`` and ``mesh.ply`` of every map."""
+    from .mesh import export_mesh, extract_mesh
+
+    t0 = time.perf_counter()
+    _save_map(side)
+    export_mesh(extract_mesh(side.mapper.maps), side.out_dir / "mesh.ply")
+    side.mapper.timer.add("final_outputs", time.perf_counter() - t0)
 
 
 def _queued(frames: "queue.Queue") -> int:
@@ -404,7 +368,7 @@ def _integrate_batch(side: _MapperSide, work: list[FrameMessage]) -> list[Reply]
     for i, msg in enumerate(work):
         out += _integrate(side, msg, optimize=last[msg.agent] == i and msg.optimize)
     for agent in sorted(last):
-        out.append(("snapshot", side.snapshot(side.mapper.active[agent])))
+        out.append(SnapshotReply(side.snapshot(side.mapper.active[agent])))
     return out
 
 
@@ -418,14 +382,30 @@ def _idle_step(side: _MapperSide, frame_waiting: Callable[[], bool]) -> list[Rep
     for submap in list(mapper.active.values()):
         mapper.optimize(submap, mapper.config.mapping.iterations, interrupted=frame_waiting)
         mapper.version += 1
-        out.append(("snapshot", side.snapshot(submap)))
+        out.append(SnapshotReply(side.snapshot(submap)))
     side.busy += time.perf_counter() - t0
     return out
 
 
+def _next_batch(frames: "queue.Queue", first: Request, config: SLAMConfig) -> list[Request]:
+    """``first`` and what queued up behind it while the mapper optimised (integrate all,
+    optimise once). qsize counts frames still in the queue's pipe, which get_nowait would
+    miss. At most what was queued when we looked: a producer faster than us would otherwise
+    keep this loop draining forever. Deterministic mode takes one frame at a time."""
+    batch = [first]
+    waiting = 0 if config.runtime.deterministic else _queued(frames)
+    while not isinstance(batch[-1], EndOfInput) and waiting > 0 and len(batch) <= config.runtime.queue_size + 1:
+        waiting -= 1
+        try:
+            batch.append(frames.get(timeout=_POLL_SECONDS))
+        except queue.Empty:
+            break
+    return batch
+
+
 def _mapping_process(config_dict: dict, device_name: str, out_dir: str, emit_meshes: bool,
                      frames: "queue.Queue", replies: "queue.Queue", seed: int) -> None:
-    """Entry point of the mapping process: mapper loop until an end sentinel."""
+    """Entry point of the mapping process: mapper loop until an ``EndOfInput``."""
     import multiprocessing as mp
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is handled by the tracking side
@@ -434,7 +414,7 @@ def _mapping_process(config_dict: dict, device_name: str, out_dir: str, emit_mes
         device = torch.device(device_name)
         set_threads(device, processes=True)
         side = _make_side(config, device, Path(out_dir), emit_meshes, seed)
-        replies.put(("ready", None))
+        replies.put(Ready())
         parent = mp.parent_process()
         while True:
             if parent is not None and not parent.is_alive():
@@ -444,36 +424,25 @@ def _mapping_process(config_dict: dict, device_name: str, out_dir: str, emit_mes
                 return
             idle_steps = side.mapper.active and not config.runtime.deterministic
             try:
-                msg = frames.get(timeout=0 if idle_steps else _POLL_SECONDS)
+                first = frames.get(timeout=0 if idle_steps else _POLL_SECONDS)
             except queue.Empty:
                 for reply in _idle_step(side, lambda: not frames.empty()) if idle_steps else ():
                     replies.put(reply)
                 continue
-            batch = [msg]
-            # Drain what queued up while we optimised: integrate all, optimise once. qsize
-            # counts frames still in the queue's pipe, which get_nowait would miss. At most
-            # what was queued when we looked: a producer faster than us would otherwise keep
-            # this loop draining forever.
-            waiting = 0 if config.runtime.deterministic else _queued(frames)  # one frame at a time
-            while batch[-1] not in (END, END_NOW) and waiting > 0 and len(batch) <= config.runtime.queue_size + 1:
-                waiting -= 1
-                try:
-                    batch.append(frames.get(timeout=_POLL_SECONDS))
-                except queue.Empty:
-                    break
-            done = batch[-1] in (END, END_NOW)
-            work = [m for m in batch if m not in (END, END_NOW)]
+            batch = _next_batch(frames, first, config)
+            work = [m for m in batch if isinstance(m, FrameMessage)]
             for reply in _integrate_batch(side, work) if work else []:
                 replies.put(reply)
-            if done:
+            end = batch[-1]
+            if isinstance(end, EndOfInput):
                 # The tracker has no frames left: the final bundle adjustment and the mesh
                 # take every core (2 cores: 108 -> 80 ms per global-BA iteration).
                 set_threads(device, processes=False)
-                for reply in _finish(side, refine=batch[-1] is END):
+                for reply in _finish(side, refine=end.refine):
                     replies.put(reply)
                 return
     except BaseException:  # noqa: BLE001 - reported to the tracking side, which fails the run
-        replies.put(("error", traceback.format_exc()))
+        replies.put(Failed(traceback.format_exc()))
 
 
 # ---------------------------------------------------------- mapper channels
@@ -512,7 +481,7 @@ class ProcessMapper:
             args=(config.to_dict(), str(device), str(out_dir), emit_meshes, self.frames, self.replies, seed))
         self.process.start()
         self._early: list[Reply] = []
-        self._wait_for("ready", _STARTUP_TIMEOUT)
+        self._wait_for_ready(_STARTUP_TIMEOUT)
 
     def _get(self, timeout: float) -> Reply | None:
         try:
@@ -526,20 +495,22 @@ class ProcessMapper:
                     raise MapperFailed(f"the mapping process died (exit code {self.process.exitcode})") from None
             return None
 
-    def _wait_for(self, kind: str, timeout: float) -> None:
+    def _wait_for_ready(self, timeout: float) -> None:
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             reply = self._get(_POLL_SECONDS)
-            if reply is None:
-                continue
-            if reply[0] == "error":
-                raise MapperFailed(str(reply[1]))
-            if reply[0] == kind:
+            if isinstance(reply, Failed):
+                raise MapperFailed(reply.traceback)
+            if isinstance(reply, Ready):
                 return
-            self._early.append(reply)
-        raise MapperFailed(f"the mapping process did not answer '{kind}' within {timeout:.0f} s")
+            if reply is not None:
+                self._early.append(reply)
+        raise MapperFailed(f"the mapping process did not answer 'ready' within {timeout:.0f} s")
 
-    def submit(self, msg: FrameMessage | None | str) -> None:
+    def submit(self, msg: Request) -> None:
+        if isinstance(msg, FrameMessage) and msg.prepared is not None:
+            # Tensors pickle as shared-memory files: re-preparing them there is cheaper (issue 42).
+            msg = replace(msg, prepared=None)
         while True:
             try:
                 self.frames.put(msg, timeout=_POLL_SECONDS)
@@ -550,9 +521,9 @@ class ProcessMapper:
                 # While we wait, read what the mapper sent: a mapper that failed is flushing
                 # its traceback at exit and would wait for us forever.
                 self._early += self.poll()
-                for kind, payload in self._early:
-                    if kind == "error":
-                        raise MapperFailed(str(payload))
+                for reply in self._early:
+                    if isinstance(reply, Failed):
+                        raise MapperFailed(reply.traceback)
 
     def _raise_dead(self) -> None:
         """The mapping process is gone: raise with its traceback if it sent one."""
@@ -561,8 +532,8 @@ class ProcessMapper:
                 reply = self.replies.get(timeout=_POLL_SECONDS)
             except queue.Empty:
                 break
-            if reply[0] == "error":
-                raise MapperFailed(str(reply[1]))
+            if isinstance(reply, Failed):
+                raise MapperFailed(reply.traceback)
         raise MapperFailed(f"the mapping process died (exit code {self.process.exitcode})")
 
     def poll(self, block: bool = False) -> list[Reply]:
@@ -577,7 +548,7 @@ class ProcessMapper:
                 return out
 
     def finish(self, refine: bool = True) -> list[Reply]:
-        self.submit(END if refine else END_NOW)
+        self.submit(EndOfInput(refine))
         out: list[Reply] = list(self._early)
         self._early = []
         while True:
@@ -585,7 +556,7 @@ class ProcessMapper:
             if reply is None:
                 continue
             out.append(reply)
-            if reply[0] in ("done", "error"):
+            if isinstance(reply, (Done, Failed)):
                 return out
 
     def close(self) -> None:

@@ -1,15 +1,21 @@
 """The SLAM runtime: tracking in the calling process, mapping and loop closing in their own.
 
-The loop reads like the paper's system overview:
+The loop (``_process_frame``) reads like the paper's system overview:
 
     for each frame of each agent:
         track it against the agent's active map (the newest snapshot)
         -> lost, or out of the map's region?  then the frame starts a new map
+        -> publish its pose
         -> hand the tracked frame to the mapping side, which selects keyframes, allocates
            voxels, runs the windowed joint optimisation, and for every new keyframe looks
            for loops (appearance check, geometric verification, hierarchical pose
            optimisation), publishing new snapshots and map poses
+        -> apply what the mapping side sent back (keyframes, loops, moved maps, snapshots)
     at the end: global bundle adjustment of every map, mesh, trajectories
+
+The two sides talk in the typed messages of ``slam.messages``. A frame is prepared for the
+pipeline once on the tracking side; its ORB features go with it to the loop closer when the
+closer's detector would find the same ones (``features.tracking_features_serve_loops``).
 
 Several sequences (agents, collaborative mapping) are read round-robin, or as one
 ``AgentStream``; each agent has its own tracking state and active map, all maps live on the
@@ -39,7 +45,7 @@ import traceback
 from collections import deque
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Callable, Iterable, Iterator, Protocol
+from typing import TYPE_CHECKING, Callable, Iterable, Iterator, Protocol
 
 import numpy as np
 import torch
@@ -47,16 +53,21 @@ import torch
 from .config import SLAMConfig
 from .data.frame import Frame
 from .data.io import resize_rgbd
-from .events import Event, FinishedEvent, KeyframeEvent, PhaseEvent, PoseEvent, StatsEvent, SubmapEvent
-from .features import FeatureOdometry
+from .events import Event, FinishedEvent, KeyframeEvent, LoopEvent, PhaseEvent, PoseEvent, StatsEvent, SubmapEvent
+from .features import FeatureOdometry, tracking_features_serve_loops
 from .frames import prepare_frame
 from .mapping import MapSnapshot
-from .mapping_process import FrameMessage, FramePose, InlineMapper, MapperFailed, MapperStats, ProcessMapper
+from .mapping_process import InlineMapper, MapperFailed, ProcessMapper
 from .mapping_process import set_threads as _set_threads
+from .messages import (Done, EventReply, Failed, FrameMessage, FramePose, MapPosesReply, MapperStats, MapStart,
+                       Reply, SnapshotReply)
 from .outputs import (PROGRESS_EVERY, FrameRecord, ProgressSample, RunResult, refine_with_keyframes, running_ate,
                       write_outputs, write_progress)
 from .loop.keyframe_graph import frame_covariance
 from .tracking import FrozenMap, Tracker, constant_velocity_guess
+
+if TYPE_CHECKING:
+    from tqdm import tqdm
 
 __all__ = ["AgentStream", "MapperFailed", "RunResult", "refine_with_keyframes", "resolve_device", "run_slam",
            "with_given_poses", "Tracker"]
@@ -210,31 +221,36 @@ def _thumbnail(rgb: np.ndarray, width: int = 96) -> np.ndarray:
     return (cv2.resize(rgb, (width, h), interpolation=cv2.INTER_AREA) * 255).astype(np.uint8)
 
 
-def _handle_replies(replies: list[tuple[str, object]], side: _TrackingSide, emit: Callable[[Event], None]) -> None:
-    from .events import LoopEvent
+def _handle_replies(replies: list[Reply], side: _TrackingSide, emit: Callable[[Event], None]) -> None:
+    """Apply the mapping side's replies in order (``slam.messages``); a ``Failed`` one raises
+    ``MapperFailed`` with its traceback."""
+    for reply in replies:
+        if isinstance(reply, Failed):
+            raise MapperFailed(reply.traceback)
+        if isinstance(reply, SnapshotReply):
+            side.snapshots[reply.snapshot.map_id] = reply.snapshot
+            side.frames_integrated = max(side.frames_integrated, reply.snapshot.frames_integrated)
+        elif isinstance(reply, MapPosesReply):
+            side.move_maps(reply.poses)
+        elif isinstance(reply, FramePose):
+            side.refine_frame(reply)
+        elif isinstance(reply, EventReply):
+            _count_event(side, reply.event)
+            emit(reply.event)
+        elif isinstance(reply, Done):
+            side.mapper_stats = reply.stats
 
-    for kind, payload in replies:
-        if kind == "error":
-            raise MapperFailed(str(payload))
-        if kind == "snapshot":
-            snap: MapSnapshot = payload  # type: ignore[assignment]
-            side.snapshots[snap.map_id] = snap
-            side.frames_integrated = max(side.frames_integrated, snap.frames_integrated)
-        elif kind == "map_poses":
-            side.move_maps(payload)  # type: ignore[arg-type]
-        elif kind == "frame_pose":
-            side.refine_frame(payload)  # type: ignore[arg-type]
-        elif kind == "event":
-            if isinstance(payload, LoopEvent):
-                side.loops += 1
-            elif isinstance(payload, KeyframeEvent):
-                side.keyframes_seen += 1
-                side.last_keyframe = (int(payload.agent), int(payload.frame_index))
-                if side.on_keyframe is not None:
-                    side.on_keyframe()
-            emit(payload)  # type: ignore[arg-type]
-        elif kind == "done":
-            side.mapper_stats = payload  # type: ignore[assignment]
+
+def _count_event(side: _TrackingSide, event: Event) -> None:
+    """Loops and keyframes as the mapping side announces them; a keyframe's progress is
+    written before its event goes out (module doc)."""
+    if isinstance(event, LoopEvent):
+        side.loops += 1
+    elif isinstance(event, KeyframeEvent):
+        side.keyframes_seen += 1
+        side.last_keyframe = (int(event.agent), int(event.frame_index))
+        if side.on_keyframe is not None:
+            side.on_keyframe()
 
 
 def _valid_depth_share(frame: Frame) -> float:
@@ -357,41 +373,12 @@ def _estimate_pose(side: _TrackingSide, track: AgentTrack, frame: Frame, raw: Fr
                    use_gt_poses: bool, emit) -> tuple[FrameMessage | None, FrameRecord]:
     """Track one frame of one agent: its record and the message for the mapper (None: the
     frame is not mapped, e.g. a lost camera's frame without depth)."""
-    config = side.config
-    mm = config.multimap
-    gt = None if raw.T_world_cam is None else np.asarray(raw.T_world_cam, np.float64)
+    gt = _ground_truth(track, raw, use_gt_poses)
+    min_depth = side.config.multimap.min_valid_depth
+    if not track.records or (track.lost and _valid_depth_share(frame) >= min_depth):
+        return _start_frame(side, track, frame, raw, gt, use_gt_poses)
     if use_gt_poses:
-        if gt is None:
-            agent = f" of agent {track.agent}" if track.agent else ""
-            raise ValueError(f"--gt-poses: frame {frame.index}{agent} has no ground-truth pose")
-    first_frame = not track.records
-    if first_frame or (track.lost and _valid_depth_share(frame) >= mm.min_valid_depth):
-        # An agent's first frame starts its first map; a lost camera's first frame with depth
-        # starts a floating map at the last pose it knew (the agent's first: the world's
-        # origin for agent 0, or its GT; any other agent floats at the origin).
-        reason = "start" if first_frame else "tracking_failure"
-        if use_gt_poses:
-            T = gt
-        elif first_frame:
-            T = gt if (gt is not None and track.agent == 0) else np.eye(4)
-        else:
-            T = track.good_poses[-1]
-        map_id, T_wm, T_mc = _start_map(side, track, reason, T, first_ever=side.next_map_id == 0)
-        track.lost, track.failures_in_row, track.last_ok = False, 0, True
-        track.good_poses, track.good_frames = [T], [frame.index]
-        if not use_gt_poses:
-            track.features = track.features or FeatureOdometry.from_config(config)
-            if track.features is not None:
-                track.features.correspondences(raw)
-                track.features.remember(T)
-        rec = FrameRecord(frame.index, float(frame.timestamp), map_id, T_mc, True, gt)
-        return FrameMessage(track.agent, frame, map_id, T_mc.astype(np.float32), True,
-                            (reason, map_id, T_wm.astype(np.float32))), rec
-    if use_gt_poses:
-        map_id = track.active_map
-        T_mc = np.linalg.inv(side.map_poses[map_id]) @ gt
-        return (FrameMessage(track.agent, frame, map_id, T_mc.astype(np.float32), True),
-                FrameRecord(frame.index, float(frame.timestamp), map_id, T_mc, True, gt))
+        return _given_pose_frame(side, track, frame, gt)
     if track.lost:
         # No depth to start a map with: hold the last pose; the outputs interpolate it.
         T_mc = np.linalg.inv(side.map_poses[track.active_map]) @ track.good_poses[-1]
@@ -401,9 +388,65 @@ def _estimate_pose(side: _TrackingSide, track: AgentTrack, frame: Frame, raw: Fr
         # Nothing to track with (a blank or dropped-out frame): a failure at the guess, not
         # sent to the mapper.
         T = constant_velocity_guess([torch.from_numpy(p) for p in track.good_poses[-1:]], False).numpy()
-        _count_failure(track, config)
+        _count_failure(track, side.config)
         T_mc = np.linalg.inv(side.map_poses[track.active_map]) @ T
         return None, FrameRecord(frame.index, float(frame.timestamp), track.active_map, T_mc, False, gt)
+    return _track_frame(side, track, frame, raw, gt, channel, emit)
+
+
+def _ground_truth(track: AgentTrack, raw: Frame, use_gt_poses: bool) -> np.ndarray | None:
+    """The frame's ground-truth pose (4, 4) float64, if it has one; required by --gt-poses."""
+    if raw.T_world_cam is not None:
+        return np.asarray(raw.T_world_cam, np.float64)
+    if use_gt_poses:
+        agent = f" of agent {track.agent}" if track.agent else ""
+        raise ValueError(f"--gt-poses: frame {raw.index}{agent} has no ground-truth pose")
+    return None
+
+
+def _start_frame(side: _TrackingSide, track: AgentTrack, frame: Frame, raw: Frame, gt: np.ndarray | None,
+                 use_gt_poses: bool) -> tuple[FrameMessage, FrameRecord]:
+    """An agent's first frame starts its first map; a lost camera's first frame with depth
+    starts a floating map at the last pose it knew (the agent's first: the world's origin for
+    agent 0, or its GT; any other agent floats at the origin)."""
+    first_frame = not track.records
+    reason = "start" if first_frame else "tracking_failure"
+    if use_gt_poses:
+        T = gt
+    elif first_frame:
+        T = gt if (gt is not None and track.agent == 0) else np.eye(4)
+    else:
+        T = track.good_poses[-1]
+    map_id, T_wm, T_mc = _start_map(side, track, reason, T, first_ever=side.next_map_id == 0)
+    track.lost, track.failures_in_row, track.last_ok = False, 0, True
+    track.good_poses, track.good_frames = [T], [frame.index]
+    features = None
+    if not use_gt_poses:
+        track.features = track.features or FeatureOdometry.from_config(side.config)
+        if track.features is not None:
+            track.features.correspondences(raw)
+            features = _features_for_loops(side.config, track, frame, raw)
+            track.features.remember(T)
+    rec = FrameRecord(frame.index, float(frame.timestamp), map_id, T_mc, True, gt)
+    start = MapStart(reason, map_id, T_wm.astype(np.float32))
+    return FrameMessage(track.agent, frame, map_id, T_mc.astype(np.float32), True, start, features=features), rec
+
+
+def _given_pose_frame(side: _TrackingSide, track: AgentTrack, frame: Frame,
+                      gt: np.ndarray) -> tuple[FrameMessage, FrameRecord]:
+    """--gt-poses: the frame at its ground-truth pose, in the agent's active map."""
+    map_id = track.active_map
+    T_mc = np.linalg.inv(side.map_poses[map_id]) @ gt
+    return (FrameMessage(track.agent, frame, map_id, T_mc.astype(np.float32), True),
+            FrameRecord(frame.index, float(frame.timestamp), map_id, T_mc, True, gt))
+
+
+def _track_frame(side: _TrackingSide, track: AgentTrack, frame: Frame, raw: Frame, gt: np.ndarray | None,
+                 channel, emit) -> tuple[FrameMessage, FrameRecord]:
+    """Track a frame against the newest map the agent may use, from the constant-velocity
+    guess (or the PnP pose of its ORB matches with the previous frame); a good pose that
+    left the active map's region starts the next map."""
+    config = side.config
     if config.runtime.deterministic:
         _deterministic_map(side, channel, emit)
     else:
@@ -417,29 +460,48 @@ def _estimate_pose(side: _TrackingSide, track: AgentTrack, frame: Frame, raw: Fr
     good = track.good_poses[-2:] if track.last_ok else track.good_poses[-1:]
     history = [torch.from_numpy(p).float().to(side.device) for p in good]
     matches = track.features.correspondences(raw) if track.features is not None else None
+    features = _features_for_loops(config, track, frame, raw)
     result = side.tracker.track(tf, fmap, constant_velocity_guess(history, config.tracking.constant_velocity), matches)
     T = result.T_world_cam.detach().cpu().numpy().astype(np.float64)
     if track.features is not None:
         track.features.remember(T if result.ok else None)
     side.busy += time.perf_counter() - t0
     track.last_ok = result.ok
-    T_mc = np.linalg.inv(side.map_poses[map_id]) @ T
-    new_map = None
-    if result.ok:
-        track.failures_in_row = 0
-        track.good_poses = (track.good_poses + [T])[-3:]
-        track.good_frames = (track.good_frames + [frame.index])[-3:]
-        T_active = np.linalg.inv(side.map_poses[track.active_map]) @ T
-        offset = T_active[:3, 3] - side.map_centre[track.active_map]
-        if mm.enabled and float(np.abs(offset).max()) > mm.region_size / 2:
-            # The camera left the active map's region: this frame starts the next map.
-            new_id, T_wm, T_mc = _start_map(side, track, "region", T, first_ever=False)
-            map_id, new_map = new_id, ("region", new_id, T_wm.astype(np.float32))
-    else:
-        _count_failure(track, config)
+    map_id, T_mc, new_map = _place_tracked(side, track, frame.index, map_id, T, result.ok)
     rec = FrameRecord(frame.index, float(frame.timestamp), map_id, T_mc, result.ok, gt)
     covariance = frame_covariance(result.information) if result.ok and result.information is not None else None
-    return FrameMessage(track.agent, frame, map_id, T_mc.astype(np.float32), result.ok, new_map, covariance), rec
+    return FrameMessage(track.agent, frame, map_id, T_mc.astype(np.float32), result.ok, new_map, covariance,
+                        prepared=tf, features=features), rec
+
+
+def _place_tracked(side: _TrackingSide, track: AgentTrack, index: int, map_id: int, T: np.ndarray,
+                   ok: bool) -> tuple[int, np.ndarray, MapStart | None]:
+    """A tracked world pose T in the map it was tracked against (map id, T_map_cam); a good
+    one joins the motion history and, outside the active map's region, starts the next map
+    (then its id, the pose in it, and the ``MapStart``); a bad one counts as a failure."""
+    T_mc = np.linalg.inv(side.map_poses[map_id]) @ T
+    if not ok:
+        _count_failure(track, side.config)
+        return map_id, T_mc, None
+    track.failures_in_row = 0
+    track.good_poses = (track.good_poses + [T])[-3:]
+    track.good_frames = (track.good_frames + [index])[-3:]
+    mm = side.config.multimap
+    offset = (np.linalg.inv(side.map_poses[track.active_map]) @ T)[:3, 3] - side.map_centre[track.active_map]
+    if mm.enabled and float(np.abs(offset).max()) > mm.region_size / 2:
+        # The camera left the active map's region: this frame starts the next map.
+        new_id, T_wm, T_mc = _start_map(side, track, "region", T, first_ever=False)
+        return new_id, T_mc, MapStart("region", new_id, T_wm.astype(np.float32))
+    return map_id, T_mc, None
+
+
+def _features_for_loops(config: SLAMConfig, track: AgentTrack, frame: Frame, raw: Frame):
+    """The ORB features the tracker just detected on ``raw``, when the loop closer's
+    appearance check would detect the same ones (same detector, and ``raw`` is the pipeline
+    frame): they travel with the frame instead of being detected again. None otherwise."""
+    if track.features is None or frame is not raw or not config.loop.enabled:
+        return None
+    return track.features.detected if tracking_features_serve_loops(config) else None
 
 
 def _interleave(sources: list[Iterable[Frame]]) -> Iterator[tuple[int, Frame]]:
@@ -485,104 +547,183 @@ def run_slam(sources: list[Iterable[Frame]], config: SLAMConfig, out_dir: str | 
         raise ValueError("run_slam needs at least one source")
     if use_gt_poses:
         config = with_given_poses(config)
-    out = Path(out_dir)
+    run = _open_run(sources, config, Path(out_dir), on_event, stop, progress)
+    _track_all(run, sources, use_gt_poses)
+    if run.side is not None:
+        # Tracking is over (the input ended, a stop, a failure): every pose on disk first, in
+        # milliseconds, before the final refinement (minutes) or a stop's checkpoint and mesh,
+        # which a kill may cut short.
+        _write_progress(run.out, run.side, run.total, run.started)
+    _finish_mapping(run, progress)
+    return _write_results(run, sources, use_gt_poses)
+
+
+@dataclass
+class _Run:
+    """One ``run_slam`` call: where it writes, whom it tells, and how far it got."""
+
+    out: Path
+    config: SLAMConfig
+    device: torch.device
+    emit: Callable[[Event], None]
+    thumbnails: bool
+    """Whether PoseEvents carry a thumbnail (someone listens)."""
+    stop: StopFlag | None
+    total: int | None
+    started: float
+    bar: "tqdm | None" = None
+    """The progress bar (``progress``)."""
+    done: int = 0
+    """Frames processed so far."""
+    status: str = "finished"
+    error: str | None = None
+    side: _TrackingSide | None = None
+    channel: InlineMapper | ProcessMapper | None = None
+
+    def stopped(self) -> bool:
+        return self.stop is not None and self.stop.is_set()
+
+
+def _open_run(sources: list[Iterable[Frame]], config: SLAMConfig, out: Path,
+              on_event: Callable[[Event], None] | None, stop: StopFlag | None, progress: bool) -> _Run:
+    """The output folder, the device and its threads, the seed, the progress bar."""
     out.mkdir(parents=True, exist_ok=True)
     device = resolve_device(config.runtime.device)
-    processes = config.runtime.processes
-    _set_threads(device, processes)
+    _set_threads(device, config.runtime.processes)
     torch.manual_seed(config.runtime.seed)
-    emit = on_event or (lambda event: None)
     total = _total_frames(sources)
     bar = None
     if progress:
         from tqdm import tqdm
 
         bar = tqdm(total=total, unit="frame", dynamic_ncols=True)
-    status, error = "finished", None
-    started = time.perf_counter()
-    channel: InlineMapper | ProcessMapper | None = None
-    side: _TrackingSide | None = None
-    done = 0
+    return _Run(out, config, device, on_event or (lambda event: None), on_event is not None, stop, total,
+                time.perf_counter(), bar)
+
+
+def _track_all(run: _Run, sources: list[Iterable[Frame]], use_gt_poses: bool) -> None:
+    """Start the mapping side and the tracker, then every frame in arrival order until the
+    input ends, a stop, or a failure (``run.status``, ``run.error``)."""
+    config = run.config
     try:
-        mapper_cls = ProcessMapper if processes else InlineMapper
-        channel = mapper_cls(config, device, out, on_event is not None, config.runtime.seed)
-        side = _TrackingSide(config, device, Tracker(config, device, seed=config.runtime.seed))
-        side.on_keyframe = lambda: _write_progress(out, side, total, started)
-        emit(PhaseEvent("tracking"))
+        mapper_cls = ProcessMapper if config.runtime.processes else InlineMapper
+        run.channel = mapper_cls(config, run.device, run.out, run.thumbnails, config.runtime.seed)
+        side = run.side = _TrackingSide(config, run.device, Tracker(config, run.device, seed=config.runtime.seed))
+        side.on_keyframe = lambda: _write_progress(run.out, side, run.total, run.started)
+        run.emit(PhaseEvent("tracking"))
         for agent, raw in _interleave(sources):
-            if stop is not None and stop.is_set():
-                status = "cancelled"
+            if run.stopped():
+                run.status = "cancelled"
                 break
-            track = side.agents.setdefault(agent, AgentTrack(agent))
-            frame = _pipeline_frame(raw, config.runtime.input_width)
-            msg, rec = _estimate_pose(side, track, frame, raw, channel, use_gt_poses, emit)
-            track.records.append(rec)
-            if msg is not None and msg.new_map is not None:
-                reason, map_id, T_wm = msg.new_map
-                emit(SubmapEvent(map_id, agent, np.asarray(T_wm, np.float64), reason))
-            T_world = side.map_poses[rec.map_id] @ rec.T_map_cam
-            emit(PoseEvent(agent, frame.index, float(frame.timestamp), T_world, rec.map_id, rec.tracked,
-                           thumbnail=_thumbnail(frame.rgb) if on_event else None,
-                           K=np.asarray(frame.K, np.float64), image_size=(frame.width, frame.height)))
-            if msg is not None:
-                _hand_over(side, msg, channel)
-            _handle_replies(channel.poll(), side, emit)
-            done += 1
-            fps = done / max(time.perf_counter() - started, 1e-9)
-            if bar is not None:
-                bar.update(1)
-                bar.set_postfix(_progress_fields(side, fps, done), refresh=False)
-            if done % PROGRESS_EVERY == 0:
-                event = _stats_event(side, total, fps, started, done)
-                side.progress.append(_progress_sample(side, event, started))
-                emit(event)
+            _process_frame(run, agent, raw, use_gt_poses)
     except KeyboardInterrupt:
-        status = "cancelled"
+        run.status = "cancelled"
     except Exception:  # noqa: BLE001 - any failure ends this run only, with its traceback
-        status, error = "failed", traceback.format_exc()
+        run.status, run.error = "failed", traceback.format_exc()
     finally:
-        if bar is not None:
-            bar.close()
-    if status == "finished" and stop is not None and stop.is_set():
+        if run.bar is not None:
+            run.bar.close()
+    if run.status == "finished" and run.stopped():
         # A source that ends because of the stop (a live stream) is a stop, not the end of the
         # input: skip the final refinement, which would hold up the stop for minutes.
-        status = "cancelled"
-    if side is not None:
-        # Tracking is over (the input ended, a stop, a failure): every pose on disk first, in
-        # milliseconds, before the final refinement (minutes) or a stop's checkpoint and mesh,
-        # which a kill may cut short.
-        _write_progress(out, side, total, started)
-    if channel is not None:
-        try:
-            if side is not None and status != "failed":
-                _send_held(side, channel, len(side.held))  # deterministic mode's last frames
-            if side is not None and (status != "failed" or side.snapshots):
-                if status == "finished":
-                    emit(PhaseEvent("refining"))
-                    if progress:
-                        print("refining: the final bundle adjustment, then the map and the mesh",
-                              file=sys.stderr, flush=True)
-                _handle_replies(channel.finish(refine=status == "finished"), side, emit)
-                if progress and side.mapper_stats is not None and side.mapper_stats.refinement is not None:
-                    print(f"refining: {describe_refinement(side.mapper_stats.refinement)}", file=sys.stderr, flush=True)
-        except KeyboardInterrupt:
-            status = "cancelled"
-        except Exception:  # noqa: BLE001
-            if error is None:
-                status, error = "failed", traceback.format_exc()
-        finally:
-            channel.close()
-    elapsed = time.perf_counter() - started
-    emit(PhaseEvent("writing"))
+        run.status = "cancelled"
+
+
+def _process_frame(run: _Run, agent: int, raw: Frame, use_gt_poses: bool) -> None:
+    """One frame of one agent, as the paper's system overview goes (module doc)."""
+    side, channel = run.side, run.channel
+    assert side is not None and channel is not None
+    track = side.agents.setdefault(agent, AgentTrack(agent))
+    frame = _pipeline_frame(raw, run.config.runtime.input_width)
+    # Track it against the agent's active map; lost, or out of the map's region: a new map.
+    msg, rec = _estimate_pose(side, track, frame, raw, channel, use_gt_poses, run.emit)
+    track.records.append(rec)
+    _publish_pose(run, track.agent, frame, msg, rec)
+    # Hand it to the mapping side: it decides keyframes, maps the frame, and looks for loops
+    # at every new keyframe.
+    if msg is not None:
+        _hand_over(side, msg, channel)
+    # What the mapping side sent back meanwhile: keyframes, loops, moved maps, snapshots.
+    _handle_replies(channel.poll(), side, run.emit)
+    _count_frame(run)
+
+
+def _publish_pose(run: _Run, agent: int, frame: Frame, msg: FrameMessage | None, rec: FrameRecord) -> None:
+    """The frame's events: the map it starts, if any, and its world pose."""
+    side = run.side
+    assert side is not None
+    if msg is not None and msg.new_map is not None:
+        start = msg.new_map
+        run.emit(SubmapEvent(start.map_id, agent, np.asarray(start.T_world_map, np.float64), start.reason))
+    T_world = side.map_poses[rec.map_id] @ rec.T_map_cam
+    run.emit(PoseEvent(agent, frame.index, float(frame.timestamp), T_world, rec.map_id, rec.tracked,
+                       thumbnail=_thumbnail(frame.rgb) if run.thumbnails else None,
+                       K=np.asarray(frame.K, np.float64), image_size=(frame.width, frame.height)))
+
+
+def _count_frame(run: _Run) -> None:
+    """One more frame done: the progress bar, and every ``PROGRESS_EVERY`` frames the
+    statistics (a StatsEvent and a sample of ``run.json``'s progress)."""
+    side = run.side
+    assert side is not None
+    run.done += 1
+    fps = run.done / max(time.perf_counter() - run.started, 1e-9)
+    if run.bar is not None:
+        run.bar.update(1)
+        run.bar.set_postfix(_progress_fields(side, fps, run.done), refresh=False)
+    if run.done % PROGRESS_EVERY == 0:
+        event = _stats_event(side, run.total, fps, run.started, run.done)
+        side.progress.append(_progress_sample(side, event, run.started))
+        run.emit(event)
+
+
+def _finish_mapping(run: _Run, progress: bool) -> None:
+    """Send deterministic mode's last frames and let the mapping side finish: the final
+    refinement for a finished run, the checkpoint and mesh for any with a map; then close it."""
+    side, channel = run.side, run.channel
+    if channel is None:
+        return
+    try:
+        if side is not None and run.status != "failed":
+            _send_held(side, channel, len(side.held))  # deterministic mode's last frames
+        if side is not None and (run.status != "failed" or side.snapshots):
+            _final_refinement(run, side, channel, progress)
+    except KeyboardInterrupt:
+        run.status = "cancelled"
+    except Exception:  # noqa: BLE001
+        if run.error is None:
+            run.status, run.error = "failed", traceback.format_exc()
+    finally:
+        channel.close()
+
+
+def _final_refinement(run: _Run, side: _TrackingSide, channel, progress: bool) -> None:
+    """The mapping side's end of run (``refine`` only when finished), its replies applied."""
+    refine = run.status == "finished"
+    if refine:
+        run.emit(PhaseEvent("refining"))
+        if progress:
+            print("refining: the final bundle adjustment, then the map and the mesh", file=sys.stderr, flush=True)
+    _handle_replies(channel.finish(refine=refine), side, run.emit)
+    if progress and side.mapper_stats is not None and side.mapper_stats.refinement is not None:
+        print(f"refining: {describe_refinement(side.mapper_stats.refinement)}", file=sys.stderr, flush=True)
+
+
+def _write_results(run: _Run, sources: list[Iterable[Frame]], use_gt_poses: bool) -> RunResult:
+    """The outputs (``slam.outputs.write_outputs``) and the last events."""
+    elapsed = time.perf_counter() - run.started
+    run.emit(PhaseEvent("writing"))
+    side = run.side
     tracks = sorted(side.agents.values(), key=lambda t: t.agent) if side is not None else []
-    result = write_outputs(out, config, tracks, side.mapper_stats if side else None, status, error, elapsed, total,
-                           side.busy if side else 0.0, use_gt_poses, side.map_poses if side else None,
+    result = write_outputs(run.out, run.config, tracks, side.mapper_stats if side else None, run.status, run.error,
+                           elapsed, run.total, side.busy if side else 0.0, use_gt_poses,
+                           side.map_poses if side else None,
                            (side.map_waits, side.map_wait_seconds) if side else (0, 0.0),
                            frames_skipped=_skipped_frames(sources),
                            progress=side.progress if side else None)
     if side is not None:
-        emit(_stats_event(side, total, result.fps, started, done, ate=result.ate_rmse))
-    emit(FinishedEvent(status, error))
+        run.emit(_stats_event(side, run.total, result.fps, run.started, run.done, ate=result.ate_rmse))
+    run.emit(FinishedEvent(run.status, run.error))
     return result
 
 

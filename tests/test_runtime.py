@@ -330,7 +330,7 @@ def test_the_window_refined_pose_replaces_the_tracked_one(frames, tmp_path, monk
     # and (single-process, where it comes back before the next frame) the next frame starts
     # from it. One keyframe (frame 0, fixed), no final BA, no loops: the trajectory is the
     # frames' records composed with map 0's pose, the identity.
-    from slam.mapping_process import FrameMessage
+    from slam.messages import FrameMessage, FramePose
 
     sent: dict[int, np.ndarray] = {}
     replies: list = []
@@ -367,7 +367,7 @@ def test_the_window_refined_pose_replaces_the_tracked_one(frames, tmp_path, monk
     done = do_run([frames], config(processes, cfg), tmp_path)
     assert done.result.status == "finished", done.result.error
     assert done.info["keyframes"] == 1
-    refined = {p.frame_index: p for kind, p in replies if kind == "frame_pose"}
+    refined = {p.frame_index: p for p in replies if isinstance(p, FramePose)}
     assert refined and set(refined) <= set(range(1, NUM_FRAMES))
     if not processes:
         assert set(refined) == set(range(1, NUM_FRAMES)), "every frame is mapped on its own"
@@ -383,7 +383,7 @@ def test_the_window_refined_pose_replaces_the_tracked_one(frames, tmp_path, monk
 def test_a_refined_pose_moves_the_record_history_and_features_of_its_frame():
     # The reply is in the frame of the map the frame was integrated into, which may not be the
     # one it was tracked against (a new region map not yet published to the tracker).
-    from slam.mapping_process import FramePose
+    from slam.messages import FramePose
     from slam.outputs import FrameRecord
 
     class Features:
@@ -403,12 +403,12 @@ def test_a_refined_pose_moves_the_record_history_and_features_of_its_frame():
     track.records = [FrameRecord(i, 0.1 * i, 0, pose(0.1 * i), True, None) for i in range(3)]
     track.good_poses, track.good_frames = [pose(0.1), pose(0.2)], [1, 2]
     track.features = Features()
-    runtime._handle_replies([("frame_pose", FramePose(0, 2, 1, pose(-0.75)))], side, lambda event: None)
+    runtime._handle_replies([FramePose(0, 2, 1, pose(-0.75))], side, lambda event: None)
     assert track.records[2].map_id == 1 and np.allclose(track.records[2].T_map_cam, pose(-0.75))
     assert np.allclose(track.good_poses[1], pose(0.25)) and np.allclose(track.good_poses[0], pose(0.1))
     assert np.allclose(track.features.delta @ pose(0.2), pose(0.25)), "the remembered frame moves too"
     track.features.delta = None
-    runtime._handle_replies([("frame_pose", FramePose(0, 1, 0, pose(0.12)))], side, lambda event: None)
+    runtime._handle_replies([FramePose(0, 1, 0, pose(0.12))], side, lambda event: None)
     assert np.allclose(track.good_poses[0], pose(0.12)) and track.features.delta is None, "not the last frame"
     assert [r.index for r in track.records] == [0, 1, 2]
 
@@ -475,3 +475,85 @@ def test_real_frames_are_tracked_with_feature_matches(shared_data, tmp_path, mon
     assert done.result.status == "finished", done.result.error
     assert seen == [True] * (len(frames) - 1)
     assert done.info["ate_rmse_m"] < 0.015, done.info["ate_rmse_m"]  # measured 0.53 cm
+
+
+# ------------------------------------------------ messages and shared work (issue 42)
+def test_every_message_between_the_two_sides_pickles_by_value(frames):
+    # They cross the mapping process's queues: each must come back equal in type and content.
+    import pickle
+
+    from slam import messages as m
+    from slam.events import KeyframeEvent
+
+    frame = frames[0]
+    stats = m.MapperStats(1, 1, 10, 40, 8, 0.5, {"x": 1.0}, [m.KeyframeRecord(0, 0, 0, [0.0] * 16)],
+                          {0: np.eye(4)}, {0: 0}, {0: 0}, {0: "start"}, [], [], 0, {},
+                          m.FinalRefinement(5, 5, 0.1, None, False))
+    sent = [m.FrameMessage(0, frame, 0, np.eye(4, dtype=np.float32), True, m.MapStart("start", 0, np.eye(4))),
+            m.EndOfInput(refine=False), m.Ready(), m.MapPosesReply({0: np.eye(4)}), m.FramePose(0, 1, 0, np.eye(4)),
+            m.EventReply(KeyframeEvent(0, 1, 0, np.eye(4))), m.Done(stats), m.Failed("Traceback ...")]
+    for message in sent:
+        back = pickle.loads(pickle.dumps(message))
+        assert type(back) is type(message)
+    back = pickle.loads(pickle.dumps(sent[0]))
+    assert back.new_map.reason == "start" and np.array_equal(back.frame.rgb, frame.rgb)
+    assert pickle.loads(pickle.dumps(sent[6])).stats.refinement.iterations_run == 5
+
+
+def test_the_tracker_detects_the_features_the_loop_closer_would():
+    # tracking.feature_count = 1000 (cpu): the tracker's ORB detector is the appearance
+    # check's, so the features it found travel with the frame instead of being found again.
+    from slam.features import FeatureOdometry, tracking_features_serve_loops
+    from slam.loop.closing import LoopCloser
+
+    cfg = preset("cpu")
+    assert tracking_features_serve_loops(cfg)
+    assert not tracking_features_serve_loops(replace(cfg, tracking=replace(cfg.tracking, feature_count=500)))
+    assert not tracking_features_serve_loops(FAST), "no tracker features, nothing to share"
+    frame = next(iter(open_sequence("synthetic:laps?frames=100&width=320&height=240", max_frames=1)))
+    odometry = FeatureOdometry.from_config(cfg)
+    odometry.correspondences(frame)
+    detected = odometry.detected
+    assert detected is not None and len(detected.pixels) > 50
+    closer = LoopCloser(cfg, torch.device("cpu"))
+    own, own_verify = closer._describe(frame, None)
+    shared, shared_verify = closer._describe(frame, detected)
+    assert np.any(own)
+    assert np.array_equal(own, shared) and np.array_equal(own_verify.pixels, shared_verify.pixels)
+    odometry.remember(np.eye(4))
+    assert odometry.detected is None
+
+
+def test_a_frame_is_prepared_once_in_one_process(frames, tmp_path, monkeypatch):
+    # Single-process: the mapper integrates the tensors the tracker prepared; only a frame the
+    # tracker did not track (a map's first) is prepared by the mapper. Across processes the
+    # mapper prepares its own (cheaper than pickling tensors), so the message leaves them out.
+    import slam.mapping_process as mapping_process
+
+    calls: list[str] = []
+    prepare = runtime.prepare_frame
+
+    def counting(side):
+        def spy(*args, **kwargs):
+            calls.append(side)
+            return prepare(*args, **kwargs)
+        return spy
+
+    monkeypatch.setattr(runtime, "prepare_frame", counting("tracker"))
+    monkeypatch.setattr(mapping_process, "prepare_frame", counting("mapper"))
+    done = do_run([frames], config(False), tmp_path)
+    assert done.result.status == "finished", done.result.error
+    assert calls.count("mapper") == 1 and calls.count("tracker") == NUM_FRAMES - 1, calls
+    put: list = []
+
+    class Queue:
+        def put(self, msg, timeout=None):
+            put.append(msg)
+
+    channel = object.__new__(runtime.ProcessMapper)
+    channel.frames = Queue()
+    from slam.messages import FrameMessage
+
+    tf = prepare(frames[0], None, torch.device("cpu"), 4.0)
+    channel.submit(FrameMessage(0, frames[0], 0, np.eye(4, dtype=np.float32), True, prepared=tf))
+    assert put[0].prepared is None and put[0].frame is frames[0]

@@ -38,7 +38,7 @@ import torch
 from ..config import SLAMConfig
 from ..data.frame import Frame
 from ..events import LoopEvent
-from ..features import detect_features
+from ..features import FrameFeatures, detect_features, loop_feature_count
 from ..geometry import se3_inverse
 from ..maps import Keyframe, SubMap
 from .database import KeyframeDatabase, KeyframeEntry, make_descriptor
@@ -102,7 +102,7 @@ class LoopCloser:
         self.device = device
         self.database = KeyframeDatabase.from_config(config.loop)
         self.descriptor = make_descriptor(config.loop)
-        count = max(config.tracking.feature_count, 1000)
+        count = loop_feature_count(config)
         self._orb = cv2.ORB_create(count)
         # Verification wants many corners with depth: at 160 x 120 the default FAST threshold
         # (20) and 31 px patches leave ~30 per synthetic frame and two views of one place
@@ -126,59 +126,82 @@ class LoopCloser:
         """(map, other map) -> the map's keyframe count when a loop last joined them."""
 
     # ----------------------------------------------------------------- public
-    def add_keyframe(self, mapper, submap: SubMap, keyframe: Keyframe, frame: Frame) -> list[LoopEvent]:
+    def add_keyframe(self, mapper, submap: SubMap, keyframe: Keyframe, frame: Frame,
+                     features: FrameFeatures | None = None) -> list[LoopEvent]:
         """Detect and close loops for ``keyframe`` (just added to ``submap``; ``frame`` its
-        images as numpy, at pipeline resolution). Returns the accepted loops (at most one)."""
-        c = self.config.loop
+        images as numpy, at pipeline resolution). ``features``: the frame's ORB features as the
+        appearance check's detector finds them, when the tracker already detected them
+        (``features.tracking_features_serve_loops``); None: detected here. Returns the
+        accepted loops (at most one)."""
         t0 = time.perf_counter()
-        max_depth = self.config.voxel.max_depth
-        descriptor = self.descriptor.describe(frame, detect_features(frame, self._orb.getMaxFeatures(), max_depth,
-                                                                     self._orb))
-        features = detect_features(frame, self._orb_verify.getMaxFeatures(), max_depth, self._orb_verify)
+        descriptor, verify_features = self._describe(frame, features)
         self.timings.add("descriptor", time.perf_counter() - t0)
         t0 = time.perf_counter()
+        candidates = self._candidates(mapper, submap, keyframe, descriptor)
+        self.timings.add("query", time.perf_counter() - t0)
+        self.database.add(KeyframeEntry(submap.map_id, submap.agent, keyframe.frame_index, keyframe.timestamp,
+                                        descriptor, verify_features))
+        for cand in candidates[:self.config.loop.top_k]:
+            closure = self._try_candidate(mapper, submap, keyframe, cand, verify_features)
+            if closure is not None:
+                return [closure]
+        return []
+
+    # ------------------------------------------------------ add_keyframe's steps
+    def _describe(self, frame: Frame, features: FrameFeatures | None) -> tuple[np.ndarray, FrameFeatures]:
+        """The keyframe's global descriptor (from the appearance detector's features) and its
+        features for geometric verification (a second detector, tuned for many corners)."""
+        max_depth = self.config.voxel.max_depth
+        if features is None:
+            features = detect_features(frame, self._orb.getMaxFeatures(), max_depth, self._orb)
+        descriptor = self.descriptor.describe(frame, features)
+        return descriptor, detect_features(frame, self._orb_verify.getMaxFeatures(), max_depth, self._orb_verify)
+
+    def _candidates(self, mapper, submap: SubMap, keyframe: Keyframe, descriptor: np.ndarray) -> list:
+        """The database's candidates for ``keyframe`` that passed the appearance check and may
+        close a loop (``_eligible``, not ``_recently_closed``), best first."""
+        c = self.config.loop
         groups = mapper.maps.groups()
         found = self.database.query(descriptor, map_id=submap.map_id, agent=submap.agent,
                                     frame_index=keyframe.frame_index, top_k=4 * c.top_k,
                                     min_frame_gap=c.min_frame_gap)
-        candidates = [cand for cand in found if cand.passed and self._eligible(cand.entry, submap, keyframe, groups)
-                      and not self._recently_closed(submap, cand.entry.map_id)]
-        self.timings.add("query", time.perf_counter() - t0)
-        self.database.add(KeyframeEntry(submap.map_id, submap.agent, keyframe.frame_index, keyframe.timestamp,
-                                        descriptor, features))
-        out: list[LoopEvent] = []
-        for cand in candidates[:c.top_k]:
+        return [cand for cand in found if cand.passed and self._eligible(cand.entry, submap, keyframe, groups)
+                and not self._recently_closed(submap, cand.entry.map_id)]
+
+    def _try_candidate(self, mapper, submap: SubMap, keyframe: Keyframe, cand,
+                       features: FrameFeatures) -> LoopEvent | None:
+        """Verify one candidate and, when verified, close the loop; its record is kept either
+        way. Returns the accepted loop (None: not verified, or the pose graph refused it)."""
+        t0 = time.perf_counter()
+        target = mapper.maps.by_id(cand.entry.map_id)
+        match_kf = _keyframe(target, cand.entry.frame_index)
+        if match_kf is None or keyframe.frame is None:
+            return None
+        result = verify_candidate(keyframe.frame, features, cand.entry.features, match_kf.T_map_cam,
+                                  lambda: self._frozen(mapper, target), self.config, self._tracker, self._gen)
+        self.timings.add("verification", time.perf_counter() - t0)
+        record = {"agent": submap.agent, "map": submap.map_id, "frame_index": keyframe.frame_index,
+                  "timestamp": keyframe.timestamp, "match_agent": target.agent, "match_map": target.map_id,
+                  "match_frame_index": match_kf.frame_index, "match_timestamp": match_kf.timestamp,
+                  "similarity": round(float(cand.similarity), 4), "threshold": round(float(cand.threshold), 4),
+                  **result.scores(), "verified": result.accepted, "accepted": result.accepted}
+        if result.T_map_query is not None:
+            record.update(measured_relative_pose(_np(match_kf.T_map_cam), result.T_map_query))
+        if result.accepted:
+            assert result.T_map_query is not None
+            self.keyframe_loops.append(KeyframeLoop(
+                submap.agent, keyframe.frame_index, target.agent, match_kf.frame_index,
+                np.linalg.solve(_np(match_kf.T_map_cam), np.asarray(result.T_map_query, np.float64))))
             t0 = time.perf_counter()
-            target = mapper.maps.by_id(cand.entry.map_id)
-            match_kf = _keyframe(target, cand.entry.frame_index)
-            if match_kf is None or keyframe.frame is None:
-                continue
-            result = verify_candidate(keyframe.frame, features, cand.entry.features, match_kf.T_map_cam,
-                                      lambda: self._frozen(mapper, target), self.config, self._tracker, self._gen)
-            self.timings.add("verification", time.perf_counter() - t0)
-            record = {"agent": submap.agent, "map": submap.map_id, "frame_index": keyframe.frame_index,
-                      "timestamp": keyframe.timestamp, "match_agent": target.agent, "match_map": target.map_id,
-                      "match_frame_index": match_kf.frame_index, "match_timestamp": match_kf.timestamp,
-                      "similarity": round(float(cand.similarity), 4), "threshold": round(float(cand.threshold), 4),
-                      **result.scores(), "verified": result.accepted, "accepted": result.accepted}
-            if result.T_map_query is not None:
-                record.update(measured_relative_pose(_np(match_kf.T_map_cam), result.T_map_query))
-            if result.accepted:
-                assert result.T_map_query is not None
-                self.keyframe_loops.append(KeyframeLoop(
-                    submap.agent, keyframe.frame_index, target.agent, match_kf.frame_index,
-                    np.linalg.solve(_np(match_kf.T_map_cam), np.asarray(result.T_map_query, np.float64))))
-                t0 = time.perf_counter()
-                closure = self._close(mapper, submap, keyframe, target, match_kf, result, record)
-                self.timings.add("optimisation", time.perf_counter() - t0)
-                if closure is not None:
-                    self.candidates.append(record)
-                    out.append(closure)
-                    break
-            self.rejected += 1
-            record["accepted"] = False
-            self.candidates.append(record)
-        return out
+            closure = self._close(mapper, submap, keyframe, target, match_kf, result, record)
+            self.timings.add("optimisation", time.perf_counter() - t0)
+            if closure is not None:
+                self.candidates.append(record)
+                return closure
+        self.rejected += 1
+        record["accepted"] = False
+        self.candidates.append(record)
+        return None
 
     def optimise_keyframes(self, mapper) -> KeyframeGraphResult | None:
         """The keyframe pose graph over every map (module doc, step 5); writes the new map
