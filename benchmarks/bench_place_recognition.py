@@ -118,12 +118,12 @@ def load_keyframes(sequence, stride: int) -> Keyframes:
     repeats = None
     scene = getattr(sequence, "scene", None)
     if scene is not None and any(k.startswith("repeat_") for k, _ in scene.groups):
-        from slam.data.synthetic import render_view
+        from slam.data.synthetic import rasterise_view
 
         groups = [(k, np.array(ids)) for k, ids in scene.groups if k.startswith("repeat_")]
         repeats = []
         for f in frames:
-            surface = render_view(scene, sequence.K, f.T_world_cam, sequence.width, sequence.height).surface
+            surface = rasterise_view(scene, sequence.K, f.T_world_cam, sequence.width, sequence.height).surface
             repeats.append({k for k, ids in groups if np.isin(surface, ids).mean() >= REPEAT_MIN_SHARE})
     return Keyframes(frames, features, t / len(frames) * 1e3, repeats)
 

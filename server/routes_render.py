@@ -83,7 +83,7 @@ def depth_range(depth: np.ndarray, low: float | None, high: float | None) -> tup
 @router.post("/api/sessions/{session_id}/render", response_class=Response,
              responses={200: PNG, 409: {"model": ErrorOut}, 422: {"model": ErrorOut}},
              summary="Render the map from a camera: colour PNG, or depth as a 16-bit PNG in millimetres")
-async def render_view(session_id: str, request: CameraRequest,
+async def render_image(session_id: str, request: CameraRequest,
                       output: Literal["color", "depth", "depth_preview", "normals"] = Query(
                           "color", description="color: RGB PNG; depth: 16-bit PNG in millimetres (0 = no surface); "
                                                "depth_preview: colour-mapped 8-bit PNG for display; normals: the "

@@ -41,7 +41,7 @@ if TYPE_CHECKING:
 
 __all__ = ["END", "END_NOW", "FinalBudget", "FinalRefinement", "FrameMessage", "FramePose", "InlineMapper",
            "KeyframeRecord", "MapperFailed", "MapperStats", "ProcessMapper", "final_budget",
-           "final_iterations_per_map", "map_poses", "map_update_event", "poses_event", "set_threads"]
+           "final_iterations_per_map", "map_poses", "map_update_event", "poses_event", "process_threads"]
 
 _POLL_SECONDS = 0.2
 END = EndOfInput(refine=True)
@@ -55,7 +55,7 @@ class MapperFailed(RuntimeError):
     """The mapping process raised or died; the message carries its traceback."""
 
 
-def set_threads(device: torch.device, processes: bool) -> None:
+def process_threads(device: torch.device, processes: bool) -> None:
     """Two busy processes on a small CPU: give each its share of cores (oversubscribed torch
     threads spin and slow everything down several times)."""
     if device.type == "cpu":
@@ -412,7 +412,7 @@ def _mapping_process(config_dict: dict, device_name: str, out_dir: str, emit_mes
     try:
         config = config_from_dict(config_dict)
         device = torch.device(device_name)
-        set_threads(device, processes=True)
+        process_threads(device, processes=True)
         side = _make_side(config, device, Path(out_dir), emit_meshes, seed)
         replies.put(Ready())
         parent = mp.parent_process()
@@ -437,7 +437,7 @@ def _mapping_process(config_dict: dict, device_name: str, out_dir: str, emit_mes
             if isinstance(end, EndOfInput):
                 # The tracker has no frames left: the final bundle adjustment and the mesh
                 # take every core (2 cores: 108 -> 80 ms per global-BA iteration).
-                set_threads(device, processes=False)
+                process_threads(device, processes=False)
                 for reply in _finish(side, refine=end.refine):
                     replies.put(reply)
                 return

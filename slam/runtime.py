@@ -58,7 +58,7 @@ from .features import FeatureOdometry, tracking_features_serve_loops
 from .frames import prepare_frame
 from .mapping import MapSnapshot
 from .mapping_process import InlineMapper, MapperFailed, ProcessMapper
-from .mapping_process import set_threads as _set_threads
+from .mapping_process import process_threads
 from .messages import (Done, EventReply, Failed, FrameMessage, FramePose, MapPosesReply, MapperStats, MapStart,
                        Reply, SnapshotReply)
 from .outputs import (PROGRESS_EVERY, FrameRecord, ProgressSample, RunResult, refine_with_keyframes, running_ate,
@@ -589,7 +589,7 @@ def _open_run(sources: list[Iterable[Frame]], config: SLAMConfig, out: Path,
     """The output folder, the device and its threads, the seed, the progress bar."""
     out.mkdir(parents=True, exist_ok=True)
     device = resolve_device(config.runtime.device)
-    _set_threads(device, config.runtime.processes)
+    process_threads(device, config.runtime.processes)
     torch.manual_seed(config.runtime.seed)
     total = _total_frames(sources)
     bar = None

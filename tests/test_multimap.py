@@ -37,7 +37,7 @@ pytestmark = pytest.mark.timeout(300)
 def one_thread(monkeypatch):
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
-    monkeypatch.setattr(runtime, "_set_threads", lambda device, processes: None)
+    monkeypatch.setattr(runtime, "process_threads", lambda device, processes: None)
     yield
     torch.set_num_threads(threads)
 

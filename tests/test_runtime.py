@@ -56,7 +56,7 @@ def single_thread():
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     patch = pytest.MonkeyPatch()
-    patch.setattr(runtime, "_set_threads", lambda device, processes: None)
+    patch.setattr(runtime, "process_threads", lambda device, processes: None)
     yield
     patch.undo()
     torch.set_num_threads(threads)

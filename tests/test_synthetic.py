@@ -25,8 +25,8 @@ from slam.data.synthetic import (
     nominal_frames,
     open_synthetic,
     parse_synthetic_spec,
+    rasterise_view,
     render_rgbd,
-    render_view,
 )
 from slam.data.synthetic.scene import (
     Box,
@@ -421,11 +421,11 @@ def test_noise_and_holes_are_plausible_and_deterministic():
     assert (~valid[edge]).mean() > 3 * (~valid[~edge]).mean()
 
 
-def test_render_view_reports_grazing_incidence():
+def test_rasterise_view_reports_grazing_incidence():
     scene = make_scene("empty", 0)
     # Looking along the floor: the floor near the horizon is seen at grazing angles.
     T = look_at(np.array([[-2.0, 0.0, 0.5]]), np.array([[2.0, 0.0, 0.4]]))[0]
-    view = render_view(scene, default_intrinsics(80, 60), T, 80, 60)
+    view = rasterise_view(scene, default_intrinsics(80, 60), T, 80, 60)
     floor = view.surface == 4
     assert floor.any() and view.incidence_cos[floor].min() < 0.2
     wall = view.surface == 1  # x = hi, seen head-on
@@ -548,8 +548,8 @@ def test_hall_plain_stretches_are_single_colour_with_nothing_in_front(size):
         assert a[0] >= -hx + 0.5 or a[1] >= west_hi or b[1] <= west_lo, i
     # Rendered, a view of the east corridor is nearly uniform; the south corridor is not.
     K = default_intrinsics(80, 60)
-    plain = render_view(scene, K, look_at(np.array([plain_eye]), np.array([plain_target]))[0], 80, 60)
-    busy = render_view(scene, K, look_at(np.array([busy_eye]), np.array([busy_target]))[0], 80, 60)
+    plain = rasterise_view(scene, K, look_at(np.array([plain_eye]), np.array([plain_target]))[0], 80, 60)
+    busy = rasterise_view(scene, K, look_at(np.array([busy_eye]), np.array([busy_target]))[0], 80, 60)
     assert np.isin(plain.surface, scene.group("plain_east")).mean() > 0.95
     assert plain.rgb.std(axis=(0, 1)).max() < 0.03 and busy.rgb.std() > 0.1
 
@@ -582,7 +582,7 @@ def test_hall_repeated_furniture_renders_identically(size, a, b):
     pa, pb = [scene.primitives[i - 6] for i in ids_a], [scene.primitives[i - 6] for i in ids_b]
     assert [type(p) for p in pa] == [type(p) for p in pb] and [p.texture for p in pa] == [p.texture for p in pb]
     K = default_intrinsics(96, 72)
-    va, vb = (render_view(scene, K, view_of_copy(size, k), 96, 72) for k in (a, b))
+    va, vb = (rasterise_view(scene, K, view_of_copy(size, k), 96, 72) for k in (a, b))
     mask_a, mask_b = np.isin(va.surface, ids_a), np.isin(vb.surface, ids_b)
     assert mask_a.mean() > 0.15
     assert (mask_a & mask_b).sum() >= 0.99 * max(mask_a.sum(), mask_b.sum())
@@ -685,7 +685,7 @@ def test_laps_spec_uses_the_hall_and_its_name_round_trips(size):
     frame = seq[2]
     assert frame.depth.shape == (24, 32) and (frame.depth > 0).mean() > 0.3  # noisy at this size
     with pytest.raises(ValueError, match="outside the room"):  # the hall path does not fit the room
-        render_view(make_scene("room", 0), default_intrinsics(16, 12), make_trajectory("laps", 300, 2, size="large")[0], 16, 12)
+        rasterise_view(make_scene("room", 0), default_intrinsics(16, 12), make_trajectory("laps", 300, 2, size="large")[0], 16, 12)
 
 
 @pytest.mark.parametrize("size", HALL_SIZES)

@@ -14,9 +14,9 @@ from __future__ import annotations
 
 import time
 
-from .backend import BACKENDS, numba_kernels, numba_unavailable_reason, requested, set_threads, use_numba
+from .backend import BACKENDS, numba_kernels, numba_unavailable_reason, requested, sync_numba_threads, use_numba
 
-__all__ = ["BACKENDS", "numba_kernels", "numba_unavailable_reason", "requested", "set_threads", "use_numba",
+__all__ = ["BACKENDS", "numba_kernels", "numba_unavailable_reason", "requested", "sync_numba_threads", "use_numba",
            "warm_up"]
 
 

@@ -60,7 +60,7 @@ def use_numba(*tensors: torch.Tensor) -> bool:
     return fits and numba_kernels() is not None
 
 
-def set_threads() -> int:
+def sync_numba_threads() -> int:
     """Give numba torch's thread count (``torch.set_num_threads`` rules both); returns it.
     At one thread numba is left alone: ``numba.set_num_threads`` starts its thread pool, and
     the kernels run serial copies (``numba_cpu._TwoWays``)."""

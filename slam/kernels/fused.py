@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from .backend import numba_kernels, set_threads
+from .backend import numba_kernels, sync_numba_threads
 
 
 def _np(t: torch.Tensor) -> np.ndarray:
@@ -39,7 +39,7 @@ class FusedField(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, points, voxel_index, coords, corners, voxel_size, embeddings, sdf_weight, sdf_bias, *layers):
-        chunks = set_threads()
+        chunks = sync_numba_threads()
         S, D = points.shape[0], embeddings.shape[1]
         x = points.new_empty(S, D)
         numba_kernels().interpolate(_np(points), _np(voxel_index), _np(coords), _np(corners), _np(embeddings),
@@ -58,7 +58,7 @@ class FusedField(torch.autograd.Function):
     @torch.autograd.function.once_differentiable
     def backward(ctx, g_sdf, g_hidden):
         kernels = numba_kernels()
-        chunks = set_threads()
+        chunks = sync_numba_threads()
         L = ctx.num_layers
         points, voxel_index, coords, corners, embeddings, sdf_weight, x, *rest = ctx.saved_tensors
         hs, layers = [h.detach() for h in rest[:L]], rest[L:]
@@ -121,7 +121,7 @@ def interpolate_with_slopes(points: torch.Tensor, voxel_index: torch.Tensor, vox
     dfeats = points.new_empty(S, 3, D)
     numba_kernels().interpolate_with_slopes(
         _np(points), _np(voxel_index), _np(voxel_coords), _np(voxel_corners), _np(embeddings),
-        np.float32(voxel_size), set_threads(), feats.numpy(), dfeats.numpy())
+        np.float32(voxel_size), sync_numba_threads(), feats.numpy(), dfeats.numpy())
     return feats, dfeats
 
 
@@ -130,7 +130,7 @@ def interpolate(points: torch.Tensor, voxel_index: torch.Tensor, voxel_coords: t
     """Trilinear interpolation of the corner embeddings (S, D), forward only (views)."""
     x = points.new_empty(points.shape[0], embeddings.shape[1])
     numba_kernels().interpolate(_np(points), _np(voxel_index), _np(voxel_coords), _np(voxel_corners),
-                                _np(embeddings), np.float32(voxel_size), set_threads(), x.numpy())
+                                _np(embeddings), np.float32(voxel_size), sync_numba_threads(), x.numpy())
     return x
 
 
@@ -145,7 +145,7 @@ def band_samples(origins: torch.Tensor, dirs: torch.Tensor, k0: torch.Tensor, co
     t = origins.new_empty(total)
     voxel = torch.empty(total, dtype=torch.int64)
     numba_kernels().band_samples(_np(origins), _np(dirs), _np(k0), _np(counts), _np(first), float(step),
-                                 float(offset), np.float32(voxel_size), _np(voxel_codes), set_threads(),
+                                 float(offset), np.float32(voxel_size), _np(voxel_codes), sync_numba_threads(),
                                  ray.numpy(), t.numpy(), voxel.numpy())
     keep = torch.nonzero(voxel >= 0, as_tuple=True)[0]
     return ray[keep], t[keep], voxel[keep]
@@ -167,7 +167,7 @@ def traverse(origins: torch.Tensor, dirs: torch.Tensor, near: torch.Tensor, far:
     t_in, t_out = origins.new_empty(total), origins.new_empty(total)
     max_bounds = int(intervals.max()) + 1 if intervals.numel() else 1
     numba_kernels().traverse(_np(origins), _np(dirs), _np(near), _np(far), _np(k_lo), _np(axis_counts), _np(first),
-                             np.float32(voxel_size), _np(voxel_codes), int(max_hits), max_bounds, set_threads(),
+                             np.float32(voxel_size), _np(voxel_codes), int(max_hits), max_bounds, sync_numba_threads(),
                              ray.numpy(), voxel.numpy(), t_in.numpy(), t_out.numpy())
     keep = torch.nonzero(ray >= 0, as_tuple=True)[0]
     return ray[keep], voxel[keep], t_in[keep], t_out[keep]

@@ -41,13 +41,13 @@ from slam.data.frame import DataError, Frame
 from slam.data.synthetic.mesh import gt_mesh
 from slam.data.synthetic.render import (
     DepthNoiseModel,
+    RasterView,
     RayHits,
-    RenderedView,
     add_depth_noise,
     cast_rays,
     default_intrinsics,
+    rasterise_view,
     render_rgbd,
-    render_view,
 )
 from slam.data.synthetic.scene import HALL_LAYOUTS, HALL_SIZES, SCENE_KINDS, Scene, make_scene
 from slam.data.synthetic.trajectory import (
@@ -62,11 +62,11 @@ from slam.data.synthetic.trajectory import (
 )
 
 __all__ = [
-    "DepthNoiseModel", "HALL_LAYOUTS", "HALL_SIZES", "LAPS_NOMINAL_FRAMES", "RayHits", "RenderedView",
+    "DepthNoiseModel", "HALL_LAYOUTS", "HALL_SIZES", "LAPS_NOMINAL_FRAMES", "RasterView", "RayHits",
     "SCENE_KINDS", "Scene", "SyntheticSequence", "SyntheticSpec", "NOMINAL_FRAMES", "TRAJECTORY_KINDS",
     "TRAJECTORY_SCENES", "add_depth_noise", "cast_rays", "default_intrinsics", "gt_mesh", "look_at",
     "make_agent_trajectories", "make_scene", "make_trajectory", "nominal_frames", "open_synthetic",
-    "parse_synthetic_spec", "render_rgbd", "render_view",
+    "parse_synthetic_spec", "rasterise_view", "render_rgbd",
 ]
 
 SPEC_PREFIX = "synthetic:"
@@ -241,7 +241,7 @@ class SyntheticSequence:
         if self.is_blank(i):
             return Frame(index=i, timestamp=number / FPS, rgb=np.zeros((self.height, self.width, 3), np.float32),
                          depth=np.zeros((self.height, self.width), np.float32), K=self.K, T_world_cam=T)
-        view = render_view(self.scene, self.K, T, self.width, self.height)
+        view = rasterise_view(self.scene, self.K, T, self.width, self.height)
         depth = view.depth
         if self.noise is not None:
             # Seeded by the original frame number: the same frame is equally noisy at any stride.

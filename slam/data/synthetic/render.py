@@ -246,7 +246,7 @@ def cast_rays(scene: Scene, origins: np.ndarray, directions: np.ndarray) -> RayH
 
 
 @dataclass(frozen=True)
-class RenderedView:
+class RasterView:
     """A ray-cast view.
 
     Attributes:
@@ -288,7 +288,7 @@ def pixel_rays(K: np.ndarray, width: int, height: int) -> np.ndarray:
     return _pixel_rays_cached(np.ascontiguousarray(K, dtype=np.float64).tobytes(), int(width), int(height))
 
 
-def render_view(scene: Scene, K: np.ndarray, T_world_cam: np.ndarray, width: int, height: int) -> RenderedView:
+def rasterise_view(scene: Scene, K: np.ndarray, T_world_cam: np.ndarray, width: int, height: int) -> RasterView:
     """Ray-cast colour, z-depth, incidence and surface ids of ``scene`` from one camera.
 
     Args:
@@ -313,7 +313,7 @@ def render_view(scene: Scene, K: np.ndarray, T_world_cam: np.ndarray, width: int
     depth = np.where(hits.surface >= 0, hits.t, 0.0)
     n = hits.normals.T
     incidence = np.abs(n[0] * d[0] + n[1] * d[1] + n[2] * d[2]) / np.sqrt(d[0] ** 2 + d[1] ** 2 + d[2] ** 2)
-    return RenderedView(
+    return RasterView(
         rgb=np.ascontiguousarray(rgb.T).reshape(height, width, 3),
         depth=depth.reshape(height, width).astype(np.float32),
         incidence_cos=incidence.reshape(height, width).astype(np.float32),
@@ -327,7 +327,7 @@ def render_rgbd(scene: Scene, K: np.ndarray, T_world_cam: np.ndarray, width: int
     Exact: depth is the analytic intersection (0 only where a ray leaves the scene, which
     cannot happen from inside the closed room).
     """
-    view = render_view(scene, K, T_world_cam, width, height)
+    view = rasterise_view(scene, K, T_world_cam, width, height)
     return view.rgb, view.depth
 
 
