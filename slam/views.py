@@ -462,6 +462,21 @@ def _render_submap_banded(submap, T_map_cam: torch.Tensor, dirs_cam: torch.Tenso
     return rgb, depth, surface
 
 
+def _check_view_options(width: int, height: int, method: str, precision: str, coarse_stride: int,
+                        planar_tolerance: float) -> None:
+    """ValueError naming the first of ``render_view``'s options that is out of range."""
+    if width <= 0 or height <= 0:
+        raise ValueError(f"image size must be positive, got {width}x{height}")
+    if method not in VIEW_METHODS:
+        raise ValueError(f"method must be one of {VIEW_METHODS}, got {method!r}")
+    if precision not in VIEW_PRECISIONS:
+        raise ValueError(f"precision must be one of {VIEW_PRECISIONS}, got {precision!r}")
+    if int(coarse_stride) < 1:
+        raise ValueError(f"coarse_stride must be at least 1, got {coarse_stride}")
+    if not float(planar_tolerance) >= 0:
+        raise ValueError(f"planar_tolerance must be at least 0 (metres; 0 turns it off), got {planar_tolerance}")
+
+
 def render_view(mapset, T_world_cam, K, width: int, height: int, *, chunk_rays: int | None = None,
                 device: str | torch.device | None = None, near: float = DEFAULT_NEAR,
                 method: str = "banded", coarse_stride: int = DEFAULT_COARSE_STRIDE,
@@ -480,16 +495,7 @@ def render_view(mapset, T_world_cam, K, width: int, height: int, *, chunk_rays: 
     world-frame corners of a box: only what lies inside it is rendered.
     """
     width, height = int(width), int(height)
-    if width <= 0 or height <= 0:
-        raise ValueError(f"image size must be positive, got {width}x{height}")
-    if method not in VIEW_METHODS:
-        raise ValueError(f"method must be one of {VIEW_METHODS}, got {method!r}")
-    if precision not in VIEW_PRECISIONS:
-        raise ValueError(f"precision must be one of {VIEW_PRECISIONS}, got {precision!r}")
-    if int(coarse_stride) < 1:
-        raise ValueError(f"coarse_stride must be at least 1, got {coarse_stride}")
-    if not float(planar_tolerance) >= 0:
-        raise ValueError(f"planar_tolerance must be at least 0 (metres; 0 turns it off), got {planar_tolerance}")
+    _check_view_options(width, height, method, precision, coarse_stride, planar_tolerance)
     T_world_cam = _as_tensor(T_world_cam, "T_world_cam", (4, 4))
     K = _as_tensor(K, "K", (3, 3))
     config = mapset.config
