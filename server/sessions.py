@@ -35,16 +35,9 @@ keyframe, so a SIGKILL loses at most the frames tracked after the last keyframe.
 every running session to stop at once, before uvicorn has drained its connections; ``stop``
 then waits for them until ``grace_s`` after that request and kills the rest.
 
-``phase`` refines ``running``: ``tracking`` (frames are read), ``refining`` (the final bundle
-adjustment and mesh), ``writing`` (trajectories, ``run.json``); ``queued`` before and ``done``
-after, whatever the session's end (``status`` says which); ``phase_started`` says since when.
-
-``fps`` has one definition, shared by the status, the page and the viewer's panel (the
-viewer gets StatsEvents with this value): frames tracked (all agents) per second of the
-tracking phase, from its PhaseEvent to the latest pose, both as the API process receives them.
-It is fixed once tracking ends, so the final refinement does not drag it down (``run.json``'s
-``fps`` divides by the whole run's wall time instead). Its history, one sample per
-FPS_SAMPLE_S, is kept for the page's plot (``fps_samples``; ``progress.json`` once ended).
+The event-to-status fold (phase, frames/s, counters) is ``server.session_status``; the events'
+own fold (tracks, live meshes), shared with the viewer, is ``server.session_state``. This module
+is the scheduler: queue, workers, supervision, persistence.
 """
 
 from __future__ import annotations
@@ -57,25 +50,20 @@ import signal
 import threading
 import time
 from collections import deque
-from dataclasses import asdict, dataclass, field, replace
-from datetime import datetime, timezone
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np
 
 from server.errors import strip_paths
-from server.execution import Execution, Executor, ExecutorError, WorkerInfo, WorkerPlaced
+from server.execution import Execution, Executor, ExecutorError, WorkerPlaced
 from server.executors import make_executor
+from server.session_status import ENDED, SessionStatus, StatusFold, now_iso
 from server.settings import Settings
 from server.stream import StreamInput
-from server.tracks import Tracks, transform_points
 from server.worker import SourceSpec, WorkerDone, WorkerJob, WorkerStarted, describe_sources
-from slam import FinishedEvent, KeyframeEvent, LoopEvent, MapUpdateEvent, PhaseEvent, PoseEvent, StatsEvent, SubmapEvent
-
-STATUSES = ("queued", "running", "finished", "failed", "cancelled")
-ENDED = ("finished", "failed", "cancelled")
-PHASES = ("queued", "tracking", "refining", "writing", "done")
+from slam import FinishedEvent
 INTERRUPTED_RUNNING = "interrupted: the server stopped while the session was running"
 INTERRUPTED_QUEUED = "interrupted: the server stopped before the session started"
 SESSION_ID = re.compile(r"^[0-9a-f]{12}$")
@@ -84,10 +72,6 @@ EventSink = Callable[[str, object], None]
 
 PROGRESS_FILE = "progress.json"
 """In a session folder once it ended: ``{"fps_samples": [[seconds, frames], ...]}``."""
-FPS_SAMPLE_S = 0.5
-"""Shortest time between two samples of the frames/s history."""
-MIN_FPS_SPAN_S = 0.25
-"""Shortest tracking time frames/s is computed over."""
 
 _SUPERVISOR_TICK_S = 0.05
 _MAX_EVENTS_PER_TICK = 200
@@ -126,69 +110,6 @@ def register_error_handlers(app) -> None:
     app.add_exception_handler(QueueFull, queue_full)
 
 
-@dataclass(frozen=True)
-class SessionStatus:
-    """What the API reports for a session (also the content of ``session.json``)."""
-
-    id: str
-    status: str
-    created: str
-    """ISO 8601, UTC."""
-    source: str
-    preset: str
-    frames_done: int = 0
-    frames_total: int | None = None
-    fps: float = 0.0
-    keyframes: int = 0
-    maps: int = 0
-    loops: int = 0
-    agents: int = 1
-    """Agents (cameras) of the session: the upload's parts, or those a stream has seen so far."""
-    phase: str = "queued"
-    """One of PHASES (see the module doc)."""
-    phase_started: str | None = None
-    """ISO 8601, UTC: when the current phase began (None for sessions from before it was kept)."""
-    phase_budget_s: float | None = None
-    """While refining: the seconds the preset allows the final bundle adjustment (the mesh
-    follows), None when it has no time cap (``refinement_budget_s``)."""
-    ate_rmse_m: float | None = None
-    """Agent 0's ATE RMSE in metres (so far while running, final after); None without ground truth."""
-    frames_skipped: int = 0
-    """Input frames left out because they could not be read (an upload's corrupt frames, a
-    stream's refused ones); known once the session has ended."""
-    error: str | None = None
-    spec: SourceSpec = field(default_factory=lambda: SourceSpec(kind="synthetic"))
-    """The (first agent's) source."""
-    specs: tuple[SourceSpec, ...] = ()
-    """Every agent's source, in agent order, for a collaborative session; () for one source."""
-    worker: WorkerInfo | None = None
-    """Where the session runs or ran (None while queued, and for sessions from before it was kept)."""
-
-    @property
-    def sources(self) -> tuple[SourceSpec, ...]:
-        return self.specs or (self.spec,)
-
-    def to_json(self) -> dict:
-        return asdict(self)
-
-    @staticmethod
-    def from_json(data: dict) -> "SessionStatus":
-        data = dict(data)
-        data.setdefault("phase", "done" if data.get("status") in ENDED else "queued")
-        spec = _spec_from_json(data.pop("spec"))
-        specs = tuple(_spec_from_json(s) for s in data.pop("specs", None) or ())
-        worker = data.pop("worker", None)
-        worker = WorkerInfo(**worker) if isinstance(worker, dict) else None
-        return SessionStatus(spec=spec, specs=specs, worker=worker, **data)
-
-
-def _spec_from_json(spec: dict) -> SourceSpec:
-    spec = dict(spec)
-    if spec.get("intrinsics") is not None:
-        spec["intrinsics"] = tuple(spec["intrinsics"])
-    return SourceSpec(**spec)
-
-
 @dataclass
 class _Session:
     """Mutable bookkeeping of one session; only the manager touches it, under its lock."""
@@ -212,17 +133,8 @@ class _Session:
     """time.monotonic() when its worker started."""
     delete_when_stopped: bool = False
     dirty_since: float | None = None
-    live_meshes: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=dict)
-    """Latest mesh per map from MapUpdateEvents, in the map's frame: (V, 3) float32, (F, 3)
-    int32, (V, 3) uint8 (placed in the world by ``tracks.maps``)."""
-    tracks: Tracks = field(default_factory=Tracks)
-    """Poses from PoseEvents per (agent, frame), following their maps: the trajectory so far."""
-    loop_events: int = 0
-    keyframe_events: int = 0
-    tracking_started: float | None = None
-    """time.monotonic() when the tracking phase began (see the module doc on fps)."""
-    fps_samples: list[tuple[float, int]] = field(default_factory=list)
-    """(seconds since tracking began, frames tracked) at most every FPS_SAMPLE_S."""
+    fold: StatusFold = field(default_factory=StatusFold)
+    """The status as its events make it, with the events' fold (tracks, live meshes, frames/s history)."""
 
     @property
     def process(self):
@@ -244,10 +156,6 @@ def check_session_id(session_id: str) -> str:
     if not SESSION_ID.match(session_id):
         raise SessionNotFound(session_id)
     return session_id
-
-
-def _now_iso() -> str:
-    return datetime.now(timezone.utc).isoformat(timespec="seconds")
 
 
 def _write_json_atomic(path: Path, data: dict) -> None:
@@ -396,7 +304,7 @@ class SessionManager:
         job = WorkerJob(session_id=session_id, sources=specs, preset=preset, out_dir=str(directory))
         spec = specs[0]
         directory.mkdir(parents=True, exist_ok=True)
-        created = _now_iso()
+        created = now_iso()
         status = SessionStatus(id=session_id, status="queued", created=created, source=describe_sources(specs),
                                preset=preset, spec=spec, specs=specs if len(specs) > 1 else (), agents=len(specs),
                                phase_started=created)
@@ -443,9 +351,7 @@ class SessionManager:
         the world frame as the maps are placed now: (V, 3) float32, (F, 3) int32, (V, 3) uint8."""
         session = self._get(session_id)
         with self._lock:
-            items = list(session.live_meshes.items())
-            placements = {m: session.tracks.maps.T_world_map(m) for m, _ in items}
-        return {m: (transform_points(placements[m], v).astype(np.float32), f, c) for m, (v, f, c) in items}
+            return session.fold.live_meshes()
 
     def tracked_poses(self, session_id: str, agent: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Poses of one agent reported so far while this server ran the session: (N,) frame
@@ -453,20 +359,20 @@ class SessionManager:
         closures), sorted by frame index (empty after a restart)."""
         session = self._get(session_id)
         with self._lock:
-            return session.tracks.world_poses(agent)
+            return session.fold.scene.tracks.world_poses(agent)
 
     def tracked_agents(self, session_id: str) -> list[int]:
         """Agents with at least one pose reported while this server ran the session."""
         session = self._get(session_id)
         with self._lock:
-            return session.tracks.agents()
+            return session.fold.scene.tracks.agents()
 
     def fps_samples(self, session_id: str) -> list[tuple[float, int]]:
         """(seconds since tracking began, frames tracked) over the session's tracking phase:
         from this run's events, else from ``progress.json`` (empty when neither has any)."""
         session = self._get(session_id)
         with self._lock:
-            samples = list(session.fps_samples)
+            samples = list(session.fold.fps_samples)
         if samples:
             return samples
         try:
@@ -609,89 +515,39 @@ class SessionManager:
             self._apply(session, event)
 
     def _apply(self, session: _Session, event: object) -> None:
+        """One message from the worker: its own (started, placed, done) or a runtime event,
+        which the session's status fold takes and the event sinks get."""
         with self._lock:
-            if isinstance(event, WorkerStarted):
-                if session.status.worker is None or session.status.worker.executor == "local":
-                    session.worker_pid = event.pid  # a process group on this machine
+            if self._apply_worker_message(session, event):
                 return
-            if isinstance(event, WorkerPlaced):
-                session.status = replace(session.status, worker=event.worker)
-                if session.status.status == "queued" and session.cancel_requested_at is None:
-                    self._set_status(session, "running", None)
-                return
-            if isinstance(event, WorkerDone):
-                session.done = event
-                return
-            session.tracks.apply(event)
-            if isinstance(event, StatsEvent):
-                ate = event.ate_rmse
-                session.status = replace(
-                    session.status, frames_done=max(event.frames_done, session.status.frames_done),
-                    frames_total=event.frames_total, keyframes=max(event.keyframes, session.keyframe_events),
-                    maps=max(event.maps, len(session.tracks.maps.poses)),
-                    loops=max(event.loops, session.loop_events),
-                    ate_rmse_m=session.status.ate_rmse_m if ate is None else round(float(ate), 6))
-                self._mark_dirty(session)
-                # The viewer shows the status's frames/s (see the module doc), not the worker's.
-                event = replace(event, fps=session.status.fps)
-            elif isinstance(event, PhaseEvent) and event.phase in PHASES:
-                if event.phase == "tracking":
-                    session.tracking_started = time.monotonic()
-                budget = None
-                if event.phase == "refining" and session.started_at is not None:
-                    budget = refinement_budget_s(session.status.preset, time.monotonic() - session.started_at)
-                session.status = replace(session.status, phase=event.phase, phase_started=_now_iso(),
-                                         phase_budget_s=budget)
+            step = session.fold.apply(session.status, event, session.started_at)
+            session.status = step.status
+            if step.persist:
                 self._persist(session)
-            elif isinstance(event, KeyframeEvent):
-                # The mapper's statistics come at the end; keyframes as they are taken.
-                session.keyframe_events += 1
-                session.status = replace(session.status, keyframes=max(session.keyframe_events,
-                                                                       session.status.keyframes))
+            elif step.dirty:
                 self._mark_dirty(session)
-            elif isinstance(event, PoseEvent):
-                # Stats come every few frames; poses give the progress in between.
-                frames = len(session.tracks)
-                agents = max(session.status.agents, int(event.agent) + 1)
-                session.status = replace(session.status, frames_done=max(frames, session.status.frames_done),
-                                         agents=agents, fps=self._tracking_fps(session, frames))
-                self._mark_dirty(session)
-            elif isinstance(event, SubmapEvent):
-                maps = len(session.tracks.maps.poses)
-                agents = max(session.status.agents, int(event.agent) + 1)
-                session.status = replace(session.status, maps=max(maps, session.status.maps), agents=agents)
-                self._mark_dirty(session)
-            elif isinstance(event, LoopEvent):
-                session.loop_events += 1
-                session.status = replace(session.status, loops=max(session.loop_events, session.status.loops))
-                self._mark_dirty(session)
-            elif isinstance(event, MapUpdateEvent) and event.mesh_faces is not None and len(event.mesh_faces):
-                # Into the map frame (the vertices are in the world as the map was placed then).
-                T_map_world = np.linalg.inv(np.asarray(event.T_world_map, dtype=np.float64))
-                vertices = transform_points(T_map_world, event.mesh_vertices).astype(np.float32)
-                session.live_meshes[event.map_id] = (vertices, event.mesh_faces, event.mesh_colors)
-            elif isinstance(event, FinishedEvent) and session.done is None:
-                session.done = WorkerDone(status=event.status, error=event.error)
+            if step.finished is not None and session.done is None:
+                session.done = WorkerDone(status=step.finished.status, error=step.finished.error)
+            event = step.event
         if session.delete_when_stopped:
             return
         for sink in self._event_sinks:
             sink(session.status.id, event)
 
-    @staticmethod
-    def _tracking_fps(session: _Session, frames: int) -> float:
-        """Frames per second of tracking so far, now that ``frames`` are tracked (module doc);
-        samples its history."""
-        now = time.monotonic()
-        if session.tracking_started is None:  # no PhaseEvent (an older worker): from the first pose
-            session.tracking_started = now
-        elapsed = now - session.tracking_started
-        samples = session.fps_samples
-        if len(samples) >= 2 and elapsed - samples[-2][0] < FPS_SAMPLE_S:
-            samples[-1] = (round(elapsed, 3), frames)  # the last sample is always the latest pose
+    def _apply_worker_message(self, session: _Session, message: object) -> bool:
+        """Take a message of the worker's own; False for a runtime event."""
+        if isinstance(message, WorkerStarted):
+            if session.status.worker is None or session.status.worker.executor == "local":
+                session.worker_pid = message.pid  # a process group on this machine
+        elif isinstance(message, WorkerPlaced):
+            session.status = replace(session.status, worker=message.worker)
+            if session.status.status == "queued" and session.cancel_requested_at is None:
+                self._set_status(session, "running", None)
+        elif isinstance(message, WorkerDone):
+            session.done = message
         else:
-            samples.append((round(elapsed, 3), frames))
-        # At least MIN_FPS_SPAN_S: the phase's start and the first poses can arrive in one batch.
-        return round(frames / max(elapsed, MIN_FPS_SPAN_S), 3)
+            return False
+        return True
 
     def _check_worker(self, session: _Session) -> None:
         if not session.active:
@@ -738,7 +594,7 @@ class SessionManager:
         if session.stream is not None:
             session.stream.end(status, error)
         self._release_ipc(session)
-        session.live_meshes.clear()
+        session.fold.scene.meshes.clear()
         if session.delete_when_stopped:
             self._remove_files(session)
             return
@@ -786,7 +642,7 @@ class SessionManager:
         same = phase == session.status.phase
         ends = status in ENDED and session.status.status not in ENDED
         session.status = replace(session.status, status=status, error=error, phase=phase,
-                                 phase_started=session.status.phase_started if same else _now_iso(),
+                                 phase_started=session.status.phase_started if same else now_iso(),
                                  phase_budget_s=session.status.phase_budget_s if same else None)
         if ends:
             self._settle_outputs(session)
@@ -830,9 +686,10 @@ class SessionManager:
 
     def _write_progress(self, session: _Session) -> None:
         """Keep the frames/s history of an ended session for the page's plot after a restart."""
-        if session.fps_samples and session.directory.is_dir():
+        samples = session.fold.fps_samples
+        if samples and session.directory.is_dir():
             try:
-                _write_json_atomic(session.directory / PROGRESS_FILE, {"fps_samples": session.fps_samples})
+                _write_json_atomic(session.directory / PROGRESS_FILE, {"fps_samples": samples})
             except OSError as error:
                 print(f"voxfusion: cannot write {session.directory / PROGRESS_FILE}: {error}")
 
@@ -848,21 +705,6 @@ class SessionManager:
             _write_json_atomic(session.directory / "session.json", session.status.to_json())
         except OSError as error:
             print(f"voxfusion: cannot write {session.directory / 'session.json'}: {error}")
-
-
-def refinement_budget_s(preset: str, run_seconds: float) -> float | None:
-    """The wall time the preset gives the final bundle adjustment of a run that has taken
-    ``run_seconds`` (as ``slam.mapping_process.final_budget`` computes it from the mapper's
-    start, which is about the worker's), or None without a time cap or refinement."""
-    from slam import ConfigError, preset as preset_config
-
-    try:
-        mapping = preset_config(preset).mapping
-    except ConfigError:
-        return None
-    if mapping.final_iterations <= 0 or mapping.final_time_share <= 0:
-        return None
-    return round(max(mapping.final_min_seconds, mapping.final_time_share * run_seconds), 1)
 
 
 WORKER_PID_FILE = "worker.pid"
