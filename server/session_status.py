@@ -25,12 +25,13 @@ from __future__ import annotations
 import time
 from dataclasses import asdict, dataclass, field, replace
 from datetime import datetime, timezone
+from typing import Callable
 
 import numpy as np
 
 from server.execution import WorkerInfo
 from server.session_state import Change, SessionState
-from server.worker import SourceSpec
+from server.worker import SourceSpec, WorkerDone
 from slam import FinishedEvent
 
 STATUSES = ("queued", "running", "finished", "failed", "cancelled")
@@ -220,3 +221,34 @@ class StatusFold:
     def live_meshes(self) -> dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]]:
         """The newest mesh per map, in the world as the maps are placed now."""
         return {m: self.scene.world_mesh(m) for m in list(self.scene.meshes)}
+
+
+def run_end(done: WorkerDone | None, end_reason: tuple[str, str] | None, cancel_requested: bool,
+            forced_reason: str | None, exit_error: Callable[[], str]) -> tuple[str, str | None]:
+    """(status, error) a session ends with once its worker has exited: the server's reason
+    to stop it (``end_reason``: stopping, an idle stream), a user's cancel, what the worker
+    reported (``done``), a forced kill (``forced_reason``), else a crash (``exit_error()``).
+    A failure the worker reported wins over a stop or a cancel."""
+    failed = done is not None and done.status == "failed"
+    if end_reason is not None and not failed:
+        # Set only while the worker had not reported its end (see SessionManager.stop,
+        # _check_idle_stream): what it says now is its answer to the stop.
+        return end_reason
+    if cancel_requested:
+        return ("failed", done.error) if failed else ("cancelled", None)
+    if done is not None:
+        return done.status, done.error
+    if forced_reason is not None:
+        return "cancelled", forced_reason
+    return "failed", exit_error()
+
+
+def with_worker_totals(status: SessionStatus, done: WorkerDone | None) -> SessionStatus:
+    """The status with the totals the worker's last message reports (when it tracked frames);
+    the fps stays the status's (module doc) unless it has none."""
+    if done is None or not done.frames:
+        return status
+    ate = done.ate_rmse
+    return replace(status, frames_done=done.frames, keyframes=done.keyframes, maps=done.maps, loops=done.loops,
+                   fps=status.fps or round(done.fps, 3), agents=done.agents or status.agents,
+                   ate_rmse_m=status.ate_rmse_m if ate is None else round(float(ate), 6))

@@ -16,20 +16,12 @@ The queue holds at most ``max_queued`` sessions (``VOXFUSION_MAX_QUEUED``): ``cr
 session holds no descriptor: its execution (the worker's queues and pipes) is made when it
 starts; a queued stream's frames wait in its ``StreamInput``'s buffer until then.
 
-Outputs live in ``DATA_DIR/sessions/<id>/`` (``session.json`` metadata, ``input/``, and the
-runtime's ``trajectory.txt``, ``mesh.ply``, ``map.pt``, ``run.json``), so finished sessions are
-listed again after a restart. A session that was queued or running when the server went away
-(stopped, or killed) comes back as ``failed`` with an error that starts with ``interrupted:``,
-so a user can tell it from a session they cancelled; ``worker.pid`` in the folder names the
-worker's process group while it runs, so that a restart can end a worker that outlived its
-server (a worker also ends itself when its server is gone: ``server.worker``).
-
-Once a session has ended (and for an interrupted one, at the restart) the status is settled
-against the folder (``_settle_outputs``): ``frames_done`` is the number of poses in its
-trajectory files, ``keyframes``/``maps``/``loops`` are ``run.json``'s, and ``run.json`` gets the
-session's ``status`` and ``error`` (it is written when the run left none), so the three agree.
-The runtime rewrites the trajectory and a ``run.json`` that says ``running`` atomically at each
-keyframe, so a SIGKILL loses at most the frames tracked after the last keyframe.
+Outputs live in ``DATA_DIR/sessions/<id>/`` (``server.session_store``: the folder's files, and
+how an ended session's status is settled against them), so finished sessions are listed again
+after a restart. A session that was queued or running when the server went away (stopped, or
+killed) comes back as ``failed`` with an error that starts with ``interrupted:``, so a user can
+tell it from a session they cancelled; a worker of it that outlived its server is ended then
+(a worker also ends itself when its server is gone: ``server.worker``).
 
 ``request_shutdown`` (called from the server's SIGTERM/SIGINT handler, ``server.cli``) asks
 every running session to stop at once, before uvicorn has drained its connections; ``stop``
@@ -43,10 +35,8 @@ is the scheduler: queue, workers, supervision, persistence.
 from __future__ import annotations
 
 import json
-import os
 import re
 import secrets
-import signal
 import threading
 import time
 from collections import deque
@@ -59,7 +49,16 @@ import numpy as np
 from server.errors import strip_paths
 from server.execution import Execution, Executor, ExecutorError, WorkerPlaced
 from server.executors import make_executor
-from server.session_status import ENDED, SessionStatus, StatusFold, now_iso
+from server.session_status import ENDED, SessionStatus, StatusFold, now_iso, run_end, with_worker_totals
+from server.session_store import (
+    WORKER_PID_FILE,
+    end_orphaned_worker,
+    read_progress,
+    settle_outputs,
+    write_pid,
+    write_progress,
+    write_status,
+)
 from server.settings import Settings
 from server.stream import StreamInput
 from server.worker import SourceSpec, WorkerDone, WorkerJob, WorkerStarted, describe_sources
@@ -69,9 +68,6 @@ INTERRUPTED_QUEUED = "interrupted: the server stopped before the session started
 SESSION_ID = re.compile(r"^[0-9a-f]{12}$")
 EventSink = Callable[[str, object], None]
 """Called with (session id, event) in the supervisor thread for every worker event."""
-
-PROGRESS_FILE = "progress.json"
-"""In a session folder once it ended: ``{"fps_samples": [[seconds, frames], ...]}``."""
 
 _SUPERVISOR_TICK_S = 0.05
 _MAX_EVENTS_PER_TICK = 200
@@ -156,12 +152,6 @@ def check_session_id(session_id: str) -> str:
     if not SESSION_ID.match(session_id):
         raise SessionNotFound(session_id)
     return session_id
-
-
-def _write_json_atomic(path: Path, data: dict) -> None:
-    tmp = path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(data, indent=1))
-    os.replace(tmp, path)
 
 
 class SessionManager:
@@ -373,13 +363,7 @@ class SessionManager:
         session = self._get(session_id)
         with self._lock:
             samples = list(session.fold.fps_samples)
-        if samples:
-            return samples
-        try:
-            data = json.loads((session.directory / PROGRESS_FILE).read_text())
-            return [(float(t), int(n)) for t, n in data.get("fps_samples", [])]
-        except (OSError, ValueError, TypeError, AttributeError):
-            return []
+        return samples or read_progress(session.directory)
 
     def agent_count(self, session_id: str) -> int:
         """Agents of the session: its sources, or for a stream the agents seen so far."""
@@ -563,27 +547,9 @@ class SessionManager:
     def _reap(self, session: _Session, forced_reason: str | None = None) -> None:
         """The worker has exited (or was killed): settle the final status and free resources."""
         execution = session.execution
-        done = session.done
-        if session.end_reason is not None and not (done is not None and done.status == "failed"):
-            # Set only while the worker had not reported its end (see stop, _check_idle_stream):
-            # what it says now is its answer to the stop.
-            status, error = session.end_reason
-        elif session.cancel_requested_at is not None:
-            status, error = "cancelled", None
-            if done is not None and done.status == "failed":
-                status, error = "failed", done.error
-        elif done is not None:
-            status, error = done.status, done.error
-        elif forced_reason is not None:
-            status, error = "cancelled", forced_reason
-        else:
-            status, error = "failed", execution.exit_error()
-        if done is not None and done.frames:
-            ate = done.ate_rmse
-            session.status = replace(session.status, frames_done=done.frames, keyframes=done.keyframes,
-                                     maps=done.maps, loops=done.loops, fps=session.status.fps or round(done.fps, 3),
-                                     agents=done.agents or session.status.agents,
-                                     ate_rmse_m=session.status.ate_rmse_m if ate is None else round(float(ate), 6))
+        status, error = run_end(session.done, session.end_reason, session.cancel_requested_at is not None,
+                                forced_reason, execution.exit_error)
+        session.status = with_worker_totals(session.status, session.done)
         if error is not None:
             error = strip_paths(error, session.directory / "input", "the input")
         if session.stream is not None and session.stream.agent_count > session.status.agents:
@@ -598,7 +564,7 @@ class SessionManager:
         if session.delete_when_stopped:
             self._remove_files(session)
             return
-        self._write_progress(session)
+        write_progress(session.directory, session.fold.fps_samples)
         self._set_status(session, status, error)
         for sink in self._event_sinks:
             sink(session.status.id, FinishedEvent(status=status, error=error))
@@ -626,7 +592,7 @@ class SessionManager:
             session.started_at = time.monotonic()
             pid = getattr(session.execution, "pid", None)
             if pid is not None:
-                _write_pid(session.directory / WORKER_PID_FILE, pid)
+                write_pid(session.directory / WORKER_PID_FILE, pid)
             if worker is not None:  # else it stays queued until the executor says where it runs
                 session.status = replace(session.status, worker=worker)
                 self._set_status(session, "running", None)
@@ -649,49 +615,9 @@ class SessionManager:
         self._persist(session)
 
     def _settle_outputs(self, session: _Session) -> None:
-        """An ended session's status against its folder (module doc): ``frames_done`` the poses
-        in its trajectory files, ``keyframes``/``maps``/``loops`` from ``run.json``, whose
-        ``status`` and ``error`` become the session's (a minimal ``run.json`` is written when
-        there is none). Never raises: a folder it cannot read or write is said in the log."""
-        from slam import read_run_json, trajectory_frames, write_json_atomic
-
-        directory = session.directory
-        if not directory.is_dir():
-            return
-        state = session.status
-        frames = trajectory_frames(directory)
-        run = read_run_json(directory)
-        if run is not None:
-            counts = {key: int(run[key]) for key in ("keyframes", "maps", "loops")
-                      if isinstance(run.get(key), (int, float)) and not isinstance(run.get(key), bool)}
-        elif frames:
-            counts = {"keyframes": state.keyframes, "maps": state.maps, "loops": state.loops}
-        else:
-            counts = {"keyframes": 0, "maps": 0, "loops": 0}
-        skipped = session.stream.frames_refused if session.stream is not None else int(
-            (run or {}).get("frames_skipped") or 0)
-        session.status = replace(state, frames_done=frames, frames_skipped=skipped, **counts)
-        wanted = {"status": state.status, "error": state.error, "frames": frames}
-        if run is not None and all(run.get(k) == v for k, v in wanted.items()):
-            return
-        if run is None:
-            run = {"frames_total": state.frames_total, **counts, "preset": state.preset}
-        elif run.get("status") not in (state.status, "running"):
-            run["run_status"] = run.get("status")  # what the runtime said (a stop reads "cancelled")
-        run.update(wanted)
-        try:
-            write_json_atomic(directory / "run.json", run)
-        except OSError as error:
-            print(f"voxfusion: cannot write {directory / 'run.json'}: {error}")
-
-    def _write_progress(self, session: _Session) -> None:
-        """Keep the frames/s history of an ended session for the page's plot after a restart."""
-        samples = session.fold.fps_samples
-        if samples and session.directory.is_dir():
-            try:
-                _write_json_atomic(session.directory / PROGRESS_FILE, {"fps_samples": samples})
-            except OSError as error:
-                print(f"voxfusion: cannot write {session.directory / PROGRESS_FILE}: {error}")
+        """An ended session's status against its folder (``server.session_store``)."""
+        refused = session.stream.frames_refused if session.stream is not None else None
+        session.status = settle_outputs(session.directory, session.status, refused)
 
     def _mark_dirty(self, session: _Session) -> None:
         if session.dirty_since is None:
@@ -699,59 +625,4 @@ class SessionManager:
 
     def _persist(self, session: _Session) -> None:
         session.dirty_since = None
-        if not session.directory.is_dir():
-            return
-        try:
-            _write_json_atomic(session.directory / "session.json", session.status.to_json())
-        except OSError as error:
-            print(f"voxfusion: cannot write {session.directory / 'session.json'}: {error}")
-
-
-WORKER_PID_FILE = "worker.pid"
-"""In a session folder while its worker runs: the worker's pid, which is its process group."""
-
-
-def _write_pid(path: Path, pid: int | None) -> None:
-    try:
-        path.write_text(f"{pid}\n")
-    except OSError as error:
-        print(f"voxfusion: cannot write {path}: {error}")
-
-
-def _stdout_target(pid: int) -> str | None:
-    try:
-        return os.readlink(f"/proc/{pid}/fd/1")
-    except OSError:
-        return None
-
-
-def _group_of(pid: int) -> int | None:
-    try:
-        return os.getpgid(pid)
-    except OSError:
-        return None
-
-
-def end_orphaned_worker(directory: Path) -> bool:
-    """SIGKILL what is left of the worker group named in ``directory/worker.pid`` (a worker
-    and mapping process that outlived a killed server). A process counts only if it is in
-    that group and its stdout is this session's ``worker.log`` (as every process of the group
-    has), so a reused pid is never hit. Linux (``/proc``); elsewhere it finds nothing.
-    Returns True when something was killed."""
-    pid_file = directory / WORKER_PID_FILE
-    try:
-        group = int(pid_file.read_text().strip())
-    except (OSError, ValueError):
-        return False
-    pid_file.unlink(missing_ok=True)
-    log = str((directory / "worker.log").resolve())
-    members = [int(p.name) for p in Path("/proc").glob("[0-9]*") if _group_of(int(p.name)) == group]
-    ours = [pid for pid in members if _stdout_target(pid) == log]
-    for pid in ours:
-        try:
-            os.kill(pid, signal.SIGKILL)
-        except OSError:
-            pass
-    if ours:
-        print(f"voxfusion: ended {len(ours)} leftover process(es) of session {directory.name}", flush=True)
-    return bool(ours)
+        write_status(session.directory, session.status)

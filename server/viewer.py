@@ -44,8 +44,9 @@ at which they fill the view, when it is shown, whenever its extent has grown by 
 
 The module is the viser facade only: what each session shows and what is stale lives in
 ``server.viewer_state`` (plain data, no viser), whose sessions fold their events with the one
-fold of them, ``server.session_state``; this facade turns that state into scene nodes and GUI
-handles, holds the lock, runs the flusher and guards viser's port.
+fold of them, ``server.session_state``; ``server.viewer_scene`` turns that state into scene
+nodes; this facade holds the lock, the GUI handles and the flusher thread, and guards viser's
+port.
 
 Conventions as viser's: OpenCV camera axes, quaternions ``wxyz``, metres.
 """
@@ -57,33 +58,28 @@ import io
 import secrets
 import threading
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 import trimesh
 
+from server.viewer_scene import LAYERS, SceneWriter, ViewerStats
 from server.viewer_state import (  # noqa: F401 - names this module has always exported
     FRAME_DIRECTION,
-    LOOP_COLOR,
     MIN_FRAME_RADIUS_M,
-    REFRAME_GROWTH,
-    TRAJECTORY_BLOCK,
     MeshChunk,
     ViewerCamera,
     ViewerSession,
     agent_color,
-    box_segments,
     chunk_changed,
     framing,
     frustum_segments,
-    key_text,
     map_color,
     mesh_chunks,
     scene_bounds,
 )
-from slam import matrix_to_quat_wxyz, quat_wxyz_to_matrix
+from slam import quat_wxyz_to_matrix
 
 if TYPE_CHECKING:
     import viser
@@ -91,7 +87,6 @@ if TYPE_CHECKING:
 UPDATE_HZ = 5.0
 MESH_HZ = 1.0
 NO_SESSION = "(no session yet)"
-LAYERS = ("meshes", "trajectory", "camera", "keyframes", "loops")
 
 RELAY_HEADER = "X-Voxfusion-Relay"
 """Header by which the API's relay proves itself to viser (its value: ``ViewerAdapter.relay_secret``)."""
@@ -99,28 +94,6 @@ RELAY_ONLY_CLOSE_CODE = 1008
 """WebSocket close code (policy violation) for a direct connection to viser's port."""
 
 _scene_bounds = scene_bounds
-
-
-def _wxyz(T: np.ndarray) -> np.ndarray:
-    import torch
-
-    return matrix_to_quat_wxyz(torch.as_tensor(np.asarray(T)[:3, :3], dtype=torch.float64)).numpy()
-
-
-def _place(handle, T: np.ndarray) -> None:
-    handle.wxyz = _wxyz(T)
-    handle.position = T[:3, 3]
-
-
-@dataclass
-class ViewerStats:
-    """Counters for the benchmark: how often the browsers were updated."""
-
-    updates: int = 0
-    mesh_updates: int = 0
-    chunks_sent: int = 0
-    chunks_skipped: int = 0
-    events: int = 0
 
 
 class ViewerAdapter:
@@ -132,26 +105,25 @@ class ViewerAdapter:
         self._server: viser.ViserServer | None = None
         self._lock = threading.RLock()
         self._sessions: dict[str, ViewerSession] = {}
-        self._handles: dict[str, viser.SceneNodeHandle] = {}
-        """Scene nodes by path (module doc)."""
         self._selected: str | None = None
         self._user_selected = False
-        self._layers = {name: True for name in LAYERS}
-        self._hidden_maps: set[int] = set()
-        self._tint_by_map = False
-        self._trajectory_by_map = False
-        self._follow = False
         self._sessions_changed = False
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self.stats = ViewerStats()
+        self._scene = SceneWriter(self.stats)
         self._session_dropdown: viser.GuiDropdownHandle | None = None
         self._maps_folder: viser.GuiFolderHandle | None = None
         self._map_boxes: dict[int, viser.GuiCheckboxHandle] = {}
         self._status_md: viser.GuiMarkdownHandle | None = None
-        self.stats = ViewerStats()
         self.relay_secret = secrets.token_urlsafe(32)
         """What the relay sends in RELAY_HEADER; nobody else knows it."""
         self.refused_connections = 0
+
+    @property
+    def _handles(self) -> dict[str, viser.SceneNodeHandle]:
+        """The scene nodes by path (module doc)."""
+        return self._scene.handles
 
     # -- lifecycle ---------------------------------------------------------------------------
 
@@ -162,6 +134,7 @@ class ViewerAdapter:
         # way in is our page (its /viewer relay), whose URL the CLI prints.
         with contextlib.redirect_stdout(io.StringIO()):
             self._server = viser.ViserServer(host=self._host, port=self._requested_port, verbose=False)
+        self._scene.server = self._server
         self._admit_relay_only()
         self._server.scene.set_up_direction("+z")
         self._server.gui.configure_theme(show_share_button=False, brand_color=(40, 110, 200), control_width="small")
@@ -202,6 +175,7 @@ class ViewerAdapter:
         if self._server is not None:
             self._server.stop()
             self._server = None
+            self._scene.server = None
 
     @property
     def port(self) -> int | None:
@@ -268,36 +242,28 @@ class ViewerAdapter:
     def _select(self, session_id: str) -> None:
         """Show ``session_id`` only; everything it has pending is flushed at the next tick."""
         self._selected = session_id
-        for sid in self._sessions:
-            handle = self._handles.get(f"/sessions/{sid}")
-            if handle is not None:
-                handle.visible = sid == session_id
         self._sessions[session_id].shown()
-        self._ensure_root(session_id).visible = True
+        self._scene.show_only(self._sessions, session_id)
         self._refresh_map_boxes()
         if self._session_dropdown.value != session_id:
             self._session_dropdown.value = session_id
 
     def _set_follow(self, value: bool) -> None:
-        self._follow = bool(value)
+        self._scene.follow = bool(value)
 
     def _set_layer(self, name: str, value: bool) -> None:
         with self._lock:
-            self._layers[name] = bool(value)
-            for sid in self._sessions:
-                handle = self._handles.get(f"/sessions/{sid}/{name}")
-                if handle is not None:
-                    handle.visible = bool(value)
+            self._scene.set_layer(self._sessions, name, bool(value))
 
     def _set_tint(self, value: bool) -> None:
         with self._lock:
-            self._tint_by_map = bool(value)
+            self._scene.tint_by_map = bool(value)
             for state in self._sessions.values():
                 state.resend_meshes()
 
     def _set_trajectory_tint(self, value: bool) -> None:
         with self._lock:
-            self._trajectory_by_map = bool(value)
+            self._scene.trajectory_by_map = bool(value)
             for state in self._sessions.values():
                 state.redraw_trajectories()
 
@@ -311,22 +277,14 @@ class ViewerAdapter:
             for map_id in wanted:
                 if map_id not in self._map_boxes:
                     r, g, b = map_color(map_id)
-                    box = self._server.gui.add_checkbox(f"Map {map_id}", map_id not in self._hidden_maps,
+                    box = self._server.gui.add_checkbox(f"Map {map_id}", map_id not in self._scene.hidden_maps,
                                                         hint=f"colour #{r:02x}{g:02x}{b:02x}")
                     box.on_update(lambda _, m=map_id, bx=box: self._set_map_visible(m, bx.value))
                     self._map_boxes[map_id] = box
 
     def _set_map_visible(self, map_id: int, visible: bool) -> None:
         with self._lock:
-            if visible:
-                self._hidden_maps.discard(map_id)
-            else:
-                self._hidden_maps.add(map_id)
-            for sid in self._sessions:
-                for layer in ("meshes", "keyframes"):
-                    handle = self._handles.get(f"/sessions/{sid}/{layer}/map_{map_id}")
-                    if handle is not None:
-                        handle.visible = visible
+            self._scene.set_map_visible(self._sessions, map_id, visible)
 
     # -- events (any thread) -----------------------------------------------------------------
 
@@ -357,11 +315,7 @@ class ViewerAdapter:
     def remove_session(self, session_id: str) -> None:
         with self._lock:
             self._sessions.pop(session_id, None)
-            for name in [n for n in self._handles if n == f"/sessions/{session_id}"
-                         or n.startswith(f"/sessions/{session_id}/")]:
-                handle = self._handles.pop(name)
-                if name == f"/sessions/{session_id}":
-                    handle.remove()
+            self._scene.remove_session(session_id)
             if self._selected == session_id:
                 self._selected = None
             self._sessions_changed = True
@@ -406,7 +360,7 @@ class ViewerAdapter:
     def _frame_if_grown(self, state: ViewerSession) -> None:
         """Frame the selected session in every browser when it is first shown and whenever
         its extent has grown by REFRAME_GROWTH since; never while "Follow camera" is on."""
-        if self._follow:
+        if self._scene.follow:
             return
         bounds = state.bounds_to_frame()
         if bounds is None:
@@ -443,16 +397,6 @@ class ViewerAdapter:
         T[:3, 3] = position
         return ViewerCamera(T_world_cam=T, fov_y=float(fov), width=int(width), height=int(height))
 
-    def _move_browsers_behind(self, T_world_cam: np.ndarray) -> None:
-        """Put every browser's camera a little behind and above the tracked camera."""
-        forward, down = T_world_cam[:3, 2], T_world_cam[:3, 1]
-        eye = T_world_cam[:3, 3] - 0.8 * forward - 0.3 * down
-        target = T_world_cam[:3, 3] + 1.0 * forward
-        for client in self._server.get_clients().values():
-            with client.atomic():
-                client.camera.position = eye
-                client.camera.look_at = target
-
     # -- flushing to viser (flusher thread) --------------------------------------------------
 
     def _flush_loop(self) -> None:
@@ -484,12 +428,22 @@ class ViewerAdapter:
                     self.stats.updates += 1
                     sent = True
             if force or now - state.last_mesh_update >= 1.0 / MESH_HZ:
-                if self._flush_meshes(state):
+                if self._scene.flush_meshes(state):
                     state.last_mesh_update = now
                     self.stats.mesh_updates += 1
                     sent = True
             if sent or state.framed_size is None:
                 self._frame_if_grown(state)
+
+    def _flush_light(self, state: ViewerSession) -> bool:
+        """Everything but meshes, and the status line; True if anything was sent."""
+        sent, new_map = self._scene.flush_light(state)
+        if new_map:
+            self._refresh_map_boxes()
+        if sent or state.status_dirty:
+            state.status_dirty = False
+            self._status_md.content = state.status_text()
+        return sent
 
     def _update_session_list(self) -> None:
         options = list(self._sessions) or [NO_SESSION]
@@ -499,130 +453,3 @@ class ViewerAdapter:
             self._select(newest)
         elif not self._sessions:
             self._session_dropdown.value = NO_SESSION
-
-    def _ensure_root(self, session_id: str) -> viser.FrameHandle:
-        name = f"/sessions/{session_id}"
-        if name not in self._handles:
-            self._handles[name] = self._server.scene.add_frame(name, show_axes=False)
-            for layer in LAYERS:
-                path = f"{name}/{layer}"
-                self._handles[path] = self._server.scene.add_frame(path, show_axes=False,
-                                                                    visible=self._layers[layer])
-        return self._handles[name]
-
-    def _map_node(self, state: ViewerSession, layer: str, map_id: int) -> viser.FrameHandle:
-        """The node of a map in a layer (made on first use), placed at the map's T_world_map."""
-        name = f"/sessions/{state.session_id}/{layer}/map_{map_id}"
-        handle = self._handles.get(name)
-        if handle is None:
-            handle = self._server.scene.add_frame(name, show_axes=False, visible=map_id not in self._hidden_maps)
-            self._handles[name] = handle
-        _place(handle, state.T_world_map(map_id))
-        return handle
-
-    def _add_segments(self, name: str, segments: np.ndarray, colors, thickness: float) -> None:
-        self._handles[name] = self._server.scene.add_line_segments(name, segments, colors=colors,
-                                                                    thickness=thickness, thickness_units="screen")
-
-    def _flush_light(self, state: ViewerSession) -> bool:
-        """Camera, trajectory, keyframes, loops, map poses; True if anything was sent."""
-        self._ensure_root(state.session_id)
-        sent = self._flush_maps(state)
-        for agent in sorted(state.agents):
-            view = state.agents[agent]
-            if view.dirty:
-                self._send_trajectory(state, agent)
-                view.dirty, sent = False, True
-            if view.camera_dirty and state.camera(agent) is not None:
-                self._send_camera(state, agent)
-                view.camera_dirty, sent = False, True
-        if state.loops_dirty:
-            points = state.loop_points().astype(np.float32)
-            if len(points):
-                self._add_segments(f"/sessions/{state.session_id}/loops/edges", points, LOOP_COLOR, 3.0)
-            state.loops_dirty, sent = False, True
-        if sent or state.status_dirty:
-            state.status_dirty = False
-            self._status_md.content = state.status_text()
-        return sent
-
-    def _flush_maps(self, state: ViewerSession) -> bool:
-        """Map nodes' poses, keyframe frusta, map outlines; True if anything was sent."""
-        root = f"/sessions/{state.session_id}"
-        sent = new_map = False
-        several_maps = len(state.maps) > 1
-        for map_id, view in state.maps.items():
-            new_map = new_map or f"{root}/meshes/map_{map_id}" not in self._handles
-            if view.pose_dirty:
-                self._map_node(state, "meshes", map_id)
-                if f"{root}/keyframes/map_{map_id}" in self._handles:
-                    self._map_node(state, "keyframes", map_id)
-                view.pose_dirty, sent = False, True
-            frusta = state.keyframe_frusta(map_id) if view.keyframes_dirty else None
-            if frusta is not None:
-                self._map_node(state, "keyframes", map_id)
-                self._add_segments(f"{root}/keyframes/map_{map_id}/frusta", frusta, map_color(map_id), 1.5)
-                view.keyframes_dirty, sent = False, True
-            if view.bounds_dirty and several_maps and view.bounds is not None:
-                self._map_node(state, "meshes", map_id)
-                self._add_segments(f"{root}/meshes/map_{map_id}/bounds", box_segments(*view.bounds),
-                                   map_color(map_id), 1.0)
-                view.bounds_dirty, sent = False, True
-        if new_map:
-            self._refresh_map_boxes()
-            if several_maps:  # the first map's outline too, now that there are several
-                for view in state.maps.values():
-                    view.bounds_dirty = view.bounds is not None
-        return sent
-
-    def _send_trajectory(self, state: ViewerSession, agent: int) -> None:
-        """Resend the open blocks of one agent's path (``ViewerSession.trajectory_blocks``)."""
-        base = f"/sessions/{state.session_id}/trajectory/agent_{agent}"
-        if base not in self._handles:
-            self._handles[base] = self._server.scene.add_frame(base, show_axes=False)
-        for block in state.trajectory_blocks(agent, by_map=self._trajectory_by_map):
-            if len(block.segments):
-                colors = np.repeat(np.asarray(block.colors)[:, None, :], 2, axis=1)
-                self._add_segments(f"{base}/part_{block.part}", block.segments, colors, 2.0)
-
-    def _send_camera(self, state: ViewerSession, agent: int) -> None:
-        T, thumbnail = state.camera(agent)
-        name = f"/sessions/{state.session_id}/camera/frustum" + ("" if agent == 0 else f"_{agent}")
-        handle = self._handles.get(name)
-        intrinsics = state.scene.intrinsics.get(agent)
-        if handle is None and intrinsics is not None:
-            K, (w, h) = intrinsics
-            fov = 2.0 * np.arctan(0.5 * h / K[1, 1])
-            self._handles[name] = self._server.scene.add_camera_frustum(
-                name, fov=float(fov), aspect=w / h, scale=0.2, color=agent_color(agent), image=thumbnail,
-                wxyz=_wxyz(T), position=T[:3, 3])
-        elif handle is not None:
-            _place(handle, T)
-            if thumbnail is not None:
-                handle.image = thumbnail
-        if self._follow and agent == min(state.agents):
-            self._move_browsers_behind(T)
-
-    def _flush_meshes(self, state: ViewerSession) -> bool:
-        sent_any = False
-        for map_id in list(state.maps):
-            update = state.take_chunk_update(map_id)
-            if update is None:
-                continue
-            self._map_node(state, "meshes", map_id)
-            base = f"/sessions/{state.session_id}/meshes/map_{map_id}"
-            for key in update.removed:
-                handle = self._handles.pop(f"{base}/c_{key_text(key)}", None)
-                if handle is not None:
-                    handle.remove()
-            self.stats.chunks_skipped += update.skipped
-            for key, chunk in update.changed.items():
-                colors = chunk.colors
-                if self._tint_by_map:
-                    colors = np.broadcast_to(np.array(map_color(map_id), dtype=np.uint8), colors.shape)
-                mesh = trimesh.Trimesh(chunk.vertices, chunk.faces, vertex_colors=colors, process=False)
-                name = f"{base}/c_{key_text(key)}"
-                self._handles[name] = self._server.scene.add_mesh_trimesh(name, mesh)
-                self.stats.chunks_sent += 1
-                sent_any = True
-        return sent_any

@@ -182,3 +182,58 @@ def test_the_folds_do_not_import_viser_or_the_web_stack():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                          cwd=Path(__file__).resolve().parents[1])
     assert out.stdout.strip() == "[]"
+
+
+def test_how_a_run_ends():
+    from server.session_status import run_end
+    from server.worker import WorkerDone
+
+    def crash() -> str:
+        return "exit code -9"
+
+    failed = WorkerDone("failed", "out of memory")
+    finished = WorkerDone("finished", None)
+    stopping = ("failed", "interrupted: the server stopped")
+    assert run_end(None, stopping, False, None, crash) == stopping
+    assert run_end(finished, stopping, False, None, crash) == stopping, "its answer to the stop"
+    assert run_end(failed, stopping, True, None, crash) == ("failed", "out of memory"), "a failure wins"
+    assert run_end(finished, None, True, None, crash) == ("cancelled", None)
+    assert run_end(finished, None, False, None, crash) == ("finished", None)
+    assert run_end(None, None, False, "killed", crash) == ("cancelled", "killed")
+    assert run_end(None, None, False, None, crash) == ("failed", "exit code -9")
+
+
+def test_worker_totals_keep_the_status_fps():
+    from server.session_status import with_worker_totals
+    from server.worker import WorkerDone
+
+    state = status()
+    assert with_worker_totals(state, None) is state
+    assert with_worker_totals(state, WorkerDone("finished", None)) is state, "no frames: nothing to take"
+    done = WorkerDone("finished", None, frames=9, keyframes=3, maps=2, loops=1, fps=7.123456, agents=2,
+                      ate_rmse=0.05)
+    total = with_worker_totals(state, done)
+    assert (total.frames_done, total.keyframes, total.maps, total.loops, total.agents) == (9, 3, 2, 1, 2)
+    assert total.fps == 7.123 and total.ate_rmse_m == 0.05
+    from dataclasses import replace
+
+    assert with_worker_totals(replace(state, fps=2.5), done).fps == 2.5
+
+
+def test_settling_a_folder_without_outputs(tmp_path):
+    import json
+
+    from server.session_store import read_progress, settle_outputs, write_progress, write_status
+
+    ended = SessionStatus(id="cccccccccccc", status="failed", created="x", source="x", preset="test",
+                          keyframes=4, error="boom")
+    settled = settle_outputs(tmp_path, ended, frames_refused=2)
+    assert (settled.frames_done, settled.keyframes, settled.frames_skipped) == (0, 0, 2)
+    run = json.loads((tmp_path / "run.json").read_text())
+    assert (run["status"], run["error"], run["frames"]) == ("failed", "boom", 0)
+    assert settle_outputs(tmp_path / "gone", ended) is ended
+    write_status(tmp_path, settled)
+    assert SessionStatus.from_json(json.loads((tmp_path / "session.json").read_text())) == settled
+    assert read_progress(tmp_path) == []
+    write_progress(tmp_path, [(0.5, 3), (1.0, 7)])
+    assert read_progress(tmp_path) == [(0.5, 3), (1.0, 7)]
