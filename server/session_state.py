@@ -64,7 +64,7 @@ class Mesh:
     """A map's newest mesh in the map's frame."""
 
     vertices: np.ndarray
-    """(V, 3) float64, map frame."""
+    """(V, 3) map frame: float64 in a Change, float32 in ``SessionState.meshes``."""
     faces: np.ndarray
     """(F, 3) int."""
     colors: np.ndarray | None
@@ -181,8 +181,8 @@ class SessionState:
             # that a later correction of T_world_map moves the mesh without touching it.
             mesh = Mesh(transform_points(T_map_world, event.mesh_vertices), event.mesh_faces, event.mesh_colors)
             change.mesh = (map_id, mesh)
-            if self.keep_meshes and len(event.mesh_faces):
-                self.meshes[map_id] = mesh
+            if self.keep_meshes and len(event.mesh_faces):  # kept in float32, as the runtime sends it
+                self.meshes[map_id] = Mesh(mesh.vertices.astype(np.float32), mesh.faces, mesh.colors)
 
     def _on_submap(self, event: SubmapEvent, change: Change) -> None:
         map_id = int(event.map_id)

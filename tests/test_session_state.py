@@ -89,6 +89,7 @@ def test_meshes_are_kept_in_the_map_frame_and_follow_it():
                                         np.zeros((0, 3), np.int32), None))
     assert change.mesh is not None and len(change.mesh[1].faces) == 0, "an empty mesh is a change"
     assert len(state.meshes[0].faces) == 1, "but the kept mesh is the last non-empty one"
+    assert state.meshes[0].vertices.dtype == np.float32
     assert SessionState(keep_meshes=False).meshes == {}
 
 
