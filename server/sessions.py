@@ -16,78 +16,59 @@ The queue holds at most ``max_queued`` sessions (``VOXFUSION_MAX_QUEUED``): ``cr
 session holds no descriptor: its execution (the worker's queues and pipes) is made when it
 starts; a queued stream's frames wait in its ``StreamInput``'s buffer until then.
 
-Outputs live in ``DATA_DIR/sessions/<id>/`` (``session.json`` metadata, ``input/``, and the
-runtime's ``trajectory.txt``, ``mesh.ply``, ``map.pt``, ``run.json``), so finished sessions are
-listed again after a restart. A session that was queued or running when the server went away
-(stopped, or killed) comes back as ``failed`` with an error that starts with ``interrupted:``,
-so a user can tell it from a session they cancelled; ``worker.pid`` in the folder names the
-worker's process group while it runs, so that a restart can end a worker that outlived its
-server (a worker also ends itself when its server is gone: ``server.worker``).
-
-Once a session has ended (and for an interrupted one, at the restart) the status is settled
-against the folder (``_settle_outputs``): ``frames_done`` is the number of poses in its
-trajectory files, ``keyframes``/``maps``/``loops`` are ``run.json``'s, and ``run.json`` gets the
-session's ``status`` and ``error`` (it is written when the run left none), so the three agree.
-The runtime rewrites the trajectory and a ``run.json`` that says ``running`` atomically at each
-keyframe, so a SIGKILL loses at most the frames tracked after the last keyframe.
+Outputs live in ``DATA_DIR/sessions/<id>/`` (``server.session_store``: the folder's files, and
+how an ended session's status is settled against them), so finished sessions are listed again
+after a restart. A session that was queued or running when the server went away (stopped, or
+killed) comes back as ``failed`` with an error that starts with ``interrupted:``, so a user can
+tell it from a session they cancelled; a worker of it that outlived its server is ended then
+(a worker also ends itself when its server is gone: ``server.worker``).
 
 ``request_shutdown`` (called from the server's SIGTERM/SIGINT handler, ``server.cli``) asks
 every running session to stop at once, before uvicorn has drained its connections; ``stop``
 then waits for them until ``grace_s`` after that request and kills the rest.
 
-``phase`` refines ``running``: ``tracking`` (frames are read), ``refining`` (the final bundle
-adjustment and mesh), ``writing`` (trajectories, ``run.json``); ``queued`` before and ``done``
-after, whatever the session's end (``status`` says which); ``phase_started`` says since when.
-
-``fps`` has one definition, shared by the status, the page and the viewer's panel (the
-viewer gets StatsEvents with this value): frames tracked (all agents) per second of the
-tracking phase, from its PhaseEvent to the latest pose, both as the API process receives them.
-It is fixed once tracking ends, so the final refinement does not drag it down (``run.json``'s
-``fps`` divides by the whole run's wall time instead). Its history, one sample per
-FPS_SAMPLE_S, is kept for the page's plot (``fps_samples``; ``progress.json`` once ended).
+The event-to-status fold (phase, frames/s, counters) is ``server.session_status``; the events'
+own fold (tracks, live meshes), shared with the viewer, is ``server.session_state``. This module
+is the scheduler: queue, workers, supervision, persistence.
 """
 
 from __future__ import annotations
 
 import json
-import os
 import re
 import secrets
-import signal
 import threading
 import time
 from collections import deque
-from dataclasses import asdict, dataclass, field, replace
-from datetime import datetime, timezone
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np
 
 from server.errors import strip_paths
-from server.execution import Execution, Executor, ExecutorError, WorkerInfo, WorkerPlaced
+from server.execution import Execution, Executor, ExecutorError, WorkerPlaced
 from server.executors import make_executor
+from server.session_status import ENDED, SessionStatus, StatusFold, now_iso, run_end, with_worker_totals
+from server.session_store import (
+    WORKER_PID_FILE,
+    end_orphaned_worker,
+    read_progress,
+    settle_outputs,
+    write_pid,
+    write_progress,
+    write_status,
+)
 from server.settings import Settings
 from server.stream import StreamInput
-from server.tracks import Tracks, transform_points
+from server.tracks import FrameCamera, TrackedFrame
 from server.worker import SourceSpec, WorkerDone, WorkerJob, WorkerStarted, describe_sources
-from slam import FinishedEvent, KeyframeEvent, LoopEvent, MapUpdateEvent, PhaseEvent, PoseEvent, StatsEvent, SubmapEvent
-
-STATUSES = ("queued", "running", "finished", "failed", "cancelled")
-ENDED = ("finished", "failed", "cancelled")
-PHASES = ("queued", "tracking", "refining", "writing", "done")
+from slam import FinishedEvent
 INTERRUPTED_RUNNING = "interrupted: the server stopped while the session was running"
 INTERRUPTED_QUEUED = "interrupted: the server stopped before the session started"
 SESSION_ID = re.compile(r"^[0-9a-f]{12}$")
 EventSink = Callable[[str, object], None]
 """Called with (session id, event) in the supervisor thread for every worker event."""
-
-PROGRESS_FILE = "progress.json"
-"""In a session folder once it ended: ``{"fps_samples": [[seconds, frames], ...]}``."""
-FPS_SAMPLE_S = 0.5
-"""Shortest time between two samples of the frames/s history."""
-MIN_FPS_SPAN_S = 0.25
-"""Shortest tracking time frames/s is computed over."""
 
 _SUPERVISOR_TICK_S = 0.05
 _MAX_EVENTS_PER_TICK = 200
@@ -126,69 +107,6 @@ def register_error_handlers(app) -> None:
     app.add_exception_handler(QueueFull, queue_full)
 
 
-@dataclass(frozen=True)
-class SessionStatus:
-    """What the API reports for a session (also the content of ``session.json``)."""
-
-    id: str
-    status: str
-    created: str
-    """ISO 8601, UTC."""
-    source: str
-    preset: str
-    frames_done: int = 0
-    frames_total: int | None = None
-    fps: float = 0.0
-    keyframes: int = 0
-    maps: int = 0
-    loops: int = 0
-    agents: int = 1
-    """Agents (cameras) of the session: the upload's parts, or those a stream has seen so far."""
-    phase: str = "queued"
-    """One of PHASES (see the module doc)."""
-    phase_started: str | None = None
-    """ISO 8601, UTC: when the current phase began (None for sessions from before it was kept)."""
-    phase_budget_s: float | None = None
-    """While refining: the seconds the preset allows the final bundle adjustment (the mesh
-    follows), None when it has no time cap (``refinement_budget_s``)."""
-    ate_rmse_m: float | None = None
-    """Agent 0's ATE RMSE in metres (so far while running, final after); None without ground truth."""
-    frames_skipped: int = 0
-    """Input frames left out because they could not be read (an upload's corrupt frames, a
-    stream's refused ones); known once the session has ended."""
-    error: str | None = None
-    spec: SourceSpec = field(default_factory=lambda: SourceSpec(kind="synthetic"))
-    """The (first agent's) source."""
-    specs: tuple[SourceSpec, ...] = ()
-    """Every agent's source, in agent order, for a collaborative session; () for one source."""
-    worker: WorkerInfo | None = None
-    """Where the session runs or ran (None while queued, and for sessions from before it was kept)."""
-
-    @property
-    def sources(self) -> tuple[SourceSpec, ...]:
-        return self.specs or (self.spec,)
-
-    def to_json(self) -> dict:
-        return asdict(self)
-
-    @staticmethod
-    def from_json(data: dict) -> "SessionStatus":
-        data = dict(data)
-        data.setdefault("phase", "done" if data.get("status") in ENDED else "queued")
-        spec = _spec_from_json(data.pop("spec"))
-        specs = tuple(_spec_from_json(s) for s in data.pop("specs", None) or ())
-        worker = data.pop("worker", None)
-        worker = WorkerInfo(**worker) if isinstance(worker, dict) else None
-        return SessionStatus(spec=spec, specs=specs, worker=worker, **data)
-
-
-def _spec_from_json(spec: dict) -> SourceSpec:
-    spec = dict(spec)
-    if spec.get("intrinsics") is not None:
-        spec["intrinsics"] = tuple(spec["intrinsics"])
-    return SourceSpec(**spec)
-
-
 @dataclass
 class _Session:
     """Mutable bookkeeping of one session; only the manager touches it, under its lock."""
@@ -212,17 +130,8 @@ class _Session:
     """time.monotonic() when its worker started."""
     delete_when_stopped: bool = False
     dirty_since: float | None = None
-    live_meshes: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=dict)
-    """Latest mesh per map from MapUpdateEvents, in the map's frame: (V, 3) float32, (F, 3)
-    int32, (V, 3) uint8 (placed in the world by ``tracks.maps``)."""
-    tracks: Tracks = field(default_factory=Tracks)
-    """Poses from PoseEvents per (agent, frame), following their maps: the trajectory so far."""
-    loop_events: int = 0
-    keyframe_events: int = 0
-    tracking_started: float | None = None
-    """time.monotonic() when the tracking phase began (see the module doc on fps)."""
-    fps_samples: list[tuple[float, int]] = field(default_factory=list)
-    """(seconds since tracking began, frames tracked) at most every FPS_SAMPLE_S."""
+    fold: StatusFold = field(default_factory=StatusFold)
+    """The status as its events make it, with the events' fold (tracks, live meshes, frames/s history)."""
 
     @property
     def process(self):
@@ -244,16 +153,6 @@ def check_session_id(session_id: str) -> str:
     if not SESSION_ID.match(session_id):
         raise SessionNotFound(session_id)
     return session_id
-
-
-def _now_iso() -> str:
-    return datetime.now(timezone.utc).isoformat(timespec="seconds")
-
-
-def _write_json_atomic(path: Path, data: dict) -> None:
-    tmp = path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(data, indent=1))
-    os.replace(tmp, path)
 
 
 class SessionManager:
@@ -396,7 +295,7 @@ class SessionManager:
         job = WorkerJob(session_id=session_id, sources=specs, preset=preset, out_dir=str(directory))
         spec = specs[0]
         directory.mkdir(parents=True, exist_ok=True)
-        created = _now_iso()
+        created = now_iso()
         status = SessionStatus(id=session_id, status="queued", created=created, source=describe_sources(specs),
                                preset=preset, spec=spec, specs=specs if len(specs) > 1 else (), agents=len(specs),
                                phase_started=created)
@@ -443,9 +342,7 @@ class SessionManager:
         the world frame as the maps are placed now: (V, 3) float32, (F, 3) int32, (V, 3) uint8."""
         session = self._get(session_id)
         with self._lock:
-            items = list(session.live_meshes.items())
-            placements = {m: session.tracks.maps.T_world_map(m) for m, _ in items}
-        return {m: (transform_points(placements[m], v).astype(np.float32), f, c) for m, (v, f, c) in items}
+            return session.fold.live_meshes()
 
     def tracked_poses(self, session_id: str, agent: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Poses of one agent reported so far while this server ran the session: (N,) frame
@@ -453,38 +350,35 @@ class SessionManager:
         closures), sorted by frame index (empty after a restart)."""
         session = self._get(session_id)
         with self._lock:
-            return session.tracks.world_poses(agent)
+            return session.fold.scene.tracks.world_poses(agent)
 
     def newest_camera(self, session_id: str, agent: int = 0) -> tuple[TrackedFrame, np.ndarray, FrameCamera] | None:
         """The agent's newest tracked frame, its current T_world_cam and its camera, or None
         before its first frame (and after a server restart: the events are gone)."""
         session = self._get(session_id)
         with self._lock:
-            newest = session.tracks.newest(agent)
-            camera = session.tracks.cameras.get(agent)
-        if newest is None or camera is None:
-            return None
-        return newest[0], newest[1], camera
+            state = session.fold.scene
+            latest, intrinsics = state.latest.get(agent), state.intrinsics.get(agent)
+            if latest is None or intrinsics is None:
+                return None
+            frame = state.tracks.by_agent[agent][latest[0]]
+            T_world_cam = state.camera_pose(agent)
+        K, (width, height) = intrinsics
+        return frame, T_world_cam, FrameCamera(np.asarray(K, np.float64), int(width), int(height))
 
     def tracked_agents(self, session_id: str) -> list[int]:
         """Agents with at least one pose reported while this server ran the session."""
         session = self._get(session_id)
         with self._lock:
-            return session.tracks.agents()
+            return session.fold.scene.tracks.agents()
 
     def fps_samples(self, session_id: str) -> list[tuple[float, int]]:
         """(seconds since tracking began, frames tracked) over the session's tracking phase:
         from this run's events, else from ``progress.json`` (empty when neither has any)."""
         session = self._get(session_id)
         with self._lock:
-            samples = list(session.fps_samples)
-        if samples:
-            return samples
-        try:
-            data = json.loads((session.directory / PROGRESS_FILE).read_text())
-            return [(float(t), int(n)) for t, n in data.get("fps_samples", [])]
-        except (OSError, ValueError, TypeError, AttributeError):
-            return []
+            samples = list(session.fold.fps_samples)
+        return samples or read_progress(session.directory)
 
     def agent_count(self, session_id: str) -> int:
         """Agents of the session: its sources, or for a stream the agents seen so far."""
@@ -620,89 +514,39 @@ class SessionManager:
             self._apply(session, event)
 
     def _apply(self, session: _Session, event: object) -> None:
+        """One message from the worker: its own (started, placed, done) or a runtime event,
+        which the session's status fold takes and the event sinks get."""
         with self._lock:
-            if isinstance(event, WorkerStarted):
-                if session.status.worker is None or session.status.worker.executor == "local":
-                    session.worker_pid = event.pid  # a process group on this machine
+            if self._apply_worker_message(session, event):
                 return
-            if isinstance(event, WorkerPlaced):
-                session.status = replace(session.status, worker=event.worker)
-                if session.status.status == "queued" and session.cancel_requested_at is None:
-                    self._set_status(session, "running", None)
-                return
-            if isinstance(event, WorkerDone):
-                session.done = event
-                return
-            session.tracks.apply(event)
-            if isinstance(event, StatsEvent):
-                ate = event.ate_rmse
-                session.status = replace(
-                    session.status, frames_done=max(event.frames_done, session.status.frames_done),
-                    frames_total=event.frames_total, keyframes=max(event.keyframes, session.keyframe_events),
-                    maps=max(event.maps, len(session.tracks.maps.poses)),
-                    loops=max(event.loops, session.loop_events),
-                    ate_rmse_m=session.status.ate_rmse_m if ate is None else round(float(ate), 6))
-                self._mark_dirty(session)
-                # The viewer shows the status's frames/s (see the module doc), not the worker's.
-                event = replace(event, fps=session.status.fps)
-            elif isinstance(event, PhaseEvent) and event.phase in PHASES:
-                if event.phase == "tracking":
-                    session.tracking_started = time.monotonic()
-                budget = None
-                if event.phase == "refining" and session.started_at is not None:
-                    budget = refinement_budget_s(session.status.preset, time.monotonic() - session.started_at)
-                session.status = replace(session.status, phase=event.phase, phase_started=_now_iso(),
-                                         phase_budget_s=budget)
+            step = session.fold.apply(session.status, event, session.started_at)
+            session.status = step.status
+            if step.persist:
                 self._persist(session)
-            elif isinstance(event, KeyframeEvent):
-                # The mapper's statistics come at the end; keyframes as they are taken.
-                session.keyframe_events += 1
-                session.status = replace(session.status, keyframes=max(session.keyframe_events,
-                                                                       session.status.keyframes))
+            elif step.dirty:
                 self._mark_dirty(session)
-            elif isinstance(event, PoseEvent):
-                # Stats come every few frames; poses give the progress in between.
-                frames = len(session.tracks)
-                agents = max(session.status.agents, int(event.agent) + 1)
-                session.status = replace(session.status, frames_done=max(frames, session.status.frames_done),
-                                         agents=agents, fps=self._tracking_fps(session, frames))
-                self._mark_dirty(session)
-            elif isinstance(event, SubmapEvent):
-                maps = len(session.tracks.maps.poses)
-                agents = max(session.status.agents, int(event.agent) + 1)
-                session.status = replace(session.status, maps=max(maps, session.status.maps), agents=agents)
-                self._mark_dirty(session)
-            elif isinstance(event, LoopEvent):
-                session.loop_events += 1
-                session.status = replace(session.status, loops=max(session.loop_events, session.status.loops))
-                self._mark_dirty(session)
-            elif isinstance(event, MapUpdateEvent) and event.mesh_faces is not None and len(event.mesh_faces):
-                # Into the map frame (the vertices are in the world as the map was placed then).
-                T_map_world = np.linalg.inv(np.asarray(event.T_world_map, dtype=np.float64))
-                vertices = transform_points(T_map_world, event.mesh_vertices).astype(np.float32)
-                session.live_meshes[event.map_id] = (vertices, event.mesh_faces, event.mesh_colors)
-            elif isinstance(event, FinishedEvent) and session.done is None:
-                session.done = WorkerDone(status=event.status, error=event.error)
+            if step.finished is not None and session.done is None:
+                session.done = WorkerDone(status=step.finished.status, error=step.finished.error)
+            event = step.event
         if session.delete_when_stopped:
             return
         for sink in self._event_sinks:
             sink(session.status.id, event)
 
-    @staticmethod
-    def _tracking_fps(session: _Session, frames: int) -> float:
-        """Frames per second of tracking so far, now that ``frames`` are tracked (module doc);
-        samples its history."""
-        now = time.monotonic()
-        if session.tracking_started is None:  # no PhaseEvent (an older worker): from the first pose
-            session.tracking_started = now
-        elapsed = now - session.tracking_started
-        samples = session.fps_samples
-        if len(samples) >= 2 and elapsed - samples[-2][0] < FPS_SAMPLE_S:
-            samples[-1] = (round(elapsed, 3), frames)  # the last sample is always the latest pose
+    def _apply_worker_message(self, session: _Session, message: object) -> bool:
+        """Take a message of the worker's own; False for a runtime event."""
+        if isinstance(message, WorkerStarted):
+            if session.status.worker is None or session.status.worker.executor == "local":
+                session.worker_pid = message.pid  # a process group on this machine
+        elif isinstance(message, WorkerPlaced):
+            session.status = replace(session.status, worker=message.worker)
+            if session.status.status == "queued" and session.cancel_requested_at is None:
+                self._set_status(session, "running", None)
+        elif isinstance(message, WorkerDone):
+            session.done = message
         else:
-            samples.append((round(elapsed, 3), frames))
-        # At least MIN_FPS_SPAN_S: the phase's start and the first poses can arrive in one batch.
-        return round(frames / max(elapsed, MIN_FPS_SPAN_S), 3)
+            return False
+        return True
 
     def _check_worker(self, session: _Session) -> None:
         if not session.active:
@@ -718,27 +562,9 @@ class SessionManager:
     def _reap(self, session: _Session, forced_reason: str | None = None) -> None:
         """The worker has exited (or was killed): settle the final status and free resources."""
         execution = session.execution
-        done = session.done
-        if session.end_reason is not None and not (done is not None and done.status == "failed"):
-            # Set only while the worker had not reported its end (see stop, _check_idle_stream):
-            # what it says now is its answer to the stop.
-            status, error = session.end_reason
-        elif session.cancel_requested_at is not None:
-            status, error = "cancelled", None
-            if done is not None and done.status == "failed":
-                status, error = "failed", done.error
-        elif done is not None:
-            status, error = done.status, done.error
-        elif forced_reason is not None:
-            status, error = "cancelled", forced_reason
-        else:
-            status, error = "failed", execution.exit_error()
-        if done is not None and done.frames:
-            ate = done.ate_rmse
-            session.status = replace(session.status, frames_done=done.frames, keyframes=done.keyframes,
-                                     maps=done.maps, loops=done.loops, fps=session.status.fps or round(done.fps, 3),
-                                     agents=done.agents or session.status.agents,
-                                     ate_rmse_m=session.status.ate_rmse_m if ate is None else round(float(ate), 6))
+        status, error = run_end(session.done, session.end_reason, session.cancel_requested_at is not None,
+                                forced_reason, execution.exit_error)
+        session.status = with_worker_totals(session.status, session.done)
         if error is not None:
             error = strip_paths(error, session.directory / "input", "the input")
         if session.stream is not None and session.stream.agent_count > session.status.agents:
@@ -749,11 +575,11 @@ class SessionManager:
         if session.stream is not None:
             session.stream.end(status, error)
         self._release_ipc(session)
-        session.live_meshes.clear()
+        session.fold.scene.meshes.clear()
         if session.delete_when_stopped:
             self._remove_files(session)
             return
-        self._write_progress(session)
+        write_progress(session.directory, session.fold.fps_samples)
         self._set_status(session, status, error)
         for sink in self._event_sinks:
             sink(session.status.id, FinishedEvent(status=status, error=error))
@@ -781,7 +607,7 @@ class SessionManager:
             session.started_at = time.monotonic()
             pid = getattr(session.execution, "pid", None)
             if pid is not None:
-                _write_pid(session.directory / WORKER_PID_FILE, pid)
+                write_pid(session.directory / WORKER_PID_FILE, pid)
             if worker is not None:  # else it stays queued until the executor says where it runs
                 session.status = replace(session.status, worker=worker)
                 self._set_status(session, "running", None)
@@ -797,55 +623,16 @@ class SessionManager:
         same = phase == session.status.phase
         ends = status in ENDED and session.status.status not in ENDED
         session.status = replace(session.status, status=status, error=error, phase=phase,
-                                 phase_started=session.status.phase_started if same else _now_iso(),
+                                 phase_started=session.status.phase_started if same else now_iso(),
                                  phase_budget_s=session.status.phase_budget_s if same else None)
         if ends:
             self._settle_outputs(session)
         self._persist(session)
 
     def _settle_outputs(self, session: _Session) -> None:
-        """An ended session's status against its folder (module doc): ``frames_done`` the poses
-        in its trajectory files, ``keyframes``/``maps``/``loops`` from ``run.json``, whose
-        ``status`` and ``error`` become the session's (a minimal ``run.json`` is written when
-        there is none). Never raises: a folder it cannot read or write is said in the log."""
-        from slam import read_run_json, trajectory_frames, write_json_atomic
-
-        directory = session.directory
-        if not directory.is_dir():
-            return
-        state = session.status
-        frames = trajectory_frames(directory)
-        run = read_run_json(directory)
-        if run is not None:
-            counts = {key: int(run[key]) for key in ("keyframes", "maps", "loops")
-                      if isinstance(run.get(key), (int, float)) and not isinstance(run.get(key), bool)}
-        elif frames:
-            counts = {"keyframes": state.keyframes, "maps": state.maps, "loops": state.loops}
-        else:
-            counts = {"keyframes": 0, "maps": 0, "loops": 0}
-        skipped = session.stream.frames_refused if session.stream is not None else int(
-            (run or {}).get("frames_skipped") or 0)
-        session.status = replace(state, frames_done=frames, frames_skipped=skipped, **counts)
-        wanted = {"status": state.status, "error": state.error, "frames": frames}
-        if run is not None and all(run.get(k) == v for k, v in wanted.items()):
-            return
-        if run is None:
-            run = {"frames_total": state.frames_total, **counts, "preset": state.preset}
-        elif run.get("status") not in (state.status, "running"):
-            run["run_status"] = run.get("status")  # what the runtime said (a stop reads "cancelled")
-        run.update(wanted)
-        try:
-            write_json_atomic(directory / "run.json", run)
-        except OSError as error:
-            print(f"voxfusion: cannot write {directory / 'run.json'}: {error}")
-
-    def _write_progress(self, session: _Session) -> None:
-        """Keep the frames/s history of an ended session for the page's plot after a restart."""
-        if session.fps_samples and session.directory.is_dir():
-            try:
-                _write_json_atomic(session.directory / PROGRESS_FILE, {"fps_samples": session.fps_samples})
-            except OSError as error:
-                print(f"voxfusion: cannot write {session.directory / PROGRESS_FILE}: {error}")
+        """An ended session's status against its folder (``server.session_store``)."""
+        refused = session.stream.frames_refused if session.stream is not None else None
+        session.status = settle_outputs(session.directory, session.status, refused)
 
     def _mark_dirty(self, session: _Session) -> None:
         if session.dirty_since is None:
@@ -853,74 +640,4 @@ class SessionManager:
 
     def _persist(self, session: _Session) -> None:
         session.dirty_since = None
-        if not session.directory.is_dir():
-            return
-        try:
-            _write_json_atomic(session.directory / "session.json", session.status.to_json())
-        except OSError as error:
-            print(f"voxfusion: cannot write {session.directory / 'session.json'}: {error}")
-
-
-def refinement_budget_s(preset: str, run_seconds: float) -> float | None:
-    """The wall time the preset gives the final bundle adjustment of a run that has taken
-    ``run_seconds`` (as ``slam.mapping_process.final_budget`` computes it from the mapper's
-    start, which is about the worker's), or None without a time cap or refinement."""
-    from slam import ConfigError, preset as preset_config
-
-    try:
-        mapping = preset_config(preset).mapping
-    except ConfigError:
-        return None
-    if mapping.final_iterations <= 0 or mapping.final_time_share <= 0:
-        return None
-    return round(max(mapping.final_min_seconds, mapping.final_time_share * run_seconds), 1)
-
-
-WORKER_PID_FILE = "worker.pid"
-"""In a session folder while its worker runs: the worker's pid, which is its process group."""
-
-
-def _write_pid(path: Path, pid: int | None) -> None:
-    try:
-        path.write_text(f"{pid}\n")
-    except OSError as error:
-        print(f"voxfusion: cannot write {path}: {error}")
-
-
-def _stdout_target(pid: int) -> str | None:
-    try:
-        return os.readlink(f"/proc/{pid}/fd/1")
-    except OSError:
-        return None
-
-
-def _group_of(pid: int) -> int | None:
-    try:
-        return os.getpgid(pid)
-    except OSError:
-        return None
-
-
-def end_orphaned_worker(directory: Path) -> bool:
-    """SIGKILL what is left of the worker group named in ``directory/worker.pid`` (a worker
-    and mapping process that outlived a killed server). A process counts only if it is in
-    that group and its stdout is this session's ``worker.log`` (as every process of the group
-    has), so a reused pid is never hit. Linux (``/proc``); elsewhere it finds nothing.
-    Returns True when something was killed."""
-    pid_file = directory / WORKER_PID_FILE
-    try:
-        group = int(pid_file.read_text().strip())
-    except (OSError, ValueError):
-        return False
-    pid_file.unlink(missing_ok=True)
-    log = str((directory / "worker.log").resolve())
-    members = [int(p.name) for p in Path("/proc").glob("[0-9]*") if _group_of(int(p.name)) == group]
-    ours = [pid for pid in members if _stdout_target(pid) == log]
-    for pid in ours:
-        try:
-            os.kill(pid, signal.SIGKILL)
-        except OSError:
-            pass
-    if ours:
-        print(f"voxfusion: ended {len(ours)} leftover process(es) of session {directory.name}", flush=True)
-    return bool(ours)
+        write_status(session.directory, session.status)

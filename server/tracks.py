@@ -1,16 +1,23 @@
-"""Poses and meshes that follow their map: the API process's copy of where every map is.
+"""Poses that follow their map: where every map is, and the frames tracked in each.
 
 The runtime reports camera poses and meshes in the world frame *at the time of the event*;
 loop closure and the final refinement later move whole maps (``PosesUpdatedEvent`` with every
-map's new ``T_world_map``). Everything here is therefore kept in the frame of the map it
-belongs to and placed in the world by that map's *current* ``T_world_map``, which moves a
-frame tracked in map ``m`` by ``T_world_map_new @ inv(T_world_map_at_tracking)``.
+map's new ``T_world_map``). Everything is therefore kept in the frame of the map it belongs to
+and placed in the world by that map's *current* ``T_world_map``, which moves a frame tracked in
+map ``m`` by ``T_world_map_new @ inv(T_world_map_at_tracking)``.
 
-A map's first placement (its ``SubmapEvent``, which the runtime sends after the pose of the
-frame that started the map) only says where the map is; poses already seen in it stay where
-they were reported. Later changes of ``T_world_map`` move them. Assumes events arrive in the
-order the runtime emitted them (a ``PosesUpdatedEvent`` before poses tracked against the moved
-maps).
+The placement rule, in one place (:class:`MapPlacements`), for everyone who draws or reports
+poses (the session's status and trajectories, the viewer's state; both through
+``server.session_state.SessionState``)::
+
+    world = T_world_map @ map_frame        map_frame = inv(T_world_map) @ world
+
+with ``T_world_map`` the identity until an event places the map. A map's first placement (its
+``SubmapEvent``, which the runtime sends after the pose of the frame that started the map)
+only says where the map is: what was already seen in it stays where it was reported
+(``placed``: the caller re-expresses it in the map frame). Later changes of ``T_world_map``
+(``moved``) move it. Assumes events arrive in the order the runtime emitted them (a
+``PosesUpdatedEvent`` before poses tracked against the moved maps).
 """
 
 from __future__ import annotations
@@ -18,8 +25,6 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
-
-from slam import MapUpdateEvent, PoseEvent, PosesUpdatedEvent, SubmapEvent
 
 
 def rigid(T) -> np.ndarray:
@@ -73,31 +78,24 @@ class MapPlacements:
             return "placed"
         return "same" if np.allclose(old, T, atol=1e-9) else "moved"
 
-    def apply(self, event: object) -> dict[int, str]:
-        """Fold in the map poses an event carries; returns {map id: ``placed`` or ``moved``}."""
-        placements: list[tuple[int, np.ndarray]] = []
-        if isinstance(event, SubmapEvent):
-            self.agents[int(event.map_id)] = int(event.agent)
-            placements.append((int(event.map_id), event.T_world_map))
-        elif isinstance(event, MapUpdateEvent):
-            placements.append((int(event.map_id), event.T_world_map))
-        elif isinstance(event, PosesUpdatedEvent):
-            for map_id, agent in (event.agents or {}).items():
-                self.agents[int(map_id)] = int(agent)
-            placements += [(int(m), T) for m, T in (event.map_poses or {}).items()]
-        elif isinstance(event, PoseEvent):
-            self.agents.setdefault(int(event.map_id), int(event.agent))
-        changes: dict[int, str] = {}
-        for map_id, T in placements:
-            change = self.set(map_id, T)
-            if change != "same":
-                changes[map_id] = change
-        return changes
+    def to_map(self, map_id: int, T_world) -> np.ndarray:
+        """A world pose (4, 4), or poses (N, 4, 4), in the map's frame as it is placed now."""
+        return inverse(self.T_world_map(map_id)) @ np.asarray(T_world, dtype=np.float64)
+
+    def to_world(self, map_id: int, T_map) -> np.ndarray:
+        """A map-frame pose (4, 4), or poses (N, 4, 4), in the world as the map is placed now."""
+        return self.T_world_map(map_id) @ np.asarray(T_map, dtype=np.float64)
+
+    def point_to_map(self, map_id: int, point) -> np.ndarray:
+        return transform_points(inverse(self.T_world_map(map_id)), point)[0]
+
+    def point_to_world(self, map_id: int, point) -> np.ndarray:
+        return transform_points(self.T_world_map(map_id), point)[0]
 
 
 @dataclass(frozen=True)
 class FrameCamera:
-    """The camera of an agent's newest tracked frame, at the resolution it was tracked."""
+    """A camera as an agent's frames were tracked with it (or as the input gives it)."""
 
     K: np.ndarray
     """(3, 3) intrinsics."""
@@ -106,63 +104,73 @@ class FrameCamera:
 
 
 class Tracks:
-    """Tracked poses per (agent, frame index), each in the frame of the map it was tracked in."""
+    """Tracked poses per agent and frame index (in arrival order; a re-tracked frame keeps its
+    place), each in the frame of the map it was tracked in."""
 
-    def __init__(self) -> None:
-        self.maps = MapPlacements()
-        self.frames: dict[tuple[int, int], TrackedFrame] = {}
-        self.cameras: dict[int, FrameCamera] = {}
-        """agent -> the camera of its newest frame that carried one."""
+    def __init__(self, maps: MapPlacements | None = None) -> None:
+        self.maps = maps if maps is not None else MapPlacements()
+        self.by_agent: dict[int, dict[int, TrackedFrame]] = {}
 
-    def apply(self, event: object) -> dict[int, str]:
-        """Fold in an event; returns {map id: ``placed`` or ``moved``} of the maps it placed."""
-        changes = self.maps.apply(event)
-        for map_id, change in changes.items():
-            if change == "placed":  # frames seen before the map's placement stay where they were reported
-                T_map_world = inverse(self.maps.T_world_map(map_id))
-                for key, frame in self.frames.items():
-                    if frame.map_id == map_id:
-                        self.frames[key] = replace(frame, T_map_cam=T_map_world @ frame.T_map_cam)
-        if isinstance(event, PoseEvent):
-            self.add(event)
-        return changes
+    def add(self, agent: int, index: int, timestamp: float, map_id: int, T_world_cam) -> bool:
+        """Add (or replace) a frame reported at ``T_world_cam``; True if it was seen before."""
+        frames = self.by_agent.setdefault(int(agent), {})
+        seen = int(index) in frames
+        T_map_cam = self.maps.to_map(int(map_id), rigid(T_world_cam))
+        frames[int(index)] = TrackedFrame(int(agent), int(index), float(timestamp), int(map_id), T_map_cam)
+        return seen
 
-    def add(self, event: PoseEvent) -> None:
-        map_id = int(event.map_id)
-        T_map_cam = inverse(self.maps.T_world_map(map_id)) @ rigid(event.T_world_cam)
-        key = (int(event.agent), int(event.frame_index))
-        self.frames[key] = TrackedFrame(key[0], key[1], float(event.timestamp), map_id, T_map_cam)
-        if event.K is not None and event.image_size is not None:
-            width, height = event.image_size
-            self.cameras[key[0]] = FrameCamera(np.asarray(event.K, np.float64), int(width), int(height))
-
-    def newest(self, agent: int) -> tuple[TrackedFrame, np.ndarray] | None:
-        """The agent's newest tracked frame (highest index) and its current T_world_cam."""
-        frames = [f for f in self.frames.values() if f.agent == agent]
-        if not frames:
-            return None
-        frame = max(frames, key=lambda f: f.index)
-        return frame, self.maps.T_world_map(frame.map_id) @ frame.T_map_cam
+    def reanchor(self, map_id: int, T_map_world: np.ndarray) -> None:
+        """Re-express the frames of a map that was just placed (see the module doc)."""
+        for frames in self.by_agent.values():
+            for index, frame in frames.items():
+                if frame.map_id == map_id:
+                    frames[index] = replace(frame, T_map_cam=T_map_world @ frame.T_map_cam)
 
     def __len__(self) -> int:
-        return len(self.frames)
+        return sum(len(frames) for frames in self.by_agent.values())
 
     def agents(self) -> list[int]:
-        return sorted({agent for agent, _ in self.frames})
+        return sorted(agent for agent, frames in self.by_agent.items() if frames)
+
+    def agents_in(self, map_ids) -> set[int]:
+        """Agents with a frame tracked in one of these maps."""
+        map_ids = set(map_ids)
+        return {agent for agent, frames in self.by_agent.items()
+                if any(f.map_id in map_ids for f in frames.values())}
+
+    def slot(self, agent: int, index: int) -> int | None:
+        """Position of a frame in its agent's arrival order, or None."""
+        frames = self.by_agent.get(agent, {})
+        return list(frames).index(index) if index in frames else None
 
     def world_pose(self, agent: int, index: int) -> np.ndarray | None:
-        frame = self.frames.get((agent, index))
-        if frame is None:
-            return None
-        return self.maps.T_world_map(frame.map_id) @ frame.T_map_cam
+        frame = self.by_agent.get(agent, {}).get(index)
+        return None if frame is None else self.maps.to_world(frame.map_id, frame.T_map_cam)
+
+    def world_positions(self, agent: int) -> np.ndarray:
+        """(N, 3) world camera centres now of an agent's frames, in arrival order."""
+        frames = list(self.by_agent.get(agent, {}).values())
+        if not frames:
+            return np.zeros((0, 3))
+        points = np.stack([f.T_map_cam[:3, 3] for f in frames])
+        maps = np.array([f.map_id for f in frames])
+        out = np.empty_like(points)
+        for map_id in np.unique(maps):
+            rows = maps == map_id
+            out[rows] = transform_points(self.maps.T_world_map(int(map_id)), points[rows])
+        return out
+
+    def map_ids(self, agent: int) -> np.ndarray:
+        """(N,) the map of each of an agent's frames, in arrival order."""
+        return np.array([f.map_id for f in self.by_agent.get(agent, {}).values()], dtype=np.int64)
 
     def world_poses(self, agent: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(N,) frame indices, (N,) timestamps, (N, 4, 4) current T_world_cam of one agent,
         sorted by frame index."""
-        frames = sorted((f for f in self.frames.values() if f.agent == agent), key=lambda f: f.index)
+        frames = sorted(self.by_agent.get(agent, {}).values(), key=lambda f: f.index)
         if not frames:
             return np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros((0, 4, 4))
         indices = np.array([f.index for f in frames], dtype=np.int64)
         stamps = np.array([f.timestamp for f in frames])
-        poses = np.stack([self.maps.T_world_map(f.map_id) @ f.T_map_cam for f in frames])
+        poses = np.stack([self.maps.to_world(f.map_id, f.T_map_cam) for f in frames])
         return indices, stamps, poses

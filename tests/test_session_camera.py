@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from server.tracks import Tracks
+from server.session_state import SessionState
 from slam.eval.trajectory import parse_tum
 from slam.events import PoseEvent, SubmapEvent
 from tests.test_server_api import (
@@ -22,23 +22,21 @@ def pose_event(index: int, T: np.ndarray, K: np.ndarray | None = None, map_id: i
     return PoseEvent(0, index, 0.1 * index, T, map_id, True, K=K, image_size=None if K is None else (160, 120))
 
 
-def test_tracks_keep_the_newest_frame_and_its_camera_where_its_map_is_now():
-    tracks = Tracks()
+def test_the_fold_keeps_the_newest_frame_and_its_camera_where_its_map_is_now():
+    state = SessionState()
     K = np.array([[100.0, 0, 80], [0, 100.0, 60], [0, 0, 1]])
-    assert tracks.newest(0) is None
+    assert state.camera_pose(0) is None
     T1 = np.eye(4)
     T1[:3, 3] = [1, 0, 0]
-    tracks.apply(SubmapEvent(0, 0, np.eye(4), "first"))
-    tracks.apply(pose_event(1, T1, K))
-    tracks.apply(pose_event(0, np.eye(4)))  # late and older: not the newest; no K: keeps the last
-    frame, T_world_cam = tracks.newest(0)
-    assert frame.index == 1 and np.allclose(T_world_cam, T1)
-    assert tracks.cameras[0].width == 160 and np.allclose(tracks.cameras[0].K, K)
+    state.apply(SubmapEvent(0, 0, np.eye(4), "start"))
+    state.apply(pose_event(0, np.eye(4), K))
+    state.apply(pose_event(1, T1))  # no K: the camera stays the last one reported
+    assert state.latest[0][0] == 1 and np.allclose(state.camera_pose(0), T1)
+    assert state.intrinsics[0][1] == (160, 120) and np.allclose(state.intrinsics[0][0], K)
     moved = np.eye(4)
     moved[:3, 3] = [0, 2, 0]
-    tracks.apply(SubmapEvent(0, 0, moved, "loop"))  # a loop closure moves the map: the frame follows
-    _, T_world_cam = tracks.newest(0)
-    assert np.allclose(T_world_cam[:3, 3], [1, 2, 0])
+    state.apply(SubmapEvent(0, 0, moved, "start"))  # a loop closure moves the map: the frame follows
+    assert np.allclose(state.camera_pose(0)[:3, 3], [1, 2, 0])
 
 
 @needs_runtime

@@ -1,0 +1,230 @@
+"""The viewer's scene writer: a session's stale state (``server.viewer_state``) pushed to viser.
+
+``SceneWriter`` owns viser's scene nodes for every session, by path (the tree in
+``server.viewer``'s doc), and the display switches that decide how they look (layers, hidden
+maps, colour by map, follow the camera). It is called by the viewer's flusher under the
+viewer's lock; it sends only what a :class:`~server.viewer_state.ViewerSession` marks stale
+and clears those marks.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+import numpy as np
+import trimesh
+
+from server.viewer_state import LOOP_COLOR, ViewerSession, agent_color, box_segments, key_text, map_color
+from slam import matrix_to_quat_wxyz
+
+if TYPE_CHECKING:
+    import viser
+
+LAYERS = ("meshes", "trajectory", "camera", "keyframes", "loops")
+
+
+def wxyz(T: np.ndarray) -> np.ndarray:
+    """The rotation of a (4, 4) pose as viser's quaternion."""
+    import torch
+
+    return matrix_to_quat_wxyz(torch.as_tensor(np.asarray(T)[:3, :3], dtype=torch.float64)).numpy()
+
+
+def place(handle, T: np.ndarray) -> None:
+    handle.wxyz = wxyz(T)
+    handle.position = T[:3, 3]
+
+
+@dataclass
+class ViewerStats:
+    """Counters for the benchmark: how often the browsers were updated."""
+
+    updates: int = 0
+    mesh_updates: int = 0
+    chunks_sent: int = 0
+    chunks_skipped: int = 0
+    events: int = 0
+
+
+@dataclass
+class SceneWriter:
+    """viser's scene nodes of every session, and how they are shown (module doc)."""
+
+    stats: ViewerStats
+    server: viser.ViserServer | None = None
+    handles: dict[str, viser.SceneNodeHandle] = field(default_factory=dict)
+    layers: dict[str, bool] = field(default_factory=lambda: {name: True for name in LAYERS})
+    hidden_maps: set[int] = field(default_factory=set)
+    tint_by_map: bool = False
+    trajectory_by_map: bool = False
+    follow: bool = False
+
+    # -- nodes -------------------------------------------------------------------------------
+
+    def root(self, session_id: str) -> viser.FrameHandle:
+        """The session's node, with one child per layer (made on first use)."""
+        name = f"/sessions/{session_id}"
+        if name not in self.handles:
+            self.handles[name] = self.server.scene.add_frame(name, show_axes=False)
+            for layer in LAYERS:
+                path = f"{name}/{layer}"
+                self.handles[path] = self.server.scene.add_frame(path, show_axes=False, visible=self.layers[layer])
+        return self.handles[name]
+
+    def map_node(self, state: ViewerSession, layer: str, map_id: int) -> viser.FrameHandle:
+        """The node of a map in a layer (made on first use), placed at the map's T_world_map."""
+        name = f"/sessions/{state.session_id}/{layer}/map_{map_id}"
+        handle = self.handles.get(name)
+        if handle is None:
+            handle = self.server.scene.add_frame(name, show_axes=False, visible=map_id not in self.hidden_maps)
+            self.handles[name] = handle
+        place(handle, state.T_world_map(map_id))
+        return handle
+
+    def add_segments(self, name: str, segments: np.ndarray, colors, thickness: float) -> None:
+        self.handles[name] = self.server.scene.add_line_segments(name, segments, colors=colors,
+                                                                 thickness=thickness, thickness_units="screen")
+
+    def show_only(self, session_ids, selected: str) -> None:
+        for sid in session_ids:
+            handle = self.handles.get(f"/sessions/{sid}")
+            if handle is not None:
+                handle.visible = sid == selected
+        self.root(selected).visible = True
+
+    def set_layer(self, session_ids, name: str, visible: bool) -> None:
+        self.layers[name] = visible
+        for sid in session_ids:
+            handle = self.handles.get(f"/sessions/{sid}/{name}")
+            if handle is not None:
+                handle.visible = visible
+
+    def set_map_visible(self, session_ids, map_id: int, visible: bool) -> None:
+        if visible:
+            self.hidden_maps.discard(map_id)
+        else:
+            self.hidden_maps.add(map_id)
+        for sid in session_ids:
+            for layer in ("meshes", "keyframes"):
+                handle = self.handles.get(f"/sessions/{sid}/{layer}/map_{map_id}")
+                if handle is not None:
+                    handle.visible = visible
+
+    def remove_session(self, session_id: str) -> None:
+        root = f"/sessions/{session_id}"
+        for name in [n for n in self.handles if n == root or n.startswith(f"{root}/")]:
+            handle = self.handles.pop(name)
+            if name == root:
+                handle.remove()
+
+    # -- pushing a session's stale state -------------------------------------------------------
+
+    def flush_light(self, state: ViewerSession) -> tuple[bool, bool]:
+        """Camera, trajectory, keyframes, loops, map poses: (anything sent, a new map seen)."""
+        self.root(state.session_id)
+        sent, new_map = self.flush_maps(state)
+        for agent in sorted(state.agents):
+            view = state.agents[agent]
+            if view.dirty:
+                self.send_trajectory(state, agent)
+                view.dirty, sent = False, True
+            if view.camera_dirty and state.camera(agent) is not None:
+                self.send_camera(state, agent)
+                view.camera_dirty, sent = False, True
+        if state.loops_dirty:
+            points = state.loop_points().astype(np.float32)
+            if len(points):
+                self.add_segments(f"/sessions/{state.session_id}/loops/edges", points, LOOP_COLOR, 3.0)
+            state.loops_dirty, sent = False, True
+        return sent, new_map
+
+    def flush_maps(self, state: ViewerSession) -> tuple[bool, bool]:
+        """Map nodes' poses, keyframe frusta, map outlines: (anything sent, a new map seen)."""
+        root = f"/sessions/{state.session_id}"
+        sent = new_map = False
+        several_maps = len(state.maps) > 1
+        for map_id, view in state.maps.items():
+            new_map = new_map or f"{root}/meshes/map_{map_id}" not in self.handles
+            if view.pose_dirty:
+                self.map_node(state, "meshes", map_id)
+                if f"{root}/keyframes/map_{map_id}" in self.handles:
+                    self.map_node(state, "keyframes", map_id)
+                view.pose_dirty, sent = False, True
+            frusta = state.keyframe_frusta(map_id) if view.keyframes_dirty else None
+            if frusta is not None:
+                self.map_node(state, "keyframes", map_id)
+                self.add_segments(f"{root}/keyframes/map_{map_id}/frusta", frusta, map_color(map_id), 1.5)
+                view.keyframes_dirty, sent = False, True
+            if view.bounds_dirty and several_maps and view.bounds is not None:
+                self.map_node(state, "meshes", map_id)
+                self.add_segments(f"{root}/meshes/map_{map_id}/bounds", box_segments(*view.bounds),
+                                  map_color(map_id), 1.0)
+                view.bounds_dirty, sent = False, True
+        if new_map and several_maps:  # the first map's outline too, now that there are several
+            for view in state.maps.values():
+                view.bounds_dirty = view.bounds is not None
+        return sent, new_map
+
+    def send_trajectory(self, state: ViewerSession, agent: int) -> None:
+        """Resend the open blocks of one agent's path (``ViewerSession.trajectory_blocks``)."""
+        base = f"/sessions/{state.session_id}/trajectory/agent_{agent}"
+        if base not in self.handles:
+            self.handles[base] = self.server.scene.add_frame(base, show_axes=False)
+        for block in state.trajectory_blocks(agent, by_map=self.trajectory_by_map):
+            if len(block.segments):
+                colors = np.repeat(np.asarray(block.colors)[:, None, :], 2, axis=1)
+                self.add_segments(f"{base}/part_{block.part}", block.segments, colors, 2.0)
+
+    def send_camera(self, state: ViewerSession, agent: int) -> None:
+        T, thumbnail = state.camera(agent)
+        name = f"/sessions/{state.session_id}/camera/frustum" + ("" if agent == 0 else f"_{agent}")
+        handle = self.handles.get(name)
+        intrinsics = state.scene.intrinsics.get(agent)
+        if handle is None and intrinsics is not None:
+            K, (w, h) = intrinsics
+            fov = 2.0 * np.arctan(0.5 * h / K[1, 1])
+            self.handles[name] = self.server.scene.add_camera_frustum(
+                name, fov=float(fov), aspect=w / h, scale=0.2, color=agent_color(agent), image=thumbnail,
+                wxyz=wxyz(T), position=T[:3, 3])
+        elif handle is not None:
+            place(handle, T)
+            if thumbnail is not None:
+                handle.image = thumbnail
+        if self.follow and agent == min(state.agents):
+            self.move_browsers_behind(T)
+
+    def move_browsers_behind(self, T_world_cam: np.ndarray) -> None:
+        """Put every browser's camera a little behind and above the tracked camera."""
+        forward, down = T_world_cam[:3, 2], T_world_cam[:3, 1]
+        eye = T_world_cam[:3, 3] - 0.8 * forward - 0.3 * down
+        target = T_world_cam[:3, 3] + 1.0 * forward
+        for client in self.server.get_clients().values():
+            with client.atomic():
+                client.camera.position = eye
+                client.camera.look_at = target
+
+    def flush_meshes(self, state: ViewerSession) -> bool:
+        """The changed chunks of every map's pending mesh; True if any was sent."""
+        sent_any = False
+        for map_id in list(state.maps):
+            update = state.take_chunk_update(map_id)
+            if update is None:
+                continue
+            self.map_node(state, "meshes", map_id)
+            base = f"/sessions/{state.session_id}/meshes/map_{map_id}"
+            for key in update.removed:
+                handle = self.handles.pop(f"{base}/c_{key_text(key)}", None)
+                if handle is not None:
+                    handle.remove()
+            self.stats.chunks_skipped += update.skipped
+            for key, chunk in update.changed.items():
+                colors = chunk.colors
+                if self.tint_by_map:
+                    colors = np.broadcast_to(np.array(map_color(map_id), dtype=np.uint8), colors.shape)
+                mesh = trimesh.Trimesh(chunk.vertices, chunk.faces, vertex_colors=colors, process=False)
+                name = f"{base}/c_{key_text(key)}"
+                self.handles[name] = self.server.scene.add_mesh_trimesh(name, mesh)
+                self.stats.chunks_sent += 1
+                sent_any = True
+        return sent_any
