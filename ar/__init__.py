@@ -5,11 +5,12 @@ never the server.
 
 from ar.assets import AssetError, load_asset
 from ar.composite import CompositeResult, composite, composite_layer, mask_iou
-from ar.objects import ObjectMesh, ObjectSpecError, VirtualObject, load_objects_json, make_shape
+from ar.objects import UPRIGHT, ObjectMesh, ObjectSpecError, VirtualObject, load_objects_json, make_shape
 from ar.occlusion import OcclusionComparison, compare_occlusion, hidden_fraction
 from ar.raster import Light, ObjectRender, SampleLayer, rasterize_objects, rasterize_triangles, render_objects
 
 __all__ = [
+    "UPRIGHT",
     "AssetError",
     "CompositeResult",
     "Light",

@@ -24,6 +24,10 @@ DEFAULT_ALBEDO = (0.75, 0.75, 0.75)
 
 SHAPES = ("cube", "sphere", "cylinder", "axes")
 
+UPRIGHT = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+"""Rotation that stands an object upright in a run's world: its +z (the shapes' axis) along the
+world's up, -y (a run's world is its first camera's frame, OpenCV axes: y points down)."""
+
 
 class ObjectSpecError(ValueError):
     """An object spec entry is malformed; the message names the entry and the key."""

@@ -55,6 +55,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import (  # noqa: E402
     REPLICA,
     TUM_RPY,
+    T_gt_run,
     cache_sequence,
     load_line,
     machine_state,
@@ -91,16 +92,18 @@ def run_config(variant: str, seed: int, gt_poses: bool = False):
 
 
 # ----------------------------------------------------------------- workers
-def view_errors(maps, frames) -> dict:
-    """Held-out views at their GT poses: colour PSNR over every pixel (unrendered pixels are
-    black), depth L1 (cm) over pixels valid in both, coverage of the input's valid depth."""
+def view_errors(maps, frames, T_map_gt=None) -> dict:
+    """Held-out views at their GT poses (moved into the map's world by ``T_map_gt`` (4, 4) for a
+    tracked run's map): colour PSNR over every pixel (unrendered pixels are black), depth L1 (cm)
+    over pixels valid in both, coverage of the input's valid depth."""
     import numpy as np
 
     from slam.views import render_view
 
+    T_map_gt = np.eye(4) if T_map_gt is None else T_map_gt
     abs_errors, sq_errors, covered, observed = [], [], 0, 0
     for frame in frames:
-        view = render_view(maps, frame.T_world_cam, frame.K, frame.width, frame.height)
+        view = render_view(maps, T_map_gt @ frame.T_world_cam, frame.K, frame.width, frame.height)
         valid = frame.depth > 0
         both = valid & view.valid
         abs_errors.append(np.abs(view.depth[both] - frame.depth[both]))
@@ -150,7 +153,13 @@ def worker(scene: str, variant: str, seed: int, frames: int, source: Path | None
            "final_ba": info["final_bundle_adjustment"]}
     if scene == "room0":
         width = config.runtime.input_width
-        row.update(view_errors(load_checkpoint(out / "map.pt"), [pipeline_frame(f, width) for f in held_out]))
+        import numpy as np
+
+        from slam.eval import Trajectory, read_trajectory
+
+        truth = Trajectory(np.array([f.timestamp for f in mapped]), np.stack([f.T_world_cam for f in mapped]))
+        T_map_gt = np.linalg.inv(T_gt_run(read_trajectory(out / "trajectory.txt"), truth))
+        row.update(view_errors(load_checkpoint(out / "map.pt"), [pipeline_frame(f, width) for f in held_out], T_map_gt))
         row["ate_cm"] = row["run_ate_cm"]
         return row
     from bench_slam import BenchSequence, evaluate

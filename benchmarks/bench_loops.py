@@ -39,6 +39,7 @@ from common import (  # noqa: E402
     figures_payload,
     figures_table,
     load_line,
+    mesh_in_gt_frame,
     write_json,
 )
 
@@ -204,9 +205,14 @@ def _mesh_accuracy_cm(mesh_path: Path, spec: str, sequences) -> float:
     from slam.data import open_sequence
     from slam.eval import CullCamera, mesh_metrics
 
+    from slam.eval import Trajectory, read_trajectory
+
     frames = [f for s in sequences for f in s]
     cameras = [CullCamera(f.K, f.T_world_cam, f.width, f.height) for f in frames[::2]]
-    rec = trimesh.load(mesh_path, force="mesh", process=False)
+    first = list(sequences[0])
+    truth = Trajectory(np.array([f.timestamp for f in first]), np.stack([f.T_world_cam for f in first]))
+    estimate = read_trajectory(mesh_path.parent / "trajectory.txt")  # agent 0's, whose first camera is the world
+    rec = mesh_in_gt_frame(trimesh.load(mesh_path, force="mesh", process=False), estimate, truth)
     m = mesh_metrics(rec, open_sequence(spec).gt_mesh(), num_points=100_000, cull_cameras=cameras,
                      gt_depths=[f.depth for f in frames[::2]])
     return m.accuracy * 100

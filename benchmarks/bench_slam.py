@@ -40,6 +40,7 @@ from common import (
     figures_payload,
     load_line,
     markdown_table,
+    mesh_in_gt_frame,
     require,
     run_child,
     write_json,
@@ -161,9 +162,10 @@ def evaluate(seq: BenchSequence, out: Path, info: dict, points: int) -> dict:
     from slam.data import open_sequence
     from slam.eval import CullCamera, ate, mesh_metrics, read_trajectory
 
-    result = {"ate_cm": ate(gt_trajectory(seq), read_trajectory(out / "trajectory.txt")).rmse * 100}
+    truth, estimate = gt_trajectory(seq), read_trajectory(out / "trajectory.txt")
+    result = {"ate_cm": ate(truth, estimate).rmse * 100}
     if seq.synthetic_spec is not None and (out / "mesh.ply").is_file():
-        rec = trimesh.load(out / "mesh.ply", force="mesh", process=False)
+        rec = mesh_in_gt_frame(trimesh.load(out / "mesh.ply", force="mesh", process=False), estimate, truth)
         cached = open_source(seq.source, seq.max_frames)
         frames = [cached[i] for i in range(len(cached))]
         cameras = [CullCamera(f.K, f.T_world_cam, f.width, f.height) for f in frames]

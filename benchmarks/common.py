@@ -341,6 +341,20 @@ def map_with_gt_poses(frames: Sequence, config, *, extra_iterations: int = 0,
     return mapper
 
 
+def T_gt_run(estimated, ground_truth) -> np.ndarray:
+    """(4, 4) from a run's world to the ground truth's: runs start in their first camera's frame
+    (issue 44 item 6), so ``T_gt(t0) T_est(t0)^-1`` at the first estimated timestamp t0
+    (``Trajectory`` each; the GT pose nearest in time)."""
+    t0 = estimated.timestamps[0]
+    nearest = int(np.argmin(np.abs(ground_truth.timestamps - t0)))
+    return ground_truth.poses[nearest] @ np.linalg.inv(estimated.poses[0])
+
+
+def mesh_in_gt_frame(mesh, estimated, ground_truth):
+    """A copy of a run's mesh moved into the ground truth's frame (``T_gt_run``)."""
+    return mesh.copy().apply_transform(T_gt_run(estimated, ground_truth))
+
+
 def map_memory_mb(mapper) -> dict[str, float]:
     """Embeddings and decoder MB as ``run.json`` counts them, plus the voxel index."""
     embed = sum(m.voxels.embeddings.numel() * m.voxels.embeddings.element_size() for m in mapper.maps.maps)

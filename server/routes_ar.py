@@ -14,7 +14,7 @@ import numpy as np
 from fastapi import APIRouter, Depends, HTTPException, Response, status
 from starlette.concurrency import run_in_threadpool
 
-from ar import ObjectSpecError, VirtualObject, composite, load_objects_json, rasterize_objects
+from ar import UPRIGHT, ObjectSpecError, VirtualObject, composite, load_objects_json, rasterize_objects
 from server.assets import AssetStore
 from server.decoding import DecodeFailed, shared_helper
 from server.deps import get_assets, get_manager, get_map_cache, require_token
@@ -146,15 +146,16 @@ def object_box(obj: VirtualObject) -> tuple[np.ndarray, np.ndarray]:
 
 def in_front_of_camera(obj: VirtualObject, background: Background) -> VirtualObject:
     """``obj`` with its box centre on the camera's optical axis, just before the surface seen
-    at the image centre (PLACE_DISTANCE_M ahead without depth there), its axes the world's
-    (so a world-up scene keeps it upright)."""
+    at the image centre (PLACE_DISTANCE_M ahead without depth there), standing upright in the
+    world (``ar.UPRIGHT``)."""
     lo, hi = object_box(obj)
     radius = 0.5 * float(np.linalg.norm(hi - lo))
     surface = central_depth(background.depth)
     distance = PLACE_DISTANCE_M if surface is None else max(surface - radius, 2.0 * radius)
     T_cam = background.camera.T_world_cam
     T = np.eye(4)
-    T[:3, 3] = T_cam[:3, 3] + distance * T_cam[:3, 2] - (lo + hi) / 2
+    T[:3, :3] = UPRIGHT
+    T[:3, 3] = T_cam[:3, 3] + distance * T_cam[:3, 2] - UPRIGHT @ ((lo + hi) / 2)
     return replace(obj, T_world_obj=T)
 
 

@@ -68,6 +68,7 @@ from server.viewer_scene import LAYERS, SceneWriter, ViewerStats
 from server.viewer_state import (  # noqa: F401 - names this module has always exported
     FRAME_DIRECTION,
     MIN_FRAME_RADIUS_M,
+    UP_DIRECTION,
     MeshChunk,
     ViewerCamera,
     ViewerSession,
@@ -136,7 +137,7 @@ class ViewerAdapter:
             self._server = viser.ViserServer(host=self._host, port=self._requested_port, verbose=False)
         self._scene.server = self._server
         self._admit_relay_only()
-        self._server.scene.set_up_direction("+z")
+        self._server.scene.set_up_direction(UP_DIRECTION)
         self._server.gui.configure_theme(show_share_button=False, brand_color=(40, 110, 200), control_width="small")
         # Docked beside the scene instead of floating over it: the middle of the view, where
         # a session is framed, is then the middle of what one sees.

@@ -26,8 +26,11 @@ CHUNK_SIZE_M = 1.0
 VERTEX_TOLERANCE_M = 0.005
 COLOR_TOLERANCE = 8
 TRAJECTORY_BLOCK = 256
-FRAME_DIRECTION = np.array([0.45, -0.6, 0.55]) / np.linalg.norm([0.45, -0.6, 0.55])
-"""From the centre of a framed session towards the browser's camera: above it, from one side."""
+FRAME_DIRECTION = np.array([0.45, -0.55, -0.6]) / np.linalg.norm([0.45, -0.55, -0.6])
+"""From the centre of a framed session towards the browser's camera: above it (-y), behind the
+first camera (-z) and to one side, in the world of a run: its first camera's frame (OpenCV axes)."""
+UP_DIRECTION = "-y"
+"""The viewer's up: the first camera's up (OpenCV's y points down the image)."""
 MIN_FRAME_RADIUS_M = 0.25
 """Smallest radius framed (a session of one camera pose still shows its surroundings)."""
 REFRAME_GROWTH = 1.5

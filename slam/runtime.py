@@ -406,15 +406,16 @@ def _ground_truth(track: AgentTrack, raw: Frame, use_gt_poses: bool) -> np.ndarr
 
 def _start_frame(side: _TrackingSide, track: AgentTrack, frame: Frame, raw: Frame, gt: np.ndarray | None,
                  use_gt_poses: bool) -> tuple[FrameMessage, FrameRecord]:
-    """An agent's first frame starts its first map; a lost camera's first frame with depth
-    starts a floating map at the last pose it knew (the agent's first: the world's origin for
-    agent 0, or its GT; any other agent floats at the origin)."""
+    """An agent's first frame starts its first map at the origin: the world is the first
+    camera's frame whether or not the input has ground truth (the ATE aligns onto it; with
+    ``use_gt_poses`` the ground truth's frame). A lost camera's first frame with depth starts a
+    floating map at the last pose it knew."""
     first_frame = not track.records
     reason = "start" if first_frame else "tracking_failure"
     if use_gt_poses:
         T = gt
     elif first_frame:
-        T = gt if (gt is not None and track.agent == 0) else np.eye(4)
+        T = np.eye(4)
     else:
         T = track.good_poses[-1]
     map_id, T_wm, T_mc = _start_map(side, track, reason, T, first_ever=side.next_map_id == 0)

@@ -56,11 +56,15 @@ const deg = (d) => (d * Math.PI) / 180;
 const norm = (v) => { const n = Math.hypot(...v) || 1; return v.map((x) => x / n); };
 const cross = (a, b) => [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]];
 
+// A run's world is its first camera's frame (OpenCV axes), so up is -y and yaw 0, pitch 0 looks
+// along +z, as the first camera did.
+const UP = [0, -1, 0];
+
 function poseLooking(position, yawDeg, pitchDeg) {
-  // Camera at `position` looking along yaw (about world z, from +x) and pitch; world z is up.
+  // Camera at `position` looking along yaw (about the up axis, from +z towards +x) and pitch (up).
   const yaw = deg(yawDeg), pitch = deg(pitchDeg);
-  const forward = [Math.cos(pitch) * Math.cos(yaw), Math.cos(pitch) * Math.sin(yaw), Math.sin(pitch)];
-  const right = norm(cross(forward, [0, 0, 1]));
+  const forward = [Math.cos(pitch) * Math.sin(yaw), -Math.sin(pitch), Math.cos(pitch) * Math.cos(yaw)];
+  const right = norm(cross(forward, UP));
   const down = cross(forward, right);
   return [
     [right[0], down[0], forward[0], position[0]],
@@ -70,16 +74,18 @@ function poseLooking(position, yawDeg, pitchDeg) {
   ];
 }
 
+// An AR object at `position` standing upright (its +z along the world's up, -y; ar.UPRIGHT),
+// turned by yaw about that axis.
 function yawPose(position, yawDeg) {
   const c = Math.cos(deg(yawDeg)), s = Math.sin(deg(yawDeg));
-  return [[c, -s, 0, position[0]], [s, c, 0, position[1]], [0, 0, 1, position[2]], [0, 0, 0, 1]];
+  return [[c, s, 0, position[0]], [0, 0, -1, position[1]], [-s, c, 0, position[2]], [0, 0, 0, 1]];
 }
 
 // The inverse of poseLooking for the render panel's fields: position, and the yaw and pitch of
 // the optical axis (its roll is not shown; Set rebuilds the pose without roll).
 function lookFromPose(T) {
   const forward = [T[0][2], T[1][2], T[2][2]];
-  const yaw = Math.atan2(forward[1], forward[0]), pitch = Math.asin(Math.max(-1, Math.min(1, forward[2])));
+  const yaw = Math.atan2(forward[0], forward[2]), pitch = Math.asin(Math.max(-1, Math.min(1, -forward[1])));
   return { position: [T[0][3], T[1][3], T[2][3]], yaw: (yaw * 180) / Math.PI, pitch: (pitch * 180) / Math.PI };
 }
 

@@ -63,8 +63,9 @@ def test_run_writes_outputs_with_the_overrides(run_dir, capsys):
 
 def test_render_from_the_runs_map(run_dir, tmp_path):
     seq = open_sequence(SPEC, max_frames=1)
+    first = read_tum(run_dir / "trajectory.txt").poses[0]  # the run's world is its first camera's frame
     pose = tmp_path / "pose.json"
-    pose.write_text(json.dumps(seq[0].T_world_cam.tolist()))
+    pose.write_text(json.dumps(first.tolist()))
     K = seq[0].K
     intr = f"{K[0, 0]},{K[1, 1]},{K[0, 2]},{K[1, 2]},80,60"
     image, depth = tmp_path / "view.png", tmp_path / "depth.png"
@@ -83,7 +84,7 @@ def test_render_from_the_runs_map(run_dir, tmp_path):
     assert np.median(np.abs(d[both] - gt[both])) < 100
     # A pose as 16 whitespace-separated numbers works too.
     pose_txt = tmp_path / "pose.txt"
-    pose_txt.write_text(" ".join(map(str, seq[0].T_world_cam.ravel())))
+    pose_txt.write_text(" ".join(map(str, first.ravel())))
     assert main(["render", str(run_dir / "map.pt"), "--pose", str(pose_txt), "--intrinsics", intr,
                  "--out", str(tmp_path / "view2.png")]) == 0
 

@@ -106,8 +106,8 @@ def test_trajectory_has_the_input_timestamps(run, frames):
     traj = read_tum(run.out / "trajectory.txt")
     np.testing.assert_allclose(traj.timestamps, [f.timestamp for f in frames], atol=1e-6)
     assert traj.poses.shape == (NUM_FRAMES, 4, 4)
-    # The first pose is the first frame's GT (the map is anchored there).
-    np.testing.assert_allclose(traj.poses[0], frames[0].T_world_cam, atol=1e-6)
+    # The world is the first camera's frame, ground truth or not (issue 44 item 6).
+    np.testing.assert_allclose(traj.poses[0], np.eye(4), atol=1e-6)
 
 
 def test_mesh_has_vertex_colours_in_the_world_frame(run, frames):
@@ -117,12 +117,15 @@ def test_mesh_has_vertex_colours_in_the_world_frame(run, frames):
     assert colors.shape == (len(mesh.vertices), 4) and colors.dtype == np.uint8
     assert len(np.unique(colors[:, :3], axis=0)) > 1, "colours come from the colour head, not one default"
     # Every vertex lies in the world-frame box of the frames' back-projected depth, grown by
-    # two voxels (allocation covers depth +- tr rounded out to whole voxels).
+    # two voxels (allocation covers depth +- tr rounded out to whole voxels). The run's world is
+    # its first camera's frame: the GT poses are moved into it.
+    T_run_gt = read_tum(run.out / "trajectory.txt").poses[0] @ np.linalg.inv(frames[0].T_world_cam)
     pts = []
     for f in frames:
         v, u = np.nonzero(f.depth > 0)
         cam = np.linalg.inv(f.K) @ np.stack([u, v, np.ones_like(u)]) * f.depth[v, u]
-        pts.append((f.T_world_cam[:3, :3] @ cam).T + f.T_world_cam[:3, 3])
+        T = T_run_gt @ f.T_world_cam
+        pts.append((T[:3, :3] @ cam).T + T[:3, 3])
     pts = np.concatenate(pts)
     margin = 2 * FAST.voxel.voxel_size
     assert bool((mesh.vertices > pts.min(0) - margin).all()) and bool((mesh.vertices < pts.max(0) + margin).all())
