@@ -58,6 +58,11 @@ def agent_color(agent: int) -> tuple[int, int, int]:
     return int(r * 255), int(g * 255), int(b * 255)
 
 
+def _counted(n: int, noun: str) -> str:
+    """``1 map``, ``2 maps``."""
+    return f"{n} {noun}{'' if n == 1 else 's'}"
+
+
 def box_segments(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     """(12, 2, 3) float32 edges of the axis-aligned box [lo, hi]."""
     corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
@@ -414,8 +419,8 @@ class ViewerSession:
         StatsEvents with that value), so page and viewer agree."""
         agents = max(1, len(self.agents))
         phase = f" ({self.phase})" if self.phase else ""
-        text = f"**{self.session_id}**{phase}: {self.pose_count} poses, {len(self.maps)} map(s), " \
-               f"{len(self.loops)} loop(s)"
+        text = f"**{self.session_id}**{phase}: {_counted(self.pose_count, 'pose')}, " \
+               f"{_counted(len(self.maps), 'map')}, {_counted(len(self.loops), 'loop')}"
         if agents > 1:
             text += f", {agents} agents"
         if self.stats is not None:

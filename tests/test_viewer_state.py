@@ -85,7 +85,7 @@ def test_events_mark_what_is_stale():
     state.framed_size = 1.0
     state.apply(FinishedEvent("finished"))
     assert state.phase == "finished" and state.framed_size is None, "framed again on what it ended with"
-    assert state.status_text().startswith("**s** (finished): 1 poses, 2 map(s), 1 loop(s)")
+    assert state.status_text().startswith("**s** (finished): 1 pose, 2 maps, 1 loop")
 
 
 def test_trajectory_blocks_are_sent_once_complete_and_resent_when_retracked():
