@@ -5,7 +5,7 @@ Scene tree (slash paths; a parent's pose and visibility apply to its children)::
     /sessions/<id>                          one session (only the selected one is visible)
     /sessions/<id>/meshes/map_<m>           posed at T_world_map
     /sessions/<id>/meshes/map_<m>/c_<i>_<j>_<k>   a mesh chunk (map frame, vertex colours)
-    /sessions/<id>/meshes/map_<m>/bounds    the map's extent in its colour (sessions with several maps)
+    /sessions/<id>/regions/map_<m>/bounds   the map's extent in its colour (several maps; off by default)
     /sessions/<id>/keyframes/map_<m>        posed at T_world_map: keyframe frustums in the map's colour
     /sessions/<id>/trajectory/agent_<a>/part_<k>   an agent's camera path in its colour, in blocks
                                             of TRAJECTORY_BLOCK poses
@@ -199,7 +199,8 @@ class ViewerAdapter:
         follow.on_update(lambda _: self._set_follow(follow.value))
         with gui.add_folder("Layers"):
             for name in LAYERS:
-                box = gui.add_checkbox(name.capitalize(), True)
+                label = "Region boxes" if name == "regions" else name.capitalize()
+                box = gui.add_checkbox(label, self._scene.layers[name])
                 box.on_update(lambda _, n=name, b=box: self._set_layer(n, b.value))
             tint = gui.add_checkbox("Colour meshes by map", False)
             tint.on_update(lambda _: self._set_tint(tint.value))

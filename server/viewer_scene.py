@@ -21,7 +21,12 @@ from slam import matrix_to_quat_wxyz
 if TYPE_CHECKING:
     import viser
 
-LAYERS = ("meshes", "trajectory", "camera", "keyframes", "loops")
+LAYERS = ("meshes", "trajectory", "camera", "keyframes", "loops", "regions")
+HIDDEN_LAYERS = frozenset({"regions"})
+"""Layers off until a user ticks them: the maps' region outlines (several metres each) would
+dwarf the meshes of a collaborative session."""
+LOOP_THICKNESS = 6.0
+"""Pixels of a loop edge, twice a trajectory's: the edges a loop closure adds must stand out."""
 
 
 def wxyz(T: np.ndarray) -> np.ndarray:
@@ -54,7 +59,7 @@ class SceneWriter:
     stats: ViewerStats
     server: viser.ViserServer | None = None
     handles: dict[str, viser.SceneNodeHandle] = field(default_factory=dict)
-    layers: dict[str, bool] = field(default_factory=lambda: {name: True for name in LAYERS})
+    layers: dict[str, bool] = field(default_factory=lambda: {name: name not in HIDDEN_LAYERS for name in LAYERS})
     hidden_maps: set[int] = field(default_factory=set)
     tint_by_map: bool = False
     trajectory_by_map: bool = False
@@ -106,7 +111,7 @@ class SceneWriter:
         else:
             self.hidden_maps.add(map_id)
         for sid in session_ids:
-            for layer in ("meshes", "keyframes"):
+            for layer in ("meshes", "keyframes", "regions"):
                 handle = self.handles.get(f"/sessions/{sid}/{layer}/map_{map_id}")
                 if handle is not None:
                     handle.visible = visible
@@ -135,7 +140,12 @@ class SceneWriter:
         if state.loops_dirty:
             points = state.loop_points().astype(np.float32)
             if len(points):
-                self.add_segments(f"/sessions/{state.session_id}/loops/edges", points, LOOP_COLOR, 3.0)
+                self.add_segments(f"/sessions/{state.session_id}/loops/edges", points, LOOP_COLOR, LOOP_THICKNESS)
+                ends = points.reshape(-1, 3)
+                self.handles[f"/sessions/{state.session_id}/loops/ends"] = self.server.scene.add_point_cloud(
+                    f"/sessions/{state.session_id}/loops/ends", ends, colors=np.tile(np.array(LOOP_COLOR, np.uint8),
+                                                                                     (len(ends), 1)),
+                    point_size=0.04, point_shape="circle", precision="float32")
             state.loops_dirty, sent = False, True
         return sent, new_map
 
@@ -157,8 +167,8 @@ class SceneWriter:
                 self.add_segments(f"{root}/keyframes/map_{map_id}/frusta", frusta, map_color(map_id), 1.5)
                 view.keyframes_dirty, sent = False, True
             if view.bounds_dirty and several_maps and view.bounds is not None:
-                self.map_node(state, "meshes", map_id)
-                self.add_segments(f"{root}/meshes/map_{map_id}/bounds", box_segments(*view.bounds),
+                self.map_node(state, "regions", map_id)
+                self.add_segments(f"{root}/regions/map_{map_id}/bounds", box_segments(*view.bounds),
                                   map_color(map_id), 1.0)
                 view.bounds_dirty, sent = False, True
         if new_map and several_maps:  # the first map's outline too, now that there are several

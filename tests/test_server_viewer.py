@@ -200,7 +200,7 @@ def test_two_agents_maps_loop_and_pose_update(adapter):
     adapter.flush(force=True)
     root = f"/sessions/{sid}"
     names = set(adapter._handles)
-    for path in ("meshes/map_0", "meshes/map_1", "meshes/map_1/bounds", "trajectory/agent_0/part_0",
+    for path in ("meshes/map_0", "meshes/map_1", "regions/map_1/bounds", "trajectory/agent_0/part_0",
                  "trajectory/agent_1/part_0", "camera/frustum",
                  "camera/frustum_1", "keyframes/map_1/frusta"):
         assert f"{root}/{path}" in names, path
@@ -211,6 +211,8 @@ def test_two_agents_maps_loop_and_pose_update(adapter):
     assert np.allclose(np.asarray(adapter._handles[f"{root}/keyframes/map_1/frusta"].colors).reshape(-1, 3)[0],
                        map_color(1))
     assert np.allclose(adapter._handles[f"{root}/meshes/map_1"].position, [3.0, 1.0, 0.0])
+    assert not adapter._handles[f"{root}/regions"].visible, "region boxes are off until ticked"
+    assert adapter._handles[f"{root}/meshes"].visible
     chunks_before = adapter.stats.chunks_sent
     before_0 = adapter.trajectory_positions(sid, 0)
     before_1 = adapter.trajectory_positions(sid, 1)
@@ -272,6 +274,11 @@ def test_loop_edge_without_tracked_frames_follows_its_maps(adapter):
     adapter.flush(force=True)
     assert np.allclose(adapter.loop_segments(sid)[0], [[1.5, 2.5, 0], [0.2, 0, 0]])
     assert np.allclose(segment_points(adapter, f"/sessions/{sid}/loops/edges")[0], [[1.5, 2.5, 0], [0.2, 0, 0]])
+    # drawn to stand out: thicker than a trajectory, with a dot at each end
+    edges = adapter._handles[f"/sessions/{sid}/loops/edges"]
+    assert edges.thickness >= 6.0
+    assert np.allclose(np.asarray(adapter._handles[f"/sessions/{sid}/loops/ends"].points),
+                       [[1.5, 2.5, 0], [0.2, 0, 0]])
 
 
 def test_a_map_placed_after_its_first_pose_does_not_move_it(adapter):
