@@ -61,7 +61,7 @@ from server.session_store import (
 )
 from server.settings import Settings
 from server.stream import StreamInput
-from server.tracks import FrameCamera, TrackedFrame
+from server.tracks import FrameCamera, TrackedPose
 from server.worker import SourceSpec, WorkerDone, WorkerJob, WorkerStarted, describe_sources
 from slam import FinishedEvent
 INTERRUPTED_RUNNING = "interrupted: the server stopped while the session was running"
@@ -352,7 +352,7 @@ class SessionManager:
         with self._lock:
             return session.fold.scene.tracks.world_poses(agent)
 
-    def newest_camera(self, session_id: str, agent: int = 0) -> tuple[TrackedFrame, np.ndarray, FrameCamera] | None:
+    def newest_camera(self, session_id: str, agent: int = 0) -> tuple[TrackedPose, np.ndarray, FrameCamera] | None:
         """The agent's newest tracked frame, its current T_world_cam and its camera, or None
         before its first frame (and after a server restart: the events are gone)."""
         session = self._get(session_id)

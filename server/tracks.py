@@ -48,7 +48,10 @@ def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 
 @dataclass(frozen=True)
-class TrackedFrame:
+class TrackedPose:
+    """The pose an agent's frame was tracked at, as the server keeps it (``slam.mapping.TrackedFrame``
+    is the frame itself with its pose, on its way to the mapper)."""
+
     agent: int
     index: int
     timestamp: float
@@ -109,14 +112,14 @@ class Tracks:
 
     def __init__(self, maps: MapPlacements | None = None) -> None:
         self.maps = maps if maps is not None else MapPlacements()
-        self.by_agent: dict[int, dict[int, TrackedFrame]] = {}
+        self.by_agent: dict[int, dict[int, TrackedPose]] = {}
 
     def add(self, agent: int, index: int, timestamp: float, map_id: int, T_world_cam) -> bool:
         """Add (or replace) a frame reported at ``T_world_cam``; True if it was seen before."""
         frames = self.by_agent.setdefault(int(agent), {})
         seen = int(index) in frames
         T_map_cam = self.maps.to_map(int(map_id), rigid(T_world_cam))
-        frames[int(index)] = TrackedFrame(int(agent), int(index), float(timestamp), int(map_id), T_map_cam)
+        frames[int(index)] = TrackedPose(int(agent), int(index), float(timestamp), int(map_id), T_map_cam)
         return seen
 
     def reanchor(self, map_id: int, T_map_world: np.ndarray) -> None:
