@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from slam.data.frame import Frame
-from slam.data.synthetic import default_intrinsics, make_scene, make_trajectory, render_view
+from slam.data.synthetic import default_intrinsics, make_scene, make_trajectory, rasterise_view
 from slam.features import FrameFeatures, detect_features
 from slam.loop.database import (
     DEFAULT_DESCRIPTOR, BinaryWordsDescriptor, Candidate, CombinedDescriptor, GlobalDescriptor,
@@ -37,7 +37,7 @@ def views():
     T = make_trajectory("loop", 500, 0)
     out = []
     for i, pose in enumerate((T[0], _moved(T[0], 0.05, 3.0), T[250])):
-        v = render_view(scene, K, pose, W, H)
+        v = rasterise_view(scene, K, pose, W, H)
         frame = Frame(i, float(i), v.rgb, v.depth, K, pose)
         out.append((frame, detect_features(frame, 1000, 10.0)))
     return out
