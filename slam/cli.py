@@ -86,7 +86,7 @@ def cmd_run(args: argparse.Namespace) -> int:
                                                         (result.maps, "map"), (result.loops, "loop")))
     line = f"{result.status}: {counts}, {result.fps:.2f} frames/s"
     if result.ate_rmse is not None:
-        line += f", ATE RMSE {result.ate_rmse * 100:.2f} cm"
+        line += f", ATE RMSE {result.ate_rmse * 100:.2f} cm (refined poses)"
     print(line + f" -> {result.out_dir}")
     if result.agents > 1:
         print(_agents_summary(result.out_dir / "run.json"))
