@@ -8,13 +8,17 @@ import numpy as np
 from fastapi import APIRouter, Depends, HTTPException, status
 from fastapi.responses import FileResponse
 
-from server.deps import get_manager, get_map_cache, get_path_jobs, require_token
+from server.deps import get_manager, get_map_cache, get_path_jobs, get_viewer, require_token
 from server.path_jobs import PathJob, PathJobs, PathRender
 from server.rendering import MapCache, check_pose, intrinsics_matrix
 from server.routes_render import load_map
-from server.schemas import ErrorOut, PathJobOut, PathRequest
+from server.schemas import ErrorOut, PathJobOut, PathPreview, PathRequest
 from server.sessions import SessionManager, check_session_id
-from slam.camera_path import CameraPath
+from server.viewer import ViewerAdapter
+from slam.camera_path import CameraPath, path_poses
+
+PREVIEW_FRAMES = 120
+"""Points of a path's preview line in the viewer."""
 
 router = APIRouter(prefix="/api/sessions", tags=["render"], dependencies=[Depends(require_token)],
                    responses={401: {"model": ErrorOut}, 404: {"model": ErrorOut}})
@@ -25,7 +29,7 @@ def job_out(job: PathJob) -> PathJobOut:
                       error=job.error, video=f"/api/sessions/{job.session_id}/render/path/{job.id}/video")
 
 
-def camera_path(request: PathRequest) -> CameraPath:
+def camera_path(request: PathRequest | PathPreview) -> CameraPath:
     """The request's path; 422 naming the keyframe that is not a rigid pose."""
     keyframes = []
     for k, matrix in enumerate(request.keyframes):
@@ -33,8 +37,9 @@ def camera_path(request: PathRequest) -> CameraPath:
             keyframes.append(check_pose(np.array(matrix, dtype=np.float64)))
         except ValueError as error:
             raise HTTPException(422, f"keyframes[{k}]: {error}") from None
+    duration, fps = (request.duration_s, request.fps) if isinstance(request, PathRequest) else (PREVIEW_FRAMES, 1.0)
     try:
-        return CameraPath(np.stack(keyframes), request.duration_s, request.fps, request.loop)
+        return CameraPath(np.stack(keyframes), duration, fps, request.loop)
     except ValueError as error:
         raise HTTPException(422, str(error)) from None
 
@@ -77,3 +82,23 @@ def path_video(session_id: str, job_id: str, jobs: PathJobs = Depends(get_path_j
                                                      f" ({job.frames_done} of {job.frames_total} frames)")
         raise HTTPException(status.HTTP_409_CONFLICT, detail)
     return FileResponse(job.file, media_type="video/mp4", filename=f"{session_id}_path_{job_id}.mp4")
+
+
+@router.put("/{session_id}/render/path/preview", status_code=status.HTTP_204_NO_CONTENT, tags=["viewer"],
+            responses={422: {"model": ErrorOut}}, summary="Draw a camera path in the 3D viewer")
+def preview_path(session_id: str, request: PathPreview, manager: SessionManager = Depends(get_manager),
+                 viewer: ViewerAdapter | None = Depends(get_viewer)) -> None:
+    """The smooth path through the keyframes, as the video will fly it, in the session's scene."""
+    manager.get(check_session_id(session_id))
+    path = camera_path(request)
+    if viewer is not None:
+        viewer.show_path(session_id, path_poses(path))
+
+
+@router.delete("/{session_id}/render/path/preview", status_code=status.HTTP_204_NO_CONTENT, tags=["viewer"],
+               summary="Remove the camera path drawn in the 3D viewer")
+def clear_path(session_id: str, manager: SessionManager = Depends(get_manager),
+               viewer: ViewerAdapter | None = Depends(get_viewer)) -> None:
+    manager.get(check_session_id(session_id))
+    if viewer is not None:
+        viewer.show_path(session_id, None)

@@ -337,6 +337,15 @@ class PathRequest(Strict):
         return self
 
 
+class PathPreview(Strict):
+    """A camera path to draw in the 3D viewer (its shape only: no camera, no timing)."""
+
+    keyframes: list[Matrix4] = Field(min_length=2, max_length=64, examples=[[EXAMPLE_POSE, EXAMPLE_POSE]])
+    loop: bool = False
+
+    _matrices = field_validator("keyframes")(lambda value: [_check_matrix(m) for m in value])
+
+
 class PathJobOut(BaseModel):
     id: str = Field(examples=["a1b2c3d4e5f6"])
     state: Literal["queued", "rendering", "finished", "failed"]

@@ -314,6 +314,15 @@ class ViewerAdapter:
                 return np.zeros((0, 3))
             return state.world_positions(agent)
 
+    def show_path(self, session_id: str, poses: np.ndarray | None) -> None:
+        """Draw a camera path's preview in the session's scene: its (N, 4, 4) frames as a line
+        with a small frustum every tenth frame (``None`` or no frames: remove it)."""
+        with self._lock:
+            if self._server is None:
+                return
+            self._scene.root(session_id)
+            self._scene.show_path(session_id, None if poses is None or not len(poses) else np.asarray(poses))
+
     def remove_session(self, session_id: str) -> None:
         with self._lock:
             self._sessions.pop(session_id, None)

@@ -15,7 +15,15 @@ from typing import TYPE_CHECKING
 import numpy as np
 import trimesh
 
-from server.viewer_state import LOOP_COLOR, ViewerSession, agent_color, box_segments, key_text, map_color
+from server.viewer_state import (
+    LOOP_COLOR,
+    ViewerSession,
+    agent_color,
+    box_segments,
+    frustum_segments,
+    key_text,
+    map_color,
+)
 from slam import matrix_to_quat_wxyz
 
 if TYPE_CHECKING:
@@ -25,6 +33,8 @@ LAYERS = ("meshes", "trajectory", "camera", "keyframes", "loops", "regions")
 HIDDEN_LAYERS = frozenset({"regions"})
 """Layers off until a user ticks them: the maps' region outlines (several metres each) would
 dwarf the meshes of a collaborative session."""
+PATH_COLOR = (255, 150, 0)
+"""A camera path's preview: orange, unlike trajectories (agents' colours) and loops (magenta)."""
 LOOP_THICKNESS = 6.0
 """Pixels of a loop edge, twice a trajectory's: the edges a loop closure adds must stand out."""
 
@@ -115,6 +125,22 @@ class SceneWriter:
                 handle = self.handles.get(f"/sessions/{sid}/{layer}/map_{map_id}")
                 if handle is not None:
                     handle.visible = visible
+
+    def show_path(self, session_id: str, poses: np.ndarray | None) -> None:
+        """A camera path's preview (``ViewerAdapter.show_path``): ``/sessions/<id>/path``."""
+        name = f"/sessions/{session_id}/path"
+        for part in (f"{name}/line", f"{name}/cameras"):
+            handle = self.handles.pop(part, None)
+            if handle is not None:
+                handle.remove()
+        if poses is None:
+            return
+        centres = poses[:, :3, 3].astype(np.float32)
+        line = np.stack([centres[:-1], centres[1:]], axis=1)
+        self.add_segments(f"{name}/line", line, PATH_COLOR, 3.0)
+        cameras = poses[:: max(1, len(poses) // 10)]
+        K = np.array([[50.0, 0, 40], [0, 50.0, 30], [0, 0, 1]])  # a 4:3 frustum, only to show the heading
+        self.add_segments(f"{name}/cameras", frustum_segments(cameras, K, 80, 60, depth=0.08), PATH_COLOR, 1.5)
 
     def remove_session(self, session_id: str) -> None:
         root = f"/sessions/{session_id}"

@@ -687,6 +687,19 @@ function addPathKey(T) {
   pathKeys.push(T);
   showPathKeys();
   say("path-message", pathKeys.length < 2 ? "Add at least one more keyframe." : "", "ok");
+  previewPath();
+}
+
+// The path as the video will fly it, drawn in the 3D viewer (orange); cleared with the keyframes.
+async function previewPath() {
+  if (!pathSession) return;
+  const url = `/api/sessions/${pathSession}/render/path/preview`;
+  try {
+    if (pathKeys.length < 2) await api(url, { method: "DELETE" });
+    else await api(url, { method: "PUT", json: { keyframes: pathKeys, loop: $("path-loop").checked } });
+  } catch (error) {
+    say("path-message", "preview: " + error.message, "error");
+  }
 }
 
 async function addViewerKey() {
@@ -875,7 +888,8 @@ function start() {
   $("viewer-size").addEventListener("click", () => toggleViewerSize());
   $("path-add-viewer").addEventListener("click", addViewerKey);
   $("path-add-render").addEventListener("click", addRenderKey);
-  $("path-clear").addEventListener("click", () => { pathKeys = []; showPathKeys(); say("path-message", ""); });
+  $("path-clear").addEventListener("click", () => { pathKeys = []; showPathKeys(); say("path-message", ""); previewPath(); });
+  $("path-loop").addEventListener("change", previewPath);
   $("path-button").addEventListener("click", renderPath);
   $("crop-mesh").addEventListener("click", downloadCroppedMesh);
   $("render-second").addEventListener("change", () => {

@@ -169,3 +169,26 @@ def test_render_path_command_flies_through_a_run(client, synthetic_session, tmp_
     assert ok and frame.shape == (60, 160, 3)
     assert main(["render-path", str(tmp_path), "--out", str(out)]) == 2
     assert "map.pt" in capsys.readouterr().err
+
+
+def test_a_path_preview_is_drawn_in_the_viewer_and_cleared(tmp_path):
+    """Issue 44 item 9: the page's keyframes drawn as the smooth path in the 3D viewer."""
+    from tests.test_server_api import running_app
+
+    with running_app(tmp_path, viewer_port=0) as app:
+        created = app.post("/api/sessions", json={"source": "stream", "preset": "test",
+                                                  "intrinsics": "100,100,80,60"}).json()
+        url = f"/api/sessions/{created['id']}/render/path/preview"
+        keys = [np.array(camera_looking_at([0, 0, 0], eye)["T_world_cam"]).tolist()
+                for eye in ([1, 0, 1], [0, 1, 1], [-1, 0, 1])]
+        assert app.put(url, json={"keyframes": keys, "loop": True}).status_code == 204
+        handles = app.app.state.viewer._handles
+        line = np.asarray(handles[f"/sessions/{created['id']}/path/line"].points)
+        assert line.shape == (119, 2, 3), "120 frames of a closed path: 119 segments"
+        assert np.allclose(line[0, 0], [1, 0, 1], atol=1e-6), "it starts at the first keyframe"
+        assert f"/sessions/{created['id']}/path/cameras" in handles
+        bad = app.put(url, json={"keyframes": keys[:1]})
+        assert bad.status_code == 422
+        assert app.delete(url).status_code == 204
+        assert f"/sessions/{created['id']}/path/line" not in handles
+        assert app.put("/api/sessions/0123456789ab/render/path/preview", json={"keyframes": keys}).status_code == 404
