@@ -139,6 +139,15 @@ def _one_error_shape(schema: dict) -> dict:
     return schema
 
 
+def cached_map(maps: MapCache, manager: SessionManager, session_id: str):
+    """A session's newest map set from the cache, or None while it has none (the viewer's
+    neural views ask from their own thread)."""
+    try:
+        return maps.get(session_id, manager.session_dir(session_id) / "map.pt")
+    except (NoMapYet, SessionNotFound):
+        return None
+
+
 def create_app(settings: Settings | None = None, demo: DemoSession | None = None) -> FastAPI:
     """The application; ``settings`` default to the environment's (``settings_from_env``)."""
     from server import (
@@ -171,6 +180,8 @@ def create_app(settings: Settings | None = None, demo: DemoSession | None = None
         hooks = [map_cache.evict] + ([viewer.remove_session] if viewer else [])
         manager = SessionManager(settings, event_sinks=[viewer.handle_event] if viewer else [], removal_hooks=hooks)
         manager.start()
+        if viewer is not None:
+            viewer.map_source = lambda session_id: cached_map(map_cache, manager, session_id)
         app.state.settings = settings
         app.state.viewer = viewer
         app.state.manager = manager

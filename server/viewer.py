@@ -58,12 +58,14 @@ import io
 import secrets
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 import trimesh
 
+from server.viewer_neural import SURFACES, NeuralViews, client_camera
 from server.viewer_scene import LAYERS, SceneWriter, ViewerStats
 from server.viewer_state import (  # noqa: F401 - names this module has always exported
     FRAME_DIRECTION,
@@ -80,7 +82,6 @@ from server.viewer_state import (  # noqa: F401 - names this module has always e
     mesh_chunks,
     scene_bounds,
 )
-from slam import quat_wxyz_to_matrix
 
 if TYPE_CHECKING:
     import viser
@@ -120,6 +121,10 @@ class ViewerAdapter:
         self.relay_secret = secrets.token_urlsafe(32)
         """What the relay sends in RELAY_HEADER; nobody else knows it."""
         self.refused_connections = 0
+        self.map_source: Callable[[str], object | None] | None = None
+        """session id -> its map set (or None): what the neural views render (set by the app)."""
+        self.neural: NeuralViews | None = None
+        self._meshes_wanted = True
 
     @property
     def _handles(self) -> dict[str, viser.SceneNodeHandle]:
@@ -171,6 +176,8 @@ class ViewerAdapter:
 
     def stop(self) -> None:
         self._stop.set()
+        if self.neural is not None:
+            self.neural.stop()
         if self._thread is not None:
             self._thread.join(timeout=2.0)
         if self._server is not None:
@@ -197,6 +204,10 @@ class ViewerAdapter:
         self._session_dropdown.on_update(lambda _: self._on_select(self._session_dropdown.value))
         follow = gui.add_checkbox("Follow camera", False)
         follow.on_update(lambda _: self._set_follow(follow.value))
+        self.neural = NeuralViews(lambda sid: None if self.map_source is None else self.map_source(sid))
+        surface = gui.add_dropdown("Surface", SURFACES, initial_value=SURFACES[0],
+                                   hint="the mesh, or the neural map rendered from your camera")
+        surface.on_update(lambda _: self._set_surface(surface.value))
         with gui.add_folder("Layers"):
             for name in LAYERS:
                 label = "Region boxes" if name == "regions" else name.capitalize()
@@ -255,7 +266,16 @@ class ViewerAdapter:
 
     def _set_layer(self, name: str, value: bool) -> None:
         with self._lock:
+            if name == "meshes":
+                self._meshes_wanted = bool(value)
+                value = value and self.neural.surface == "mesh"
             self._scene.set_layer(self._sessions, name, bool(value))
+
+    def _set_surface(self, surface: str) -> None:
+        """The mesh, or a neural view as each browser's background (the mesh hidden meanwhile)."""
+        with self._lock:
+            self.neural.surface = surface
+            self._scene.set_layer(self._sessions, "meshes", self._meshes_wanted and surface == "mesh")
 
     def _set_tint(self, value: bool) -> None:
         with self._lock:
@@ -387,26 +407,8 @@ class ViewerAdapter:
         """The viewpoint of the browser that moved its camera last, or None without one."""
         if self._server is None:
             return None
-        best = None
-        for client in self._server.get_clients().values():
-            camera = client.camera
-            try:
-                stamp = camera.update_timestamp
-                wxyz, position, fov = camera.wxyz, camera.position, camera.fov
-                width, height = camera.image_width, camera.image_height
-            except AssertionError:  # the client has not reported its camera yet
-                continue
-            if best is None or stamp > best[0]:
-                best = (stamp, wxyz, position, fov, width, height)
-        if best is None:
-            return None
-        import torch
-
-        _, wxyz, position, fov, width, height = best
-        T = np.eye(4)
-        T[:3, :3] = quat_wxyz_to_matrix(torch.as_tensor(np.asarray(wxyz, dtype=np.float64))).numpy()
-        T[:3, 3] = position
-        return ViewerCamera(T_world_cam=T, fov_y=float(fov), width=int(width), height=int(height))
+        seen = [c for c in (client_camera(client) for client in self._server.get_clients().values()) if c]
+        return max(seen, key=lambda c: c[0])[1] if seen else None
 
     # -- flushing to viser (flusher thread) --------------------------------------------------
 
@@ -414,6 +416,8 @@ class ViewerAdapter:
         while not self._stop.wait(0.05):
             try:
                 self.flush()
+                if self.neural is not None and self._server is not None:
+                    self.neural.update(self._server.get_clients(), self.selected)
             except Exception as error:  # noqa: BLE001 - a bad update must not stop the viewer
                 import traceback
 

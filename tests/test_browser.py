@@ -150,7 +150,8 @@ def finished_synthetic(api: httpx.Client, spec) -> str:
     """A synthetic session (a spec, or a list: one agent each) with the test preset, run to its end."""
     session_id = api.post("/api/sessions", json={"source": "synthetic", "preset": "test", "spec": spec}).json()["id"]
     deadline = time.monotonic() + 150
-    while api.get(f"/api/sessions/{session_id}").json()["status"] != "finished":
+    while (state := api.get(f"/api/sessions/{session_id}").json())["status"] != "finished":
+        assert state["status"] in ("queued", "running"), f"synthetic session {spec}: {state['status']}: {state['error']}"
         assert time.monotonic() < deadline, f"synthetic session {spec} did not finish"
         time.sleep(0.5)
     return session_id
@@ -277,3 +278,31 @@ def test_crop_box_bounds_the_render(server_url, tmp_path):
         page.click("#render-button")
         page.wait_for_function("document.getElementById('render-message').textContent.includes('below its max')",
                                timeout=10_000)
+
+
+def test_viewer_shows_the_neural_map_instead_of_the_mesh(server_url, tmp_path):
+    """Issue 44 item 10: the viewer's Surface choice renders the map from the browser's camera
+    (here colour | depth, split down the middle) as the scene's background."""
+    api = httpx.Client(base_url=server_url, timeout=30)
+    session_id = finished_synthetic(api, "orbit?frames=8&width=160&height=120")
+    with browser_page(server_url + f"/?session={session_id}") as page:
+        deadline = time.monotonic() + 90
+        while api.get("/api/viewer").json()["clients"] < 1:
+            assert time.monotonic() < deadline, "the embedded viewer did not connect"
+            time.sleep(0.5)
+        frame = page.frame_locator("#viewer-frame")
+        frame.locator("input[value='mesh']").first.click()
+        frame.locator("text=colour | depth").last.click()
+        viewer = page.locator("#viewer-frame")
+        shot = None
+        while True:  # the split view: grey-green colour on the left, the turbo depth map on the right
+            time.sleep(1.0)
+            shot = cv2.imdecode(np.frombuffer(viewer.screenshot(), np.uint8), cv2.IMREAD_COLOR)
+            h, w = shot.shape[:2]
+            right = shot[h // 4: 3 * h // 4, int(0.45 * w): int(0.65 * w)].astype(int)
+            saturated = (right.max(axis=2) - right.min(axis=2) > 120).mean()
+            if saturated > 0.2:
+                break
+            assert time.monotonic() < deadline, f"no neural depth in the viewer (see {tmp_path / 'neural.png'})"
+            cv2.imwrite(str(tmp_path / "neural.png"), shot)
+        cv2.imwrite(str(tmp_path / "neural.png"), shot)

@@ -1,0 +1,90 @@
+"""Neural views in the 3D viewer (issue 44 item 10): the image per surface, and the worker that
+renders each browser's view once per camera move."""
+
+from __future__ import annotations
+
+import time
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from server.viewer_neural import SURFACES, NeuralViews, neural_image
+from server.viewer_state import ViewerCamera
+from slam import matrix_to_quat_wxyz
+from tests.test_server_api import (
+    client,  # noqa: F401 - fixtures
+    data_dir,  # noqa: F401
+    needs_runtime,
+    synthetic_session,  # noqa: F401
+)
+
+
+@pytest.fixture(scope="module")
+def session_map(client, synthetic_session):  # noqa: F811
+    from slam import load_checkpoint, read_tum
+
+    directory = client.app.state.manager.session_dir(synthetic_session)
+    return load_checkpoint(directory / "map.pt"), read_tum(directory / "trajectory.txt").poses[-1]
+
+
+class FakeBrowser:
+    """A viser client as NeuralViews uses it: a camera, and a scene that takes a background."""
+
+    def __init__(self, T_world_cam: np.ndarray) -> None:
+        import torch
+
+        wxyz = matrix_to_quat_wxyz(torch.as_tensor(T_world_cam[:3, :3])).numpy()
+        self.camera = SimpleNamespace(update_timestamp=1.0, wxyz=wxyz, position=T_world_cam[:3, 3], fov=0.8,
+                                      image_width=400, image_height=300)
+        self.backgrounds: list = []
+        self.scene = SimpleNamespace(set_background_image=lambda image, **kw: self.backgrounds.append((image, kw)))
+
+
+@needs_runtime
+def test_each_surface_is_an_image_with_its_depth(session_map):
+    mapset, T = session_map
+    camera = ViewerCamera(T_world_cam=T, fov_y=0.8, width=400, height=300)
+    images = {}
+    for surface in SURFACES[1:]:
+        image, depth = neural_image(mapset, camera, surface, width=64)
+        assert image.shape == (48, 64, 3) and image.dtype == np.uint8 and depth.shape == (48, 64)
+        images[surface] = image
+    assert (depth < 20).mean() > 0.5, "the scene is seen where it was tracked"
+    assert images["neural colour"].std() > 5 and not np.array_equal(images["neural colour"], images["neural depth"])
+    split = images["colour | depth"]
+    assert np.array_equal(split[:, :32], images["neural colour"][:, :32])
+    assert np.array_equal(split[:, 32:], images["neural depth"][:, 32:])
+    with pytest.raises(ValueError, match="surface"):
+        neural_image(mapset, camera, "mesh")
+
+
+@needs_runtime
+def test_a_view_per_camera_move_and_the_mesh_clears_it(session_map):
+    mapset, T = session_map
+    views = NeuralViews(lambda session_id: mapset if session_id == "s" else None)
+    browser = FakeBrowser(T)
+    try:
+        views.update({1: browser}, "s")
+        assert not browser.backgrounds, "the mesh is the default: nothing rendered"
+        views.surface = "neural normals"
+        views.update({1: browser}, "s")
+        views.update({1: browser}, "s")  # the camera has not moved: no second view
+        deadline = time.monotonic() + 60
+        while views.views_rendered < 1:
+            assert time.monotonic() < deadline, "no view rendered"
+            time.sleep(0.05)
+        time.sleep(0.3)
+        assert views.views_rendered == 1 and len(browser.backgrounds) == 1
+        image, options = browser.backgrounds[0]
+        assert image.shape[2] == 3 and options["depth"].shape == image.shape[:2]
+        browser.camera.update_timestamp = 2.0  # moved
+        views.update({1: browser}, "s")
+        while views.views_rendered < 2:
+            assert time.monotonic() < deadline, "no view after the camera moved"
+            time.sleep(0.05)
+        views.surface = "mesh"
+        views.update({1: browser}, "s")
+        assert browser.backgrounds[-1][0] is None, "back to the mesh: the background is cleared"
+    finally:
+        views.stop()
