@@ -112,9 +112,7 @@ def training_views(run_dir: Path, sequence, width: int = VIEW_WIDTH, views: int 
 
     mapset = load_checkpoint(run_dir / "map.pt")
     trajectory = read_tum(run_dir / "trajectory.txt")
-    stamps = np.array([sequence[i].timestamp for i in range(len(sequence))]) if not hasattr(
-        sequence, "timestamps") else np.asarray(sequence.timestamps, np.float64)
-    estimate_idx, frame_idx = associate(trajectory.timestamps, stamps, max_dt=1e-3)
+    estimate_idx, frame_idx = associate(trajectory.timestamps, np.asarray(sequence.timestamps, np.float64), max_dt=1e-3)
     order = np.argsort(frame_idx)
     estimate_idx, frame_idx = estimate_idx[order], frame_idx[order]
     chosen = np.linspace(0, len(frame_idx) - 1, min(views, len(frame_idx))).round().astype(int)

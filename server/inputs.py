@@ -41,14 +41,9 @@ def _sequence_frame(sources: tuple, index: int, agent: int):
     if agent >= len(sources):
         raise KeyError(f"agent {agent} does not exist (the session has {len(sources)} source"
                        f"{'s' if len(sources) > 1 else ''})")
-    spec = sources[agent]
-    from slam import open_sequence
+    from server.worker import open_source
 
-    if spec.kind == "synthetic":
-        sequence = open_sequence(f"synthetic:{spec.path}", "synthetic", stride=spec.stride, max_frames=spec.max_frames)
-    else:
-        sequence = open_sequence(spec.path, spec.format, stride=spec.stride, max_frames=spec.max_frames,
-                                 intrinsics=spec.intrinsics, depth_scale=spec.depth_scale)
+    sequence = open_source(sources[agent])  # as the worker opened it
     if not 0 <= index < len(sequence):
         raise KeyError(f"frame {index} does not exist (the input has {len(sequence)} frames)")
     frame = sequence[index]

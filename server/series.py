@@ -17,23 +17,13 @@ from functools import lru_cache
 import numpy as np
 
 from server.tracks import FrameCamera
-from server.worker import SourceSpec
+from server.worker import SourceSpec, open_source
 from slam import DataError, Trajectory, associate, ate_from_pairs
 
 MAX_DT_S = 0.02
 """Largest timestamp difference of an estimate-ground truth pair (as ``voxfusion eval-ate``)."""
 DECIMALS = 4
 """Rounding of positions and errors in the JSON (0.1 mm)."""
-
-
-def _open(spec: SourceSpec):
-    """The source as the worker opened it (a synthetic scene or a dataset folder)."""
-    from slam import open_sequence
-
-    if spec.kind == "synthetic":
-        return open_sequence(f"synthetic:{spec.path}", "synthetic", stride=spec.stride, max_frames=spec.max_frames)
-    return open_sequence(spec.path, spec.format, stride=spec.stride, max_frames=spec.max_frames,
-                         intrinsics=spec.intrinsics, depth_scale=spec.depth_scale)
 
 
 @lru_cache(maxsize=16)
@@ -43,7 +33,7 @@ def source_camera(spec: SourceSpec) -> FrameCamera | None:
     if spec.kind not in ("synthetic", "dataset") or not spec.path:
         return None
     try:
-        frame = _open(spec)[0]
+        frame = open_source(spec)[0]
     except (DataError, OSError, IndexError):
         return None
     return FrameCamera(np.asarray(frame.K, np.float64), frame.width, frame.height)
@@ -56,7 +46,7 @@ def ground_truth(spec: SourceSpec) -> Trajectory | None:
     if spec.kind not in ("synthetic", "dataset") or not spec.path:
         return None
     try:
-        sequence = _open(spec)
+        sequence = open_source(spec)
         if spec.kind == "synthetic":
             from slam.data.synthetic import FPS
 

@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from server.tracks import MapPlacements, Tracks, inverse, rigid, transform_points
+from server.tracks import FrameCamera, MapPlacements, Tracks, inverse, rigid, transform_points
 from slam import (
     FinishedEvent,
     KeyframeEvent,
@@ -114,8 +114,8 @@ class SessionState:
         self.keep_meshes = keep_meshes
         self.meshes: dict[int, Mesh] = {}
         """map id -> newest non-empty mesh (with ``keep_meshes``)."""
-        self.intrinsics: dict[int, tuple[np.ndarray, tuple[int, int]]] = {}
-        """agent -> ((3, 3) K, (width, height)) as its poses report them."""
+        self.cameras: dict[int, FrameCamera] = {}
+        """agent -> its camera as its poses report it."""
         self.latest: dict[int, tuple[int, np.ndarray | None]] = {}
         """agent -> (frame index, thumbnail) of its newest pose."""
         self.keyframe_events = 0
@@ -156,7 +156,8 @@ class SessionState:
         change.frame, change.retracked_slot = (agent, index), slot
         self.latest[agent] = (index, event.thumbnail)
         if event.K is not None and event.image_size is not None:
-            self.intrinsics[agent] = (np.asarray(event.K), tuple(event.image_size))
+            width, height = event.image_size
+            self.cameras[agent] = FrameCamera(np.asarray(event.K, np.float64), int(width), int(height))
 
     def _on_keyframe(self, event: KeyframeEvent, change: Change) -> None:
         map_id = int(event.map_id)

@@ -358,13 +358,10 @@ class SessionManager:
         session = self._get(session_id)
         with self._lock:
             state = session.fold.scene
-            latest, intrinsics = state.latest.get(agent), state.intrinsics.get(agent)
-            if latest is None or intrinsics is None:
+            latest, camera = state.latest.get(agent), state.cameras.get(agent)
+            if latest is None or camera is None:
                 return None
-            frame = state.tracks.by_agent[agent][latest[0]]
-            T_world_cam = state.camera_pose(agent)
-        K, (width, height) = intrinsics
-        return frame, T_world_cam, FrameCamera(np.asarray(K, np.float64), int(width), int(height))
+            return state.tracks.by_agent[agent][latest[0]], state.camera_pose(agent), camera
 
     def tracked_agents(self, session_id: str) -> list[int]:
         """Agents with at least one pose reported while this server ran the session."""

@@ -216,12 +216,11 @@ class SceneWriter:
         T, thumbnail = state.camera(agent)
         name = f"/sessions/{state.session_id}/camera/frustum" + ("" if agent == 0 else f"_{agent}")
         handle = self.handles.get(name)
-        intrinsics = state.scene.intrinsics.get(agent)
-        if handle is None and intrinsics is not None:
-            K, (w, h) = intrinsics
-            fov = 2.0 * np.arctan(0.5 * h / K[1, 1])
+        camera = state.scene.cameras.get(agent)
+        if handle is None and camera is not None:
+            fov = 2.0 * np.arctan(0.5 * camera.height / camera.K[1, 1])
             self.handles[name] = self.server.scene.add_camera_frustum(
-                name, fov=float(fov), aspect=w / h, scale=0.2, color=agent_color(agent), image=thumbnail,
+                name, fov=float(fov), aspect=camera.width / camera.height, scale=0.2, color=agent_color(agent), image=thumbnail,
                 wxyz=wxyz(T), position=T[:3, 3])
         elif handle is not None:
             place(handle, T)

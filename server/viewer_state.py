@@ -341,11 +341,13 @@ class ViewerSession:
     @property
     def K(self) -> np.ndarray | None:
         """Intrinsics of the first agent that reported them (for keyframe frustums)."""
-        return next((K for _, (K, _) in sorted(self.scene.intrinsics.items(), key=lambda kv: kv[0])), None)
+        cameras = self.scene.cameras
+        return cameras[min(cameras)].K if cameras else None
 
     @property
     def image_size(self) -> tuple[int, int] | None:
-        return next((size for _, (_, size) in sorted(self.scene.intrinsics.items(), key=lambda kv: kv[0])), None)
+        cameras = self.scene.cameras
+        return (cameras[min(cameras)].width, cameras[min(cameras)].height) if cameras else None
 
     def T_world_map(self, map_id: int) -> np.ndarray:
         return self.scene.maps.T_world_map(map_id)

@@ -32,7 +32,7 @@ def test_the_fold_keeps_the_newest_frame_and_its_camera_where_its_map_is_now():
     state.apply(pose_event(0, np.eye(4), K))
     state.apply(pose_event(1, T1))  # no K: the camera stays the last one reported
     assert state.latest[0][0] == 1 and np.allclose(state.camera_pose(0), T1)
-    assert state.intrinsics[0][1] == (160, 120) and np.allclose(state.intrinsics[0][0], K)
+    assert (state.cameras[0].width, state.cameras[0].height) == (160, 120) and np.allclose(state.cameras[0].K, K)
     moved = np.eye(4)
     moved[:3, 3] = [0, 2, 0]
     state.apply(SubmapEvent(0, 0, moved, "start"))  # a loop closure moves the map: the frame follows
