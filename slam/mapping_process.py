@@ -39,8 +39,7 @@ if TYPE_CHECKING:
     from .loop.closing import LoopCloser
     from .maps import SubMap
 
-__all__ = ["END", "END_NOW", "FinalBudget", "FinalRefinement", "FrameMessage", "FramePose", "InlineMapper",
-           "KeyframeRecord", "MapperFailed", "MapperStats", "ProcessMapper", "final_budget",
+__all__ = ["END", "END_NOW", "FinalBudget", "InlineMapper", "MapperFailed", "ProcessMapper", "final_budget",
            "final_iterations_per_map", "map_poses", "map_update_event", "poses_event", "process_threads"]
 
 _POLL_SECONDS = 0.2

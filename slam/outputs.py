@@ -27,7 +27,7 @@ import numpy as np
 from .config import SLAMConfig
 
 if TYPE_CHECKING:
-    from .mapping_process import MapperStats
+    from .messages import MapperStats
     from .runtime import AgentTrack
 
 

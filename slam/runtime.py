@@ -741,7 +741,7 @@ def _write_progress(out: Path, side: _TrackingSide, total: int | None, started: 
 
 
 def describe_refinement(refinement) -> str:
-    """One line on what the final bundle adjustment did (``mapping_process.FinalRefinement``)."""
+    """One line on what the final bundle adjustment did (``messages.FinalRefinement``)."""
     cap = f", stopped by its {refinement.seconds_budget:.0f} s cap" if refinement.stopped_by_time else ""
     return f"{refinement.iterations_run} of {refinement.iterations_budget} iterations in {refinement.seconds:.1f} s{cap}"
 

@@ -242,7 +242,8 @@ def test_a_mapper_that_fails_mid_run_is_reported_not_waited_for(tmp_path):
     """The tracker keeps submitting while the mapping process has failed and is flushing its
     traceback at exit: submit raises with that traceback instead of both processes waiting
     for each other (a deadlock seen on the laps hall)."""
-    from slam.mapping_process import FrameMessage, MapperFailed, ProcessMapper
+    from slam.mapping_process import MapperFailed, ProcessMapper
+    from slam.messages import FrameMessage
 
     frame = next(iter(open_sequence("synthetic:orbit?frames=100&width=80&height=60", max_frames=1)))
     mapper = ProcessMapper(NO_LOOPS, torch.device("cpu"), tmp_path, False, 0)
