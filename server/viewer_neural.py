@@ -22,7 +22,8 @@ from server.viewer_state import ViewerCamera
 SURFACES = ("mesh", "neural colour", "neural depth", "neural normals", "colour | depth")
 """What the viewer shows of the surface: the mesh, or one of the neural renders."""
 VIEW_WIDTH = 256
-"""Pixels across a neural view (about 0.2 s on 2 CPU cores); the browser scales it up."""
+"""Pixels across a neural view (0.3-0.4 s a view on the 2-core machine, half a 320x240 page render); the
+browser scales it up."""
 FAR_M = 150.0
 """Depth sent where the render sees nothing (viser's depth range ends at 167 m)."""
 
