@@ -4,15 +4,15 @@ Three consumers read the same events: the session's status (``server.session_sta
 trajectories (``Tracks``, for the trajectory and AR endpoints) and the live viewer's state
 (``server.viewer_state``). Each used to fold them itself, with its own chain of ``isinstance``
 branches and its own copy of the map-placement rule. Now one fold keeps what the events say,
-in the frames the placement rule (``server.tracks``) prescribes: where every map is, every
-tracked frame, every map's keyframes, the loops, the newest mesh per map, the counters, the
-phase. ``apply`` returns a :class:`Change` that names what moved, and each consumer derives
+in their maps' frames as the events carry them, placed by the rule of ``server.tracks``: where
+every map is, every tracked frame, every map's keyframes, the loops, the newest mesh per map,
+the counters, the phase. ``apply`` returns a :class:`Change` that names what moved, and each consumer derives
 its own view from the fold and the change: the status its counts and frames/s, the viewer
 what to resend.
 
 Why a shared state and not one dispatch that three handlers register with: the hard part is
-not the dispatch but the geometry behind it (a map's first placement moves nothing, later
-ones move everything tracked in it; keyframes, loop ends and meshes kept in map frames). With
+not the dispatch but the geometry behind it (a map that moves moves everything tracked in it;
+keyframes, loop ends and meshes kept in map frames). With
 registered handlers each consumer would still keep and re-express its own copy of that
 state, three places to get the rule wrong, as before. With one state they cannot disagree,
 and the consumers keep only their own concerns (persistence, rate limits, sent chunks).
@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from server.tracks import FrameCamera, MapPlacements, Tracks, inverse, rigid, transform_points
+from server.tracks import FrameCamera, MapPlacements, Tracks, rigid, transform_points
 from slam import (
     FinishedEvent,
     KeyframeEvent,
@@ -43,9 +43,7 @@ from slam import (
 @dataclass
 class Loop:
     """A loop edge: two keyframes, each found by (agent, frame index) in the tracks (so it moves
-    with them), else at its event pose. The event's poses are those after the loop's
-    optimisation, whose map poses come in the PosesUpdatedEvent that follows: until then they
-    are world points; from then on they are kept in their maps' frames."""
+    with them), else at its event position in its map's frame."""
 
     agent: int
     frame_index: int
@@ -55,8 +53,6 @@ class Loop:
     match_frame_index: int
     match_map: int
     match_point: np.ndarray
-    anchored: bool = False
-    """``point``/``match_point`` are in their maps' frames (else in the world frame)."""
 
 
 @dataclass
@@ -64,7 +60,7 @@ class Mesh:
     """A map's newest mesh in the map's frame."""
 
     vertices: np.ndarray
-    """(V, 3) map frame: float64 in a Change, float32 in ``SessionState.meshes``."""
+    """(V, 3) float32, in the map's frame."""
     faces: np.ndarray
     """(F, 3) int."""
     colors: np.ndarray | None
@@ -77,10 +73,8 @@ class Change:
 
     maps: set[int] = field(default_factory=set)
     """Maps the event names (new ones among them)."""
-    placed: set[int] = field(default_factory=set)
-    """Maps placed for the first time (nothing in them moved)."""
     moved: set[int] = field(default_factory=set)
-    """Maps whose placement changed (everything in them moved)."""
+    """Maps whose placement changed, the first one included (everything in them moved)."""
     submap: int | None = None
     """The map a SubmapEvent started."""
     frame: tuple[int, int] | None = None
@@ -135,16 +129,8 @@ class SessionState:
         return change
 
     def _place(self, map_id: int, T_world_map, change: Change) -> None:
-        """The placement rule (``server.tracks``): a first placement re-expresses what the map
-        holds in its frame (nothing moves); a later one moves it all."""
-        what = self.maps.set(map_id, T_world_map)
-        if what == "placed":
-            T_map_world = inverse(self.maps.T_world_map(map_id))
-            self.tracks.reanchor(map_id, T_map_world)
-            if map_id in self.keyframes:
-                self.keyframes[map_id] = T_map_world[None] @ self.keyframes[map_id]
-            change.placed.add(map_id)
-        elif what == "moved":
+        """Where the map is now (``server.tracks``): what it holds moves with it."""
+        if self.maps.set(map_id, T_world_map):
             change.moved.add(map_id)
 
     def _on_pose(self, event: PoseEvent, change: Change) -> None:
@@ -152,7 +138,7 @@ class SessionState:
         change.maps.add(map_id)
         self.maps.agents.setdefault(map_id, agent)
         slot = self.tracks.slot(agent, index)
-        self.tracks.add(agent, index, event.timestamp, map_id, event.T_world_cam)
+        self.tracks.add(agent, index, event.timestamp, map_id, event.T_map_cam)
         change.frame, change.retracked_slot = (agent, index), slot
         self.latest[agent] = (index, event.thumbnail)
         if event.K is not None and event.image_size is not None:
@@ -164,26 +150,23 @@ class SessionState:
         change.maps.add(map_id)
         self.keyframe_events += 1
         change.keyframe = True
-        T_map_cam = self.maps.to_map(map_id, rigid(event.T_world_cam))
+        T_map_cam = rigid(event.T_map_cam)
         self.keyframes[map_id] = np.concatenate([self.keyframes.get(map_id, np.zeros((0, 4, 4))), T_map_cam[None]])
         change.keyframes.add(map_id)
 
     def _on_map_update(self, event: MapUpdateEvent, change: Change) -> None:
         map_id = int(event.map_id)
         change.maps.add(map_id)
-        T_world_map = rigid(event.T_world_map)
-        self._place(map_id, T_world_map, change)
-        T_map_world = inverse(T_world_map)
+        self._place(map_id, event.T_world_map, change)
         if len(event.keyframe_poses):
-            self.keyframes[map_id] = T_map_world[None] @ np.asarray(event.keyframe_poses, dtype=np.float64)
+            self.keyframes[map_id] = np.asarray(event.keyframe_poses, dtype=np.float64).reshape(-1, 4, 4)
             change.keyframes.add(map_id)
         if event.mesh_vertices is not None and event.mesh_faces is not None:
-            # Into the map frame (the vertices are in the world as the map was placed then), so
-            # that a later correction of T_world_map moves the mesh without touching it.
-            mesh = Mesh(transform_points(T_map_world, event.mesh_vertices), event.mesh_faces, event.mesh_colors)
+            mesh = Mesh(np.asarray(event.mesh_vertices, dtype=np.float32).reshape(-1, 3), event.mesh_faces,
+                        event.mesh_colors)
             change.mesh = (map_id, mesh)
-            if self.keep_meshes and len(event.mesh_faces):  # kept in float32, as the runtime sends it
-                self.meshes[map_id] = Mesh(mesh.vertices.astype(np.float32), mesh.faces, mesh.colors)
+            if self.keep_meshes and len(event.mesh_faces):
+                self.meshes[map_id] = mesh
 
     def _on_submap(self, event: SubmapEvent, change: Change) -> None:
         map_id = int(event.map_id)
@@ -200,24 +183,19 @@ class SessionState:
         for map_id, T in (event.map_poses or {}).items():
             change.maps.add(int(map_id))
             self._place(int(map_id), T, change)
-        for loop in self.loops:  # the loops this optimisation closed: their poses are in these placements
-            if not loop.anchored:
-                loop.point = self.maps.point_to_map(loop.map_id, loop.point)
-                loop.match_point = self.maps.point_to_map(loop.match_map, loop.match_point)
-                loop.anchored = True
         for map_id, poses in (event.keyframe_poses or {}).items():
             map_id = int(map_id)
             change.maps.add(map_id)
-            self.keyframes[map_id] = self.maps.to_map(map_id, np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4))
+            self.keyframes[map_id] = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
             change.keyframes.add(map_id)
 
     def _on_loop(self, event: LoopEvent, change: Change) -> None:
         change.maps |= {int(event.map_id), int(event.match_map)}
         self.loop_events += 1
         self.loops.append(Loop(
-            int(event.agent), int(event.frame_index), int(event.map_id), rigid(event.T_world_cam)[:3, 3].copy(),
+            int(event.agent), int(event.frame_index), int(event.map_id), rigid(event.T_map_cam)[:3, 3].copy(),
             int(event.match_agent), int(event.match_frame_index), int(event.match_map),
-            rigid(event.T_world_match)[:3, 3].copy()))
+            rigid(event.T_match_map_cam)[:3, 3].copy()))
         change.loop = True
 
     def _on_stats(self, event: StatsEvent, change: Change) -> None:
@@ -247,15 +225,15 @@ class SessionState:
 
     def loop_points(self) -> np.ndarray:
         """(L, 2, 3) world end points of the loop edges now: at their tracked frames where
-        those were seen, else at the loop's poses (moved with their maps once anchored)."""
+        those were seen, else at the loop's keyframe poses in their maps."""
         points = []
         for loop in self.loops:
             a = self.frame_position(loop.agent, loop.frame_index)
             b = self.frame_position(loop.match_agent, loop.match_frame_index)
             if a is None:
-                a = self.maps.point_to_world(loop.map_id, loop.point) if loop.anchored else loop.point
+                a = self.maps.point_to_world(loop.map_id, loop.point)
             if b is None:
-                b = self.maps.point_to_world(loop.match_map, loop.match_point) if loop.anchored else loop.match_point
+                b = self.maps.point_to_world(loop.match_map, loop.match_point)
             points.append([a, b])
         return np.asarray(points, dtype=np.float64).reshape(-1, 2, 3)
 

@@ -1,28 +1,22 @@
 """Poses that follow their map: where every map is, and the frames tracked in each.
 
-The runtime reports camera poses and meshes in the world frame *at the time of the event*;
-loop closure and the final refinement later move whole maps (``PosesUpdatedEvent`` with every
-map's new ``T_world_map``). Everything is therefore kept in the frame of the map it belongs to
-and placed in the world by that map's *current* ``T_world_map``, which moves a frame tracked in
-map ``m`` by ``T_world_map_new @ inv(T_world_map_at_tracking)``.
+The runtime reports camera poses, keyframes and meshes in the frame of the map they belong to
+(``slam.events``); loop closure and the final refinement later move whole maps
+(``PosesUpdatedEvent`` with every map's new ``T_world_map``). Everything is therefore kept as
+it came, in its map's frame, and placed in the world by that map's *current* ``T_world_map``.
 
 The placement rule, in one place (:class:`MapPlacements`), for everyone who draws or reports
 poses (the session's status and trajectories, the viewer's state; both through
 ``server.session_state.SessionState``)::
 
-    world = T_world_map @ map_frame        map_frame = inv(T_world_map) @ world
+    world = T_world_map @ map_frame
 
-with ``T_world_map`` the identity until an event places the map. A map's first placement (its
-``SubmapEvent``, which the runtime sends after the pose of the frame that started the map)
-only says where the map is: what was already seen in it stays where it was reported
-(``placed``: the caller re-expresses it in the map frame). Later changes of ``T_world_map``
-(``moved``) move it. Assumes events arrive in the order the runtime emitted them (a
-``PosesUpdatedEvent`` before poses tracked against the moved maps).
+with ``T_world_map`` the identity until an event places the map.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -72,25 +66,16 @@ class MapPlacements:
         T = self.poses.get(map_id)
         return np.eye(4) if T is None else T
 
-    def set(self, map_id: int, T) -> str:
-        """Record a map's pose: ``placed`` (the first time), ``moved`` or ``same``."""
+    def set(self, map_id: int, T) -> bool:
+        """Record a map's pose; True if that moves the map (from the identity, the first time)."""
         T = rigid(T)
-        old = self.poses.get(map_id)
+        old = self.T_world_map(map_id)
         self.poses[map_id] = T
-        if old is None:
-            return "placed"
-        return "same" if np.allclose(old, T, atol=1e-9) else "moved"
-
-    def to_map(self, map_id: int, T_world) -> np.ndarray:
-        """A world pose (4, 4), or poses (N, 4, 4), in the map's frame as it is placed now."""
-        return inverse(self.T_world_map(map_id)) @ np.asarray(T_world, dtype=np.float64)
+        return not np.allclose(old, T, atol=1e-9)
 
     def to_world(self, map_id: int, T_map) -> np.ndarray:
         """A map-frame pose (4, 4), or poses (N, 4, 4), in the world as the map is placed now."""
         return self.T_world_map(map_id) @ np.asarray(T_map, dtype=np.float64)
-
-    def point_to_map(self, map_id: int, point) -> np.ndarray:
-        return transform_points(inverse(self.T_world_map(map_id)), point)[0]
 
     def point_to_world(self, map_id: int, point) -> np.ndarray:
         return transform_points(self.T_world_map(map_id), point)[0]
@@ -114,20 +99,12 @@ class Tracks:
         self.maps = maps if maps is not None else MapPlacements()
         self.by_agent: dict[int, dict[int, TrackedPose]] = {}
 
-    def add(self, agent: int, index: int, timestamp: float, map_id: int, T_world_cam) -> bool:
-        """Add (or replace) a frame reported at ``T_world_cam``; True if it was seen before."""
+    def add(self, agent: int, index: int, timestamp: float, map_id: int, T_map_cam) -> bool:
+        """Add (or replace) a frame tracked at ``T_map_cam`` in map ``map_id``; True if it was seen before."""
         frames = self.by_agent.setdefault(int(agent), {})
         seen = int(index) in frames
-        T_map_cam = self.maps.to_map(int(map_id), rigid(T_world_cam))
-        frames[int(index)] = TrackedPose(int(agent), int(index), float(timestamp), int(map_id), T_map_cam)
+        frames[int(index)] = TrackedPose(int(agent), int(index), float(timestamp), int(map_id), rigid(T_map_cam))
         return seen
-
-    def reanchor(self, map_id: int, T_map_world: np.ndarray) -> None:
-        """Re-express the frames of a map that was just placed (see the module doc)."""
-        for frames in self.by_agent.values():
-            for index, frame in frames.items():
-                if frame.map_id == map_id:
-                    frames[index] = replace(frame, T_map_cam=T_map_world @ frame.T_map_cam)
 
     def __len__(self) -> int:
         return sum(len(frames) for frames in self.by_agent.values())

@@ -13,15 +13,13 @@ Scene tree (slash paths; a parent's pose and visibility apply to its children)::
     /sessions/<id>/loops/edges              loop edges between the matched keyframes
 
 Several agents (collaborative sessions) share the scene: each has its own trajectory colour
-and camera frustum; map ids are unique across agents. Everything that belongs to a map is kept
-in that map's frame: its mesh, its keyframes, the trajectory frames tracked in it (and so the
-loop edges that end at them). A ``PosesUpdatedEvent`` (loop closure, final refinement) moves
-the map nodes, which moves meshes and keyframes without resending them, and redraws the
-trajectories and loop edges at ``T_world_map_new @ inv(T_world_map_at_tracking)``. A map's
-first placement (its SubmapEvent, which comes after the pose of the frame that started it)
-moves nothing. A loop edge ends at the two frames in the trajectories; frames the viewer never
-saw are drawn at the LoopEvent's poses, which are kept in their maps' frames from the
-PosesUpdatedEvent that follows the loop (the event's poses are already optimised ones).
+and camera frustum; map ids are unique across agents. Everything that belongs to a map comes
+in that map's frame and is kept so: its mesh, its keyframes, the trajectory frames tracked in
+it (and so the loop edges that end at them). A new ``T_world_map`` (a map's placement, a loop
+closure, the final refinement) moves the map nodes, which moves meshes and keyframes without
+resending them, and redraws the trajectories and loop edges where the map puts them now. A
+loop edge ends at the two frames in the trajectories; frames the viewer never saw are drawn at
+the LoopEvent's keyframe poses, in their maps' frames.
 
 Events only update the adapter's pending state (cheap, in the supervisor thread); a flusher
 thread pushes that state to viser at most ``UPDATE_HZ`` times a second per session and meshes

@@ -260,7 +260,7 @@ class ViewerSession:
         change = self.scene.apply(event)
         for map_id in change.maps:
             self.map(map_id)
-        for map_id in change.placed | change.moved | ({change.submap} - {None}):
+        for map_id in change.moved | ({change.submap} - {None}):
             self.map(map_id).pose_dirty = True
         if change.moved:  # what was tracked in a moved map is redrawn where the map puts it now
             self.redraw_trajectories(self.scene.tracks.agents_in(change.moved))

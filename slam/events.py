@@ -2,6 +2,13 @@
 
 They are plain frozen dataclasses of numbers and numpy arrays, so they pickle cheaply across
 process boundaries; the server forwards them to the viewer and the session status.
+
+Geometry travels in the frame of the map it belongs to (``T_map_cam``, mesh vertices in the map
+frame), as the tracker and mapper hold it, together with the map's id; where the maps are in the
+world comes separately (``T_world_map`` of ``SubmapEvent``, ``MapUpdateEvent`` and every map's in
+``PosesUpdatedEvent``). A reader places map-frame geometry by the newest ``T_world_map`` it has
+seen (``world = T_world_map @ map_frame``), so that a loop closure that moves a map moves
+everything in it and nothing is converted to the world and back.
 """
 
 from __future__ import annotations
@@ -13,12 +20,12 @@ import numpy as np
 
 @dataclass(frozen=True)
 class PoseEvent:
-    """A frame was tracked. ``T_world_cam`` (4, 4) float64 is the estimate in the world frame."""
+    """A frame was tracked. ``T_map_cam`` (4, 4) float64 is the estimate in map ``map_id``'s frame."""
 
     agent: int
     frame_index: int
     timestamp: float
-    T_world_cam: np.ndarray
+    T_map_cam: np.ndarray
     map_id: int
     tracking_ok: bool
     thumbnail: np.ndarray | None = None
@@ -31,24 +38,26 @@ class PoseEvent:
 
 @dataclass(frozen=True)
 class KeyframeEvent:
+    """A keyframe was taken; ``T_map_cam`` (4, 4) its pose in map ``map_id``'s frame."""
+
     agent: int
     frame_index: int
     map_id: int
-    T_world_cam: np.ndarray
+    T_map_cam: np.ndarray
 
 
 @dataclass(frozen=True)
 class MapUpdateEvent:
-    """A map changed; ``mesh_*`` is set when a fresh mesh was extracted (in the world frame)."""
+    """A map changed; ``mesh_*`` is set when a fresh mesh was extracted (in the map's frame)."""
 
     map_id: int
     version: int
     T_world_map: np.ndarray
     num_voxels: int
     keyframe_poses: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))
-    """(K, 4, 4) optimised keyframe poses of this map, world frame."""
+    """(K, 4, 4) optimised keyframe poses of this map in its frame (T_map_cam)."""
     mesh_vertices: np.ndarray | None = None
-    """(V, 3) float32 world coordinates."""
+    """(V, 3) float32 map-frame coordinates."""
     mesh_faces: np.ndarray | None = None
     """(F, 3) int32."""
     mesh_colors: np.ndarray | None = None
@@ -72,9 +81,9 @@ class LoopEvent:
     """A verified loop: keyframe ``frame_index`` of agent ``agent`` in map ``map_id`` matches
     keyframe ``match_frame_index`` of agent ``match_agent`` in map ``match_map``.
 
-    ``T_world_cam`` / ``T_world_match`` (4, 4) are both keyframes' world poses after the
-    loop's pose optimisation (for drawing the loop edge); ``scores`` are the verification
-    scores (similarity, PnP inliers, hit ratio, depth agreement, ...)."""
+    ``T_map_cam`` / ``T_match_map_cam`` (4, 4) are both keyframes' poses in their maps' frames
+    after the loop's pose optimisation (for drawing the loop edge); ``scores`` are the
+    verification scores (similarity, PnP inliers, hit ratio, depth agreement, ...)."""
 
     agent: int
     map_id: int
@@ -84,8 +93,8 @@ class LoopEvent:
     match_map: int
     match_frame_index: int
     match_timestamp: float
-    T_world_cam: np.ndarray
-    T_world_match: np.ndarray
+    T_map_cam: np.ndarray
+    T_match_map_cam: np.ndarray
     scores: dict = field(default_factory=dict)
 
 
@@ -94,9 +103,9 @@ class PosesUpdatedEvent:
     """Pose optimisation moved maps and keyframes (after a loop, or the final refinement).
 
     ``map_poses``: map id -> T_world_map (4, 4) of *every* map; ``keyframe_poses``: map id ->
-    (K, 4, 4) world poses of that map's keyframes in keyframe order; ``agents``: map id ->
-    agent. A viewer re-places each map's mesh by the change of its ``T_world_map`` and moves
-    the trajectory frames tracked in that map with it."""
+    (K, 4, 4) poses of that map's keyframes in its frame, in keyframe order; ``agents``: map
+    id -> agent. A viewer places each map's mesh and the frames tracked in it by the map's new
+    ``T_world_map``."""
 
     map_poses: dict
     keyframe_poses: dict

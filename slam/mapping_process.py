@@ -109,24 +109,24 @@ def _make_side(config: SLAMConfig, device: torch.device, out_dir: Path, emit_mes
     return _MapperSide(mapper, closer, out_dir, emit_meshes)
 
 
-def _world_mesh_arrays(submap, resolution: int):
+def _mesh_arrays(submap, resolution: int):
+    """The submap's mesh in its own frame: (V, 3) float32 vertices, (F, 3) int32, (V, 3) uint8."""
     from .mesh import extract_submap_mesh
 
     mesh = extract_submap_mesh(submap, resolution)
-    T = submap.T_world_map.detach().cpu().numpy().astype(np.float64)
-    verts = (np.asarray(mesh.vertices) @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
+    verts = np.asarray(mesh.vertices, dtype=np.float32)
     return verts, np.asarray(mesh.faces, dtype=np.int32), np.asarray(mesh.visual.vertex_colors)[:, :3].astype(np.uint8)
 
 
 def map_update_event(mapper: Mapper, submap, with_mesh: bool) -> MapUpdateEvent:
     verts = faces = colors = None
     if with_mesh:
-        verts, faces, colors = _world_mesh_arrays(submap, mapper.config.mesh.resolution)
+        verts, faces, colors = _mesh_arrays(submap, mapper.config.mesh.resolution)
     return MapUpdateEvent(
         map_id=submap.map_id, version=mapper.version,
         T_world_map=submap.T_world_map.detach().cpu().numpy().astype(np.float64),
         num_voxels=submap.voxels.num_voxels,
-        keyframe_poses=mapper.keyframe_poses_world(submap).numpy().astype(np.float64),
+        keyframe_poses=_keyframe_poses(submap),
         mesh_vertices=verts, mesh_faces=faces, mesh_colors=colors)
 
 
@@ -134,9 +134,16 @@ def poses_event(mapper: Mapper, reason: str) -> PosesUpdatedEvent:
     maps = mapper.maps.maps
     return PosesUpdatedEvent(
         map_poses={m.map_id: m.T_world_map.detach().cpu().numpy().astype(np.float64) for m in maps},
-        keyframe_poses={m.map_id: mapper.keyframe_poses_world(m).numpy().astype(np.float64) for m in maps},
+        keyframe_poses={m.map_id: _keyframe_poses(m) for m in maps},
         agents={m.map_id: m.agent for m in maps}, reason=reason,
         keyframe_indices={m.map_id: [kf.frame_index for kf in m.keyframes] for m in maps})
+
+
+def _keyframe_poses(submap) -> np.ndarray:
+    """(K, 4, 4) float64 keyframe poses of a submap in its frame."""
+    if not submap.keyframes:
+        return np.zeros((0, 4, 4))
+    return torch.stack([kf.T_map_cam for kf in submap.keyframes]).detach().cpu().numpy().astype(np.float64)
 
 
 def map_poses(mapper: Mapper) -> dict[int, np.ndarray]:
@@ -197,9 +204,8 @@ def _new_keyframe(side: _MapperSide, msg: FrameMessage, step: MappingStep, subma
     summed = side.odometry_covariance.pop(msg.agent, None)
     keyframe = submap.keyframes[-1]
     keyframe.odometry_covariance = None if summed is None else np.asarray(summed, np.float64)
-    kf_pose = (submap.T_world_map @ keyframe.T_map_cam).detach().cpu().numpy()
-    out: list[Reply] = [EventReply(KeyframeEvent(msg.agent, step.frame_index, submap.map_id,
-                                                 kf_pose.astype(np.float64)))]
+    kf_pose = keyframe.T_map_cam.detach().cpu().numpy().astype(np.float64)
+    out: list[Reply] = [EventReply(KeyframeEvent(msg.agent, step.frame_index, submap.map_id, kf_pose))]
     side.keyframes_since_mesh += 1
     side.keyframes_since_checkpoint += 1
     if side.closer is not None:

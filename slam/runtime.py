@@ -650,14 +650,12 @@ def _process_frame(run: _Run, agent: int, raw: Frame, use_gt_poses: bool) -> Non
 
 
 def _publish_pose(run: _Run, agent: int, frame: Frame, msg: FrameMessage | None, rec: FrameRecord) -> None:
-    """The frame's events: the map it starts, if any, and its world pose."""
-    side = run.side
-    assert side is not None
+    """The frame's events: the map it starts, if any, and its pose in its map."""
     if msg is not None and msg.new_map is not None:
         start = msg.new_map
         run.emit(SubmapEvent(start.map_id, agent, np.asarray(start.T_world_map, np.float64), start.reason))
-    T_world = side.map_poses[rec.map_id] @ rec.T_map_cam
-    run.emit(PoseEvent(agent, frame.index, float(frame.timestamp), T_world, rec.map_id, rec.tracked,
+    run.emit(PoseEvent(agent, frame.index, float(frame.timestamp), np.asarray(rec.T_map_cam, np.float64),
+                       rec.map_id, rec.tracked,
                        thumbnail=_thumbnail(frame.rgb) if run.thumbnails else None,
                        K=np.asarray(frame.K, np.float64), image_size=(frame.width, frame.height)))
 

@@ -21,7 +21,7 @@ def adapter():
 def pose(i: int) -> PoseEvent:
     T = np.eye(4)
     T[0, 3] = 0.01 * i
-    return PoseEvent(agent=0, frame_index=i, timestamp=i / 30, T_world_cam=T, map_id=0, tracking_ok=True)
+    return PoseEvent(agent=0, frame_index=i, timestamp=i / 30, T_map_cam=T, map_id=0, tracking_ok=True)
 
 
 @pytest.mark.parametrize("size", [0.2, 1.0, 8.0])

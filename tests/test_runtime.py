@@ -204,7 +204,7 @@ def test_events_arrive_in_order(run, frames):
     poses = [e for e in ev if isinstance(e, PoseEvent)]
     assert [e.frame_index for e in poses] == list(range(NUM_FRAMES))
     assert [e.timestamp for e in poses] == pytest.approx([f.timestamp for f in frames])
-    assert all(e.T_world_cam.shape == (4, 4) and e.thumbnail is not None and e.thumbnail.dtype == np.uint8
+    assert all(e.T_map_cam.shape == (4, 4) and e.thumbnail is not None and e.thumbnail.dtype == np.uint8
                for e in poses)
     assert poses[0].image_size == (80, 60)
     keyframes = [e for e in ev if isinstance(e, KeyframeEvent)]

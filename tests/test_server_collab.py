@@ -302,13 +302,13 @@ def test_live_status_and_trajectories_follow_loop_corrections(idle):
     events = []
     for i in range(3):
         events.append(PoseEvent(0, i, 0.1 * i, T(0.1 * i), 0, True, None, K, (80, 60)))
-        events.append(PoseEvent(1, i, 0.1 * i, T(3.0) @ T(0.0, 0.1 * i), 1, True, None, K, (80, 60)))
-        if i == 0:  # as the runtime sends them: a map's SubmapEvent after its first frame's pose
+        events.append(PoseEvent(1, i, 0.1 * i, T(0.0, 0.1 * i), 1, True, None, K, (80, 60)))
+        if i == 0:  # a map placed after its first frame's pose: that frame moves with it
             events += [SubmapEvent(0, 0, np.eye(4), "start"), SubmapEvent(1, 1, T(3.0), "start")]
     tri = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32)
-    events.append(MapUpdateEvent(1, 1, T(3.0), 10, np.zeros((0, 4, 4)), tri + [3, 0, 0],
+    events.append(MapUpdateEvent(1, 1, T(3.0), 10, np.zeros((0, 4, 4)), tri,
                                  np.array([[0, 1, 2]], np.int32), np.full((3, 3), 200, np.uint8)))
-    events.append(LoopEvent(1, 1, 2, 0.2, 0, 0, 0, 0.0, T(3.0, 0.2), np.eye(4), {"similarity": 0.9}))
+    events.append(LoopEvent(1, 1, 2, 0.2, 0, 0, 0, 0.0, T(0.0, 0.2), np.eye(4), {"similarity": 0.9}))
     events.append(PosesUpdatedEvent({0: np.eye(4), 1: T(2.0, 1.0)}, {0: np.zeros((0, 4, 4)), 1: np.zeros((0, 4, 4))},
                                     {0: 0, 1: 1}, "loop"))
     for event in events:

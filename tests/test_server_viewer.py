@@ -87,9 +87,10 @@ def pose_event(i: int, map_id: int = 0) -> PoseEvent:
     return PoseEvent(0, i, i / 30, T, map_id, True, thumb, K, (80, 60))
 
 
-def mesh_event(mesh: trimesh.Trimesh, T_world_map: np.ndarray, version: int) -> MapUpdateEvent:
-    vertices = np.asarray(mesh.vertices) @ T_world_map[:3, :3].T + T_world_map[:3, 3]
-    return MapUpdateEvent(0, version, T_world_map, 100, np.zeros((0, 4, 4)), vertices.astype(np.float32),
+def mesh_event(mesh: trimesh.Trimesh, T_world_map: np.ndarray, version: int, map_id: int = 0) -> MapUpdateEvent:
+    """Map ``map_id``'s mesh (in its frame, as the runtime sends it), the map placed at T_world_map."""
+    vertices = np.asarray(mesh.vertices, dtype=np.float32)
+    return MapUpdateEvent(map_id, version, T_world_map, 100, np.zeros((0, 4, 4)), vertices,
                           np.asarray(mesh.faces, np.int32), np.full((len(mesh.vertices), 3), 150, np.uint8))
 
 
@@ -98,7 +99,7 @@ def test_scene_nodes_and_only_changed_chunks_resent(adapter):
     mesh = box_mesh()
     for i in range(5):
         adapter.handle_event(sid, pose_event(i))
-    adapter.handle_event(sid, KeyframeEvent(0, 0, 0, pose_event(0).T_world_cam))
+    adapter.handle_event(sid, KeyframeEvent(0, 0, 0, pose_event(0).T_map_cam))
     adapter.handle_event(sid, mesh_event(mesh, np.eye(4), 1))
     adapter.handle_event(sid, StatsEvent(5, 10, 4.0, 1, 1, 0, 100))
     adapter.flush(force=True)
@@ -162,12 +163,11 @@ def translation(x: float, y: float = 0.0, z: float = 0.0, yaw: float = 0.0) -> n
     return T
 
 
-def agent_pose(agent: int, i: int, map_id: int, T_world_map: np.ndarray) -> PoseEvent:
-    """Frame i of an agent, 5 cm apart along x in its map's frame, placed by T_world_map."""
+def agent_pose(agent: int, i: int, map_id: int) -> PoseEvent:
+    """Frame i of an agent, 5 cm apart along x in its map's frame (as the runtime reports it)."""
     T_map_cam = translation(0.05 * i, 0.5 * agent, 1.0)
     K = np.array([[80.0, 0, 40], [0, 80.0, 30], [0, 0, 1]])
-    return PoseEvent(agent, i, i / 30, T_world_map @ T_map_cam, map_id, True, np.full((30, 40, 3), 90, np.uint8), K,
-                     (80, 60))
+    return PoseEvent(agent, i, i / 30, T_map_cam, map_id, True, np.full((30, 40, 3), 90, np.uint8), K, (80, 60))
 
 
 def segment_points(adapter, name: str) -> np.ndarray:
@@ -189,14 +189,11 @@ def test_two_agents_maps_loop_and_pose_update(adapter):
     adapter.handle_event(sid, SubmapEvent(0, 0, T0, "start"))
     adapter.handle_event(sid, SubmapEvent(1, 1, T1, "start"))
     for i in range(6):
-        adapter.handle_event(sid, agent_pose(0, i, 0, T0))
-        adapter.handle_event(sid, agent_pose(1, i, 1, T1))
-    adapter.handle_event(sid, KeyframeEvent(1, 2, 1, agent_pose(1, 2, 1, T1).T_world_cam))
+        adapter.handle_event(sid, agent_pose(0, i, 0))
+        adapter.handle_event(sid, agent_pose(1, i, 1))
+    adapter.handle_event(sid, KeyframeEvent(1, 2, 1, agent_pose(1, 2, 1).T_map_cam))
     adapter.handle_event(sid, mesh_event(mesh, T0, 1))
-    adapter.handle_event(sid, MapUpdateEvent(1, 1, T1, 100, np.zeros((0, 4, 4)),
-                                             (np.asarray(mesh.vertices) @ T1[:3, :3].T + T1[:3, 3]).astype(np.float32),
-                                             np.asarray(mesh.faces, np.int32),
-                                             np.full((len(mesh.vertices), 3), 150, np.uint8)))
+    adapter.handle_event(sid, mesh_event(mesh, T1, 1, map_id=1))
     adapter.flush(force=True)
     root = f"/sessions/{sid}"
     names = set(adapter._handles)
@@ -219,15 +216,15 @@ def test_two_agents_maps_loop_and_pose_update(adapter):
     assert np.allclose(before_1[4], (T1 @ translation(0.2, 0.5, 1.0))[:3, 3])
 
     # A loop between agent 1's frame 5 and agent 0's frame 1, then the optimisation moves map 1.
-    adapter.handle_event(sid, LoopEvent(1, 1, 5, 5 / 30, 0, 0, 1, 1 / 30, agent_pose(1, 5, 1, T1).T_world_cam,
-                                        agent_pose(0, 1, 0, T0).T_world_cam, {"similarity": 0.9}))
+    adapter.handle_event(sid, LoopEvent(1, 1, 5, 5 / 30, 0, 0, 1, 1 / 30, agent_pose(1, 5, 1).T_map_cam,
+                                        agent_pose(0, 1, 0).T_map_cam, {"similarity": 0.9}))
     adapter.flush(force=True)
     edge = segment_points(adapter, f"{root}/loops/edges")
     assert edge.shape == (1, 2, 3)
     assert np.allclose(edge[0, 0], before_1[5], atol=1e-5) and np.allclose(edge[0, 1], before_0[1], atol=1e-5)
 
     T1_new = translation(2.5, 0.8, 0.1, yaw=0.3)
-    keyframes_new = (T1_new @ translation(0.1, 0.5, 1.0))[None]
+    keyframes_new = translation(0.1, 0.5, 1.0)[None]
     adapter.handle_event(sid, PosesUpdatedEvent({0: T0, 1: T1_new}, {0: np.zeros((0, 4, 4)), 1: keyframes_new},
                                                 {0: 0, 1: 1}, "loop"))
     adapter.flush(force=True)
@@ -248,8 +245,8 @@ def test_two_agents_maps_loop_and_pose_update(adapter):
     frusta = segment_points(adapter, f"{root}/keyframes/map_1/frusta")
     assert np.allclose(frusta[0, 0], (translation(0.1, 0.5, 1.0))[:3, 3], atol=1e-5)
 
-    # A new pose tracked in the moved map lands where the runtime says, not moved twice.
-    adapter.handle_event(sid, agent_pose(1, 6, 1, T1_new))
+    # A new pose tracked in the moved map lands where the map is now.
+    adapter.handle_event(sid, agent_pose(1, 6, 1))
     assert np.allclose(adapter.trajectory_positions(sid, 1)[-1], (T1_new @ translation(0.3, 0.5, 1.0))[:3, 3])
     assert "2 agents" in adapter._status_md.content and "1 loop, 2 agents" in adapter._status_md.content
     adapter.remove_session(sid)
@@ -258,18 +255,17 @@ def test_two_agents_maps_loop_and_pose_update(adapter):
 
 def test_loop_edge_without_tracked_frames_follows_its_maps(adapter):
     """A loop whose frames the viewer never saw (e.g. it joined late) is drawn at the event's
-    poses. They are the poses after the loop's optimisation, whose map poses follow in the
-    PosesUpdatedEvent (the runtime's order): from then on the edge moves with its maps."""
+    keyframe poses, which are in their maps' frames: the edge moves with its maps."""
     sid = "c0ffee000002"
     adapter.handle_event(sid, SubmapEvent(0, 0, np.eye(4), "start"))
     adapter.handle_event(sid, SubmapEvent(1, 0, translation(1.0), "tracking_failure"))
-    adapter.handle_event(sid, LoopEvent(0, 1, 40, 1.3, 0, 0, 3, 0.1, translation(1.5, 0.5), translation(0.2), {}))
+    adapter.handle_event(sid, LoopEvent(0, 1, 40, 1.3, 0, 0, 3, 0.1, translation(0.5, 0.5), translation(0.2), {}))
     adapter.flush(force=True)
     assert np.allclose(adapter.loop_segments(sid)[0], [[1.5, 0.5, 0], [0.2, 0, 0]])
     adapter.handle_event(sid, PosesUpdatedEvent({0: np.eye(4), 1: translation(1.0, 0.5)}, {}, {0: 0, 1: 0}, "loop"))
     adapter.flush(force=True)
-    assert np.allclose(adapter.loop_segments(sid)[0], [[1.5, 0.5, 0], [0.2, 0, 0]]), "not moved twice"
-    adapter.handle_event(sid, PosesUpdatedEvent({0: np.eye(4), 1: translation(1.0, 2.5)}, {}, {0: 0, 1: 0},
+    assert np.allclose(adapter.loop_segments(sid)[0], [[1.5, 1.0, 0], [0.2, 0, 0]])
+    adapter.handle_event(sid, PosesUpdatedEvent({0: np.eye(4), 1: translation(1.0, 2.0)}, {}, {0: 0, 1: 0},
                                                 "refinement"))
     adapter.flush(force=True)
     assert np.allclose(adapter.loop_segments(sid)[0], [[1.5, 2.5, 0], [0.2, 0, 0]])
@@ -281,15 +277,15 @@ def test_loop_edge_without_tracked_frames_follows_its_maps(adapter):
                        [[1.5, 2.5, 0], [0.2, 0, 0]])
 
 
-def test_a_map_placed_after_its_first_pose_does_not_move_it(adapter):
-    """The runtime reports the pose of the frame that starts a map before the map's
-    SubmapEvent: placing the map says where it is, it does not move that frame."""
+def test_a_map_placed_after_its_first_pose_takes_it_along(adapter):
+    """Poses come in their map's frame: a frame that arrives before its map's placement is
+    drawn where the map is placed once its SubmapEvent comes."""
     sid = "c0ffee000005"
     T1 = translation(2.0, 1.0, yaw=0.5)
-    adapter.handle_event(sid, agent_pose(1, 0, 1, T1))
-    adapter.handle_event(sid, KeyframeEvent(1, 0, 1, agent_pose(1, 0, 1, T1).T_world_cam))
+    adapter.handle_event(sid, agent_pose(1, 0, 1))
+    adapter.handle_event(sid, KeyframeEvent(1, 0, 1, agent_pose(1, 0, 1).T_map_cam))
     adapter.handle_event(sid, SubmapEvent(1, 1, T1, "start"))
-    adapter.handle_event(sid, agent_pose(1, 1, 1, T1))
+    adapter.handle_event(sid, agent_pose(1, 1, 1))
     expected = np.stack([(T1 @ translation(0.05 * i, 0.5, 1.0))[:3, 3] for i in range(2)])
     assert np.allclose(adapter.trajectory_positions(sid, 1), expected)
     adapter.flush(force=True)
@@ -305,10 +301,10 @@ def test_no_trajectory_segment_into_a_map_after_tracking_failure(adapter):
     sid = "c0ffee000003"
     adapter.handle_event(sid, SubmapEvent(0, 0, np.eye(4), "start"))
     for i in range(3):
-        adapter.handle_event(sid, agent_pose(0, i, 0, np.eye(4)))
+        adapter.handle_event(sid, agent_pose(0, i, 0))
     adapter.handle_event(sid, SubmapEvent(1, 0, translation(5.0), "tracking_failure"))
     for i in range(3, 6):
-        adapter.handle_event(sid, agent_pose(0, i, 1, translation(5.0)))
+        adapter.handle_event(sid, agent_pose(0, i, 1))
     adapter.flush(force=True)
     drawn = segment_points(adapter, f"/sessions/{sid}/trajectory/agent_0/part_0")
     assert len(drawn) == 4, "5 steps, but none across the lost-tracking jump"

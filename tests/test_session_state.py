@@ -30,38 +30,46 @@ def T(x: float = 0.0, y: float = 0.0, z: float = 0.0, yaw: float = 0.0) -> np.nd
     return out
 
 
-def pose(agent: int, index: int, map_id: int, T_world_cam: np.ndarray) -> PoseEvent:
-    return PoseEvent(agent, index, index / 30, T_world_cam, map_id, True, None, np.eye(3), (80, 60))
+def pose(agent: int, index: int, map_id: int, T_map_cam: np.ndarray) -> PoseEvent:
+    return PoseEvent(agent, index, index / 30, T_map_cam, map_id, True, None, np.eye(3), (80, 60))
 
 
-def test_placement_rule_round_trips():
+def test_placement_rule():
     maps = MapPlacements()
     assert np.allclose(maps.T_world_map(3), np.eye(4)), "identity until placed"
-    assert maps.set(3, T(1.0, yaw=0.4)) == "placed"
-    assert maps.set(3, T(1.0, yaw=0.4)) == "same"
-    assert maps.set(3, T(2.0)) == "moved"
-    world = T(0.3, 0.2, 1.0, yaw=1.0)
-    assert np.allclose(maps.to_world(3, maps.to_map(3, world)), world)
-    assert np.allclose(maps.point_to_world(3, maps.point_to_map(3, [1.0, 2.0, 3.0])), [1.0, 2.0, 3.0])
+    assert maps.set(3, np.eye(4)) is False, "placed where it was assumed: nothing moves"
+    assert maps.set(3, T(1.0, yaw=0.4)) is True
+    assert maps.set(3, T(1.0, yaw=0.4)) is False
+    assert np.allclose(maps.to_world(3, T(0.5)), T(1.0, yaw=0.4) @ T(0.5))
+    assert np.allclose(maps.point_to_world(3, [1.0, 0.0, 0.0]), (T(1.0, yaw=0.4) @ T(1.0))[:3, 3])
 
 
-def test_first_placement_moves_nothing_later_ones_move_everything():
+def test_everything_in_a_map_follows_its_placement():
     state = SessionState()
     T1 = T(2.0, 1.0, yaw=0.5)
-    state.apply(pose(0, 0, 1, T1 @ T(0.1)))           # the frame that starts map 1, before its SubmapEvent
-    state.apply(KeyframeEvent(0, 0, 1, T1 @ T(0.1)))
     change = state.apply(SubmapEvent(1, 0, T1, "start"))
-    assert change.placed == {1} and not change.moved and change.submap == 1
-    assert np.allclose(state.tracks.world_pose(0, 0), T1 @ T(0.1)), "placing the map did not move its frame"
+    assert change.moved == {1} and change.submap == 1
+    state.apply(pose(0, 0, 1, T(0.1)))
+    state.apply(KeyframeEvent(0, 0, 1, T(0.1)))
+    assert np.allclose(state.tracks.world_pose(0, 0), T1 @ T(0.1)), "placed by its map"
     assert np.allclose(state.keyframe_poses(1)[0], T(0.1)), "the keyframe is kept in the map frame"
 
     T1_new = T(2.0, 1.5, yaw=0.5)
     change = state.apply(PosesUpdatedEvent({1: T1_new}, {}, {1: 0}, "loop"))
-    assert change.moved == {1} and not change.placed
+    assert change.moved == {1}
     assert np.allclose(state.tracks.world_pose(0, 0), T1_new @ T(0.1)), "moved with its map"
-    state.apply(pose(0, 1, 1, T1_new @ T(0.2)))
-    assert np.allclose(state.tracks.world_positions(0)[1], (T1_new @ T(0.2))[:3, 3]), "not moved twice"
+    state.apply(pose(0, 1, 1, T(0.2)))
+    assert np.allclose(state.tracks.world_positions(0)[1], (T1_new @ T(0.2))[:3, 3])
     assert state.tracks.agents_in({1}) == {0} and state.tracks.agents_in({0}) == set()
+
+
+def test_a_pose_before_its_map_is_placed_moves_with_the_placement():
+    state = SessionState()
+    state.apply(pose(0, 0, 2, T(0.1)))
+    assert np.allclose(state.tracks.world_pose(0, 0), T(0.1)), "an unplaced map sits at the identity"
+    change = state.apply(SubmapEvent(2, 0, T(3.0), "region"))
+    assert change.moved == {2}
+    assert np.allclose(state.tracks.world_pose(0, 0), T(3.1))
 
 
 def test_retracked_frame_keeps_its_place_in_arrival_order():
@@ -78,10 +86,11 @@ def test_retracked_frame_keeps_its_place_in_arrival_order():
 def test_meshes_are_kept_in_the_map_frame_and_follow_it():
     state = SessionState(keep_meshes=True)
     tri = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32)
-    change = state.apply(MapUpdateEvent(0, 1, T(3.0), 10, np.zeros((0, 4, 4)), tri + [3, 0, 0],
+    change = state.apply(MapUpdateEvent(0, 1, T(3.0), 10, np.zeros((0, 4, 4)), tri,
                                         np.array([[0, 1, 2]], np.int32), None))
     assert change.mesh is not None and change.mesh[0] == 0
     assert np.allclose(change.mesh[1].vertices, tri), "map frame"
+    assert np.allclose(state.world_mesh(0)[0], tri + [3, 0, 0])
     state.apply(PosesUpdatedEvent({0: T(2.0, 1.0)}, {}, {0: 0}, "refinement"))
     vertices, faces, _ = state.world_mesh(0)
     assert vertices.dtype == np.float32 and np.allclose(vertices, tri + [2, 1, 0])
@@ -98,26 +107,24 @@ def test_loop_ends_follow_their_frames_or_their_maps():
     state.apply(SubmapEvent(0, 0, np.eye(4), "start"))
     state.apply(SubmapEvent(1, 0, T(1.0), "tracking_failure"))
     state.apply(pose(0, 3, 0, T(0.2)))
-    change = state.apply(LoopEvent(0, 1, 40, 1.3, 0, 0, 3, 0.1, T(1.5, 0.5), T(9.0), {}))
+    change = state.apply(LoopEvent(0, 1, 40, 1.3, 0, 0, 3, 0.1, T(0.5, 0.5), T(9.0), {}))
     assert change.loop and change.maps == {0, 1} and state.loop_events == 1
     assert np.allclose(state.loop_points()[0], [[1.5, 0.5, 0], [0.2, 0, 0]]), "a seen frame wins over the event"
-    state.apply(PosesUpdatedEvent({0: np.eye(4), 1: T(1.0, 0.5)}, {}, {0: 0, 1: 0}, "loop"))
-    assert np.allclose(state.loop_points()[0, 0], [1.5, 0.5, 0]), "anchored, not moved"
-    state.apply(PosesUpdatedEvent({0: np.eye(4), 1: T(1.0, 2.5)}, {}, {0: 0, 1: 0}, "refinement"))
-    assert np.allclose(state.loop_points()[0, 0], [1.5, 2.5, 0])
+    state.apply(PosesUpdatedEvent({0: np.eye(4), 1: T(1.0, 2.0)}, {}, {0: 0, 1: 0}, "refinement"))
+    assert np.allclose(state.loop_points()[0, 0], [1.5, 2.5, 0]), "moved with its map"
     assert state.reasons == {0: "start", 1: "tracking_failure"}
 
 
 def test_keyframes_replaced_by_map_updates_and_pose_updates():
     state = SessionState()
     state.apply(SubmapEvent(0, 0, T(1.0), "start"))
-    change = state.apply(KeyframeEvent(0, 0, 0, T(1.5)))
+    change = state.apply(KeyframeEvent(0, 0, 0, T(0.5)))
     assert change.keyframe and change.keyframes == {0} and state.keyframe_events == 1
     assert np.allclose(state.keyframe_poses(0)[0], T(0.5))
-    change = state.apply(MapUpdateEvent(0, 1, T(1.0), 5, np.stack([T(1.2), T(1.4)])))
+    change = state.apply(MapUpdateEvent(0, 1, T(1.0), 5, np.stack([T(0.2), T(0.4)])))
     assert change.keyframes == {0} and not change.keyframe and change.mesh is None
     assert np.allclose(state.keyframe_poses(0)[:, 0, 3], [0.2, 0.4])
-    state.apply(PosesUpdatedEvent({0: T(2.0)}, {0: np.stack([T(2.3)])}, {0: 0}, "loop"))
+    state.apply(PosesUpdatedEvent({0: T(2.0)}, {0: np.stack([T(0.3)])}, {0: 0}, "loop"))
     assert np.allclose(state.keyframe_poses(0)[:, 0, 3], [0.3])
 
 
@@ -168,7 +175,7 @@ def test_status_fold_phase_budget_and_end():
     step = fold.apply(status(), FinishedEvent("failed", "boom"))
     assert step.finished == FinishedEvent("failed", "boom") and not step.dirty
     tri = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32)
-    fold.apply(status(), MapUpdateEvent(2, 1, T(1.0), 1, np.zeros((0, 4, 4)), tri + [1, 0, 0],
+    fold.apply(status(), MapUpdateEvent(2, 1, T(1.0), 1, np.zeros((0, 4, 4)), tri,
                                         np.array([[0, 1, 2]], np.int32), None))
     assert np.allclose(fold.live_meshes()[2][0], tri + [1, 0, 0])
 

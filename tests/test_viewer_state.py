@@ -35,8 +35,8 @@ def T(x: float = 0.0, y: float = 0.0, z: float = 0.0) -> np.ndarray:
     return out
 
 
-def pose(agent: int, index: int, map_id: int, T_world_cam: np.ndarray, thumbnail=None) -> PoseEvent:
-    return PoseEvent(agent, index, index / 30, T_world_cam, map_id, True, thumbnail, K, (80, 60))
+def pose(agent: int, index: int, map_id: int, T_map_cam: np.ndarray, thumbnail=None) -> PoseEvent:
+    return PoseEvent(agent, index, index / 30, T_map_cam, map_id, True, thumbnail, K, (80, 60))
 
 
 def square(offset: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
@@ -63,7 +63,7 @@ def test_events_mark_what_is_stale():
     assert np.allclose(T_cam, T(0.1)) and thumbnail is thumb
     settle(state)
     state.apply(SubmapEvent(0, 0, T(0.0), "start"))
-    assert state.maps[0].pose_dirty and not state.agents[0].dirty, "a first placement moves no trajectory"
+    assert state.maps[0].pose_dirty and not state.agents[0].dirty, "placed where it was assumed: nothing moved"
     settle(state)
     state.apply(KeyframeEvent(0, 0, 0, T(0.1)))
     assert state.maps[0].keyframes_dirty
@@ -111,7 +111,7 @@ def test_no_trajectory_segment_into_a_map_started_after_tracking_failure():
         state.apply(pose(0, i, 0, T(0.05 * i)))
     state.apply(SubmapEvent(1, 0, T(5.0), "tracking_failure"))
     for i in range(3, 6):
-        state.apply(pose(0, i, 1, T(5.0 + 0.05 * i)))
+        state.apply(pose(0, i, 1, T(0.05 * i)))
     (block,) = state.trajectory_blocks(0, by_map=True)
     assert len(block.segments) == 4
     assert [tuple(c) for c in block.colors] == [map_color(0)] * 2 + [map_color(1)] * 2
@@ -126,12 +126,12 @@ def test_mesh_chunks_resent_only_when_changed_and_after_a_recolouring():
     assert len(first.changed) == len(mesh_chunks(vertices, faces, None)) and not first.removed
     assert state.take_chunk_update(0) is None, "nothing pending"
     # The map moves, the mesh with it: the vertices in the map frame did not change.
-    state.apply(MapUpdateEvent(0, 2, T(0.3), 4, np.zeros((0, 4, 4)), vertices + [0.3, 0, 0], faces, None))
+    state.apply(MapUpdateEvent(0, 2, T(0.3), 4, np.zeros((0, 4, 4)), vertices, faces, None))
     update = state.take_chunk_update(0)
     assert not update.changed and update.skipped == len(first.changed)
     # The mesh moves elsewhere: the old chunks go, new ones come.
     moved, _ = square(5.0)
-    state.apply(MapUpdateEvent(0, 3, T(0.3), 4, np.zeros((0, 4, 4)), moved + [0.3, 0, 0], faces, None))
+    state.apply(MapUpdateEvent(0, 3, T(0.3), 4, np.zeros((0, 4, 4)), moved, faces, None))
     update = state.take_chunk_update(0)
     assert set(update.removed) == set(first.changed) and update.changed
     state.resend_meshes()

@@ -284,8 +284,7 @@ class LoopCloser:
             self._map_revision[submap.map_id] = self._map_revision.get(submap.map_id, 0) + 1
         closure = LoopEvent(
             source.agent, source.map_id, keyframe.frame_index, keyframe.timestamp, target.agent, target.map_id,
-            match_kf.frame_index, match_kf.timestamp, _np(source.T_world_map @ keyframe.T_map_cam),
-            _np(target.T_world_map @ match_kf.T_map_cam), {k: v for k, v in record.items() if k not in (
+            match_kf.frame_index, match_kf.timestamp, _np(keyframe.T_map_cam), _np(match_kf.T_map_cam), {k: v for k, v in record.items() if k not in (
                 "agent", "map", "frame_index", "timestamp", "match_agent", "match_map", "match_frame_index",
                 "match_timestamp", "verified", "accepted")})
         self.closures.append(closure)
