@@ -226,6 +226,13 @@ def test_one_browsers_crop_box_is_its_own_and_the_apis(two_browsers):
     box = adapter.views()[first].crop
     assert box is not None and box.lo == (0.0, -5.0, -5.0)
     assert adapter.current_crop() == box
+    from fastapi import HTTPException
+
+    from server.routes_render import viewer_crop
+
+    assert viewer_crop(viewer=adapter).min == (0.0, -5.0, -5.0), "GET /api/viewer/crop"
+    with pytest.raises(HTTPException, match="no browser crops"):
+        viewer_crop(viewer=None)
     frames = adapter.shadow_frames(first)
     assert any("/meshes/map_0/c_m" in path for path in frames), "chunks left of x = 0 are hidden or cut"
     assert adapter.shadow_frames(second) == {}
