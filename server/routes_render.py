@@ -27,6 +27,7 @@ from server.rendering import (
 from server.routes_series import estimated_trajectory
 from server.schemas import (
     CameraRequest,
+    CropBox,
     ErrorOut,
     Intrinsics,
     PickOut,
@@ -212,3 +213,12 @@ def viewer_camera(width: int = Query(320, ge=16, le=2048, description="image wid
         raise HTTPException(status.HTTP_409_CONFLICT,
                             f"the viewer's camera cannot be rendered: {validation_message(error.errors())}") from None
     return ViewerCameraOut(T_world_cam=camera.T_world_cam.tolist(), intrinsics=intrinsics)
+
+
+@router.get("/api/viewer/crop", response_model=CropBox, tags=["viewer"], responses={409: {"model": ErrorOut}},
+            summary="The crop box of the 3D viewer (the browser that changed its crop last, of those that crop)")
+def viewer_crop(viewer: ViewerAdapter | None = Depends(get_viewer)) -> CropBox:
+    box = None if viewer is None else viewer.current_crop()
+    if box is None:
+        raise HTTPException(status.HTTP_409_CONFLICT, "no browser crops the 3D viewer (tick Crop in its Crop box)")
+    return CropBox(min=box.lo, max=box.hi)

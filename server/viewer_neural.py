@@ -1,6 +1,6 @@
 """Neural views in the 3D viewer (issue 44 item 10): instead of the mesh, each browser can see
 the map rendered from its own camera: colour, depth, normals, or colour | depth split down the
-middle.
+middle; each browser chooses its own (``server.viewer_views.ClientView.surface``).
 
 The image is the browser's scene background, sent with its depth so that trajectories,
 frusta and loop edges still sit in front of or behind the surface where they should
@@ -17,10 +17,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from server.viewer_crop import CropBox
 from server.viewer_state import ViewerCamera
+from server.viewer_views import SURFACES
 
-SURFACES = ("mesh", "neural colour", "neural depth", "neural normals", "colour | depth")
-"""What the viewer shows of the surface: the mesh, or one of the neural renders."""
 VIEW_WIDTH = 256
 """Pixels across a neural view (0.3-0.4 s a view on the 2-core machine, half a 320x240 page render); the
 browser scales it up."""
@@ -47,10 +47,10 @@ def client_camera(client) -> tuple[float, ViewerCamera] | None:
     return float(stamp), ViewerCamera(T_world_cam=T, fov_y=float(fov), width=int(width), height=int(height))
 
 
-def neural_image(mapset, camera: ViewerCamera, surface: str, width: int = VIEW_WIDTH
-                 ) -> tuple[np.ndarray, np.ndarray]:
-    """The map seen by ``camera`` as ``surface`` shows it: (H, W, 3) uint8 image and (H, W)
-    float32 z-depth in metres (FAR_M where nothing is seen)."""
+def neural_image(mapset, camera: ViewerCamera, surface: str, width: int = VIEW_WIDTH,
+                 crop: CropBox | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The map seen by ``camera`` as ``surface`` shows it (only what lies inside ``crop``, if
+    given): (H, W, 3) uint8 image and (H, W) float32 z-depth in metres (FAR_M where nothing is seen)."""
     from slam.camera_path import normals_from_depth, normals_image
     from slam.path_video import auto_depth_range, depth_image
     from slam.views import render_view
@@ -59,7 +59,7 @@ def neural_image(mapset, camera: ViewerCamera, surface: str, width: int = VIEW_W
         raise ValueError(f"surface must be one of {SURFACES[1:]}, got {surface!r}")
     fx, fy, cx, cy, w, h = camera.intrinsics(width)
     K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-    view = render_view(mapset, camera.T_world_cam, K, w, h)
+    view = render_view(mapset, camera.T_world_cam, K, w, h, crop=None if crop is None else (crop.lo, crop.hi))
     depth = np.where(view.valid, view.depth, 0.0)
     panels = {"neural colour": lambda: np.clip(view.rgb, 0, 1),
               "neural depth": lambda: depth_image(depth, auto_depth_range(depth)),
@@ -77,15 +77,27 @@ class _Request:
     session_id: str
     surface: str
     camera: ViewerCamera
+    crop: CropBox | None
+
+
+@dataclass(frozen=True)
+class Wanted:
+    """What one browser wants to see behind its scene: a surface of a session (or nothing)."""
+
+    client: object
+    session_id: str | None
+    surface: str
+    crop: CropBox | None = None
 
 
 class NeuralViews:
-    """Per browser, the selected session's neural view from its camera (module doc).
+    """Per browser, the neural view of the session it shows from its camera (module doc).
     ``map_source(session_id)`` gives the session's map set, or None while it has none."""
 
     def __init__(self, map_source: Callable[[str], object | None]) -> None:
         self.map_source = map_source
-        self.surface = "mesh"
+        self._surfaces: dict[int, str] = {}
+        """client id -> the surface it wants now (a view of another one is not shown)."""
         self._shown: dict[int, tuple] = {}
         """client id -> (session, surface, camera time) of its newest requested view."""
         self._pending: dict[int, _Request] = {}
@@ -95,24 +107,26 @@ class NeuralViews:
         self._thread.start()
         self.views_rendered = 0
 
-    def update(self, clients: dict, session_id: str | None) -> None:
-        """Ask for a view for every client whose camera, session or surface changed (the
-        flusher calls this); with ``mesh`` selected, clear the backgrounds once."""
+    def update(self, wanted: dict[int, Wanted]) -> None:
+        """Ask for a view for every client (id -> what it wants) whose camera, session or surface
+        changed (the flusher calls this); a client back on ``mesh`` has its background cleared once."""
         with self._wake:
-            for client_id, client in clients.items():
-                if self.surface == "mesh" or session_id is None:
+            self._surfaces = {client_id: want.surface for client_id, want in wanted.items()}
+            for client_id, want in wanted.items():
+                if want.surface == "mesh" or want.session_id is None:
                     if self._shown.pop(client_id, None) is not None:
-                        client.scene.set_background_image(None)
+                        want.client.scene.set_background_image(None)
                     continue
-                seen = client_camera(client)
+                seen = client_camera(want.client)
                 if seen is None:
                     continue
-                key = (session_id, self.surface, seen[0])
+                key = (want.session_id, want.surface, seen[0], want.crop)
                 if self._shown.get(client_id) != key:
                     self._shown[client_id] = key
-                    self._pending[client_id] = _Request(client, session_id, self.surface, seen[1])
+                    self._pending[client_id] = _Request(want.client, want.session_id, want.surface, seen[1],
+                                                        want.crop)
                     self._wake.notify()
-            for gone in set(self._shown) - set(clients):
+            for gone in set(self._shown) - set(wanted):
                 self._shown.pop(gone, None)
 
     def stop(self) -> None:
@@ -131,9 +145,9 @@ class NeuralViews:
                 request = self._pending.pop(client_id)
             try:
                 mapset = self.map_source(request.session_id)
-                if mapset is None or request.surface != self.surface:
+                if mapset is None or request.surface != self._surfaces.get(client_id):
                     continue
-                image, depth = neural_image(mapset, request.camera, request.surface)
+                image, depth = neural_image(mapset, request.camera, request.surface, crop=request.crop)
                 request.client.scene.set_background_image(image, format="jpeg", depth=depth)
                 self.views_rendered += 1
             except Exception:  # noqa: BLE001 - a failed view (a client gone, a bad map) fails alone

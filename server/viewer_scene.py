@@ -1,14 +1,18 @@
 """The viewer's scene writer: a session's stale state (``server.viewer_state``) pushed to viser.
 
-``SceneWriter`` owns viser's scene nodes for every session, by path (the tree in
-``server.viewer``'s doc), and the display switches that decide how they look (layers, hidden
-maps, colour by map, follow the camera). It is called by the viewer's flusher under the
-viewer's lock; it sends only what a :class:`~server.viewer_state.ViewerSession` marks stale
-and clears those marks.
+``SceneWriter`` owns viser's shared (server-scoped) scene nodes of every session, by path (the
+tree in ``server.viewer``'s doc). What each browser chose to see is not here: the shared scene
+shows the layers of ``server.viewer_views.SHARED_VISIBLE`` and every map, and a browser's own
+choices shadow it (``server.viewer_clients``). Colour by map is a second, map-coloured variant
+of the meshes and trajectories in the shared scene, written from the moment a browser first
+asks for it (``tinted_wanted``, ``trajectory_maps_wanted``), so that no browser that never
+asks pays for it before. It is called by the viewer's flusher under the viewer's lock; it
+sends only what a :class:`~server.viewer_state.ViewerSession` marks stale and clears those marks.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -24,15 +28,12 @@ from server.viewer_state import (
     key_text,
     map_color,
 )
+from server.viewer_views import LAYERS, SHARED_VISIBLE, VARIANT_LAYERS
 from slam import matrix_to_quat_wxyz
 
 if TYPE_CHECKING:
     import viser
 
-LAYERS = ("meshes", "trajectory", "camera", "keyframes", "loops", "regions")
-HIDDEN_LAYERS = frozenset({"regions"})
-"""Layers off until a user ticks them: the maps' region outlines (several metres each) would
-dwarf the meshes of a collaborative session."""
 PATH_COLOR = (255, 150, 0)
 """A camera path's preview: orange, unlike trajectories (agents' colours) and loops (magenta)."""
 LOOP_THICKNESS = 6.0
@@ -69,22 +70,24 @@ class SceneWriter:
     stats: ViewerStats
     server: viser.ViserServer | None = None
     handles: dict[str, viser.SceneNodeHandle] = field(default_factory=dict)
-    layers: dict[str, bool] = field(default_factory=lambda: {name: name not in HIDDEN_LAYERS for name in LAYERS})
-    hidden_maps: set[int] = field(default_factory=set)
-    tint_by_map: bool = False
-    trajectory_by_map: bool = False
-    follow: bool = False
+    tinted_wanted: bool = False
+    """Write the map-coloured meshes (``tinted``) too: a browser has asked for them."""
+    trajectory_maps_wanted: bool = False
+    """Write the map-coloured trajectories (``trajectory_maps``) too."""
+    followers: Callable[[str], list[viser.ClientHandle]] = lambda session_id: []
+    """session id -> the browsers that show it with "Follow camera" on (set by the facade)."""
 
     # -- nodes -------------------------------------------------------------------------------
 
     def root(self, session_id: str) -> viser.FrameHandle:
-        """The session's node, with one child per layer (made on first use)."""
+        """The session's node, with one child per layer and variant (made on first use)."""
         name = f"/sessions/{session_id}"
         if name not in self.handles:
             self.handles[name] = self.server.scene.add_frame(name, show_axes=False)
-            for layer in LAYERS:
+            for layer in LAYERS + VARIANT_LAYERS:
                 path = f"{name}/{layer}"
-                self.handles[path] = self.server.scene.add_frame(path, show_axes=False, visible=self.layers[layer])
+                self.handles[path] = self.server.scene.add_frame(path, show_axes=False,
+                                                                 visible=layer in SHARED_VISIBLE)
         return self.handles[name]
 
     def map_node(self, state: ViewerSession, layer: str, map_id: int) -> viser.FrameHandle:
@@ -92,7 +95,7 @@ class SceneWriter:
         name = f"/sessions/{state.session_id}/{layer}/map_{map_id}"
         handle = self.handles.get(name)
         if handle is None:
-            handle = self.server.scene.add_frame(name, show_axes=False, visible=map_id not in self.hidden_maps)
+            handle = self.server.scene.add_frame(name, show_axes=False)
             self.handles[name] = handle
         place(handle, state.T_world_map(map_id))
         return handle
@@ -107,24 +110,6 @@ class SceneWriter:
             if handle is not None:
                 handle.visible = sid == selected
         self.root(selected).visible = True
-
-    def set_layer(self, session_ids, name: str, visible: bool) -> None:
-        self.layers[name] = visible
-        for sid in session_ids:
-            handle = self.handles.get(f"/sessions/{sid}/{name}")
-            if handle is not None:
-                handle.visible = visible
-
-    def set_map_visible(self, session_ids, map_id: int, visible: bool) -> None:
-        if visible:
-            self.hidden_maps.discard(map_id)
-        else:
-            self.hidden_maps.add(map_id)
-        for sid in session_ids:
-            for layer in ("meshes", "keyframes", "regions"):
-                handle = self.handles.get(f"/sessions/{sid}/{layer}/map_{map_id}")
-                if handle is not None:
-                    handle.visible = visible
 
     def show_path(self, session_id: str, poses: np.ndarray | None) -> None:
         """A camera path's preview (``ViewerAdapter.show_path``): ``/sessions/<id>/path``."""
@@ -184,8 +169,9 @@ class SceneWriter:
             new_map = new_map or f"{root}/meshes/map_{map_id}" not in self.handles
             if view.pose_dirty:
                 self.map_node(state, "meshes", map_id)
-                if f"{root}/keyframes/map_{map_id}" in self.handles:
-                    self.map_node(state, "keyframes", map_id)
+                for layer in ("tinted", "keyframes"):
+                    if f"{root}/{layer}/map_{map_id}" in self.handles:
+                        self.map_node(state, layer, map_id)
                 view.pose_dirty, sent = False, True
             frusta = state.keyframe_frusta(map_id) if view.keyframes_dirty else None
             if frusta is not None:
@@ -203,11 +189,20 @@ class SceneWriter:
         return sent, new_map
 
     def send_trajectory(self, state: ViewerSession, agent: int) -> None:
-        """Resend the open blocks of one agent's path (``ViewerSession.trajectory_blocks``)."""
-        base = f"/sessions/{state.session_id}/trajectory/agent_{agent}"
+        """Resend the open blocks of one agent's path (``ViewerSession.trajectory_blocks``) in the
+        agent's colour, and in the maps' colours while a browser wants them."""
+        first_open = state.agents[agent].sent_blocks
+        self.send_blocks(state, agent, "trajectory", by_map=False)
+        if self.trajectory_maps_wanted:
+            # the same blocks again, counted again as sent from the same start
+            state.agents[agent].sent_blocks = first_open
+            self.send_blocks(state, agent, "trajectory_maps", by_map=True)
+
+    def send_blocks(self, state: ViewerSession, agent: int, layer: str, by_map: bool) -> None:
+        base = f"/sessions/{state.session_id}/{layer}/agent_{agent}"
         if base not in self.handles:
             self.handles[base] = self.server.scene.add_frame(base, show_axes=False)
-        for block in state.trajectory_blocks(agent, by_map=self.trajectory_by_map):
+        for block in state.trajectory_blocks(agent, by_map=by_map):
             if len(block.segments):
                 colors = np.repeat(np.asarray(block.colors)[:, None, :], 2, axis=1)
                 self.add_segments(f"{base}/part_{block.part}", block.segments, colors, 2.0)
@@ -226,40 +221,49 @@ class SceneWriter:
             place(handle, T)
             if thumbnail is not None:
                 handle.image = thumbnail
-        if self.follow and agent == min(state.agents):
-            self.move_browsers_behind(T)
+        if agent == min(state.agents):
+            self.move_browsers_behind(T, self.followers(state.session_id))
 
-    def move_browsers_behind(self, T_world_cam: np.ndarray) -> None:
-        """Put every browser's camera a little behind and above the tracked camera."""
+    @staticmethod
+    def move_browsers_behind(T_world_cam: np.ndarray, clients) -> None:
+        """Put these browsers' cameras a little behind and above the tracked camera."""
         forward, down = T_world_cam[:3, 2], T_world_cam[:3, 1]
         eye = T_world_cam[:3, 3] - 0.8 * forward - 0.3 * down
         target = T_world_cam[:3, 3] + 1.0 * forward
-        for client in self.server.get_clients().values():
+        for client in clients:
             with client.atomic():
                 client.camera.position = eye
                 client.camera.look_at = target
 
     def flush_meshes(self, state: ViewerSession) -> bool:
-        """The changed chunks of every map's pending mesh; True if any was sent."""
+        """The changed chunks of every map's pending mesh (and their map-coloured variant while
+        a browser wants it); True if any was sent."""
         sent_any = False
+        layers = ("meshes", "tinted") if self.tinted_wanted else ("meshes",)
         for map_id in list(state.maps):
             update = state.take_chunk_update(map_id)
             if update is None:
                 continue
-            self.map_node(state, "meshes", map_id)
-            base = f"/sessions/{state.session_id}/meshes/map_{map_id}"
-            for key in update.removed:
-                handle = self.handles.pop(f"{base}/c_{key_text(key)}", None)
-                if handle is not None:
-                    handle.remove()
+            for layer in layers:
+                self.map_node(state, layer, map_id)
+                base = f"/sessions/{state.session_id}/{layer}/map_{map_id}"
+                for key in update.removed:
+                    handle = self.handles.pop(f"{base}/c_{key_text(key)}", None)
+                    if handle is not None:
+                        handle.remove()
             self.stats.chunks_skipped += update.skipped
             for key, chunk in update.changed.items():
-                colors = chunk.colors
-                if self.tint_by_map:
-                    colors = np.broadcast_to(np.array(map_color(map_id), dtype=np.uint8), colors.shape)
-                mesh = trimesh.Trimesh(chunk.vertices, chunk.faces, vertex_colors=colors, process=False)
-                name = f"{base}/c_{key_text(key)}"
-                self.handles[name] = self.server.scene.add_mesh_trimesh(name, mesh)
-                self.stats.chunks_sent += 1
+                self.send_chunk(state.session_id, map_id, key, chunk, tinted="tinted" in layers)
                 sent_any = True
         return sent_any
+
+    def send_chunk(self, session_id: str, map_id: int, key, chunk, tinted: bool) -> None:
+        """One mesh chunk in its vertex colours, and in its map's colour (``tinted``)."""
+        name = f"/sessions/{session_id}/meshes/map_{map_id}/c_{key_text(key)}"
+        mesh = trimesh.Trimesh(chunk.vertices, chunk.faces, vertex_colors=chunk.colors, process=False)
+        self.handles[name] = self.server.scene.add_mesh_trimesh(name, mesh)
+        self.stats.chunks_sent += 1
+        if tinted:  # one colour for the whole chunk: no vertex colours to send
+            name = f"/sessions/{session_id}/tinted/map_{map_id}/c_{key_text(key)}"
+            self.handles[name] = self.server.scene.add_mesh_simple(name, chunk.vertices, chunk.faces,
+                                                                   color=map_color(map_id))

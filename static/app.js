@@ -442,6 +442,17 @@ function currentCamera() {
   return camera;
 }
 
+// The crop box of the 3D viewer (the browser that changed it last) into the fields.
+async function cropFromViewer() {
+  try {
+    const box = await api("/api/viewer/crop");
+    [...box.min, ...box.max].forEach((v, i) => { $(CROP_FIELDS[i]).value = Number(v.toFixed(3)); });
+    say("render-message", "Crop box taken from the viewer.", "ok");
+  } catch (error) {
+    say("render-message", error.message, "error");
+  }
+}
+
 async function downloadCroppedMesh(event) {
   event.preventDefault();
   if (!selectedId) return say("render-message", "Select a session first.", "error");
@@ -892,6 +903,7 @@ function start() {
   $("path-loop").addEventListener("change", previewPath);
   $("path-button").addEventListener("click", renderPath);
   $("crop-mesh").addEventListener("click", downloadCroppedMesh);
+  $("crop-from-viewer").addEventListener("click", cropFromViewer);
   $("render-second").addEventListener("change", () => {
     $("depth-range").hidden = $("render-second").value !== "depth";
     if (lastCamera) renderView();

@@ -306,3 +306,110 @@ def test_viewer_shows_the_neural_map_instead_of_the_mesh(server_url, tmp_path):
             assert time.monotonic() < deadline, f"no neural depth in the viewer (see {tmp_path / 'neural.png'})"
             cv2.imwrite(str(tmp_path / "neural.png"), shot)
         cv2.imwrite(str(tmp_path / "neural.png"), shot)
+
+
+def viewer_shot(page, path: Path) -> np.ndarray:
+    """The viewer's scene left of its docked panel, as BGR pixels (also written to ``path``)."""
+    shot = cv2.imdecode(np.frombuffer(page.screenshot(), np.uint8), cv2.IMREAD_COLOR)
+    cv2.imwrite(str(path), shot)
+    h, w = shot.shape[:2]
+    return shot[int(0.2 * h): int(0.9 * h), int(0.1 * w): int(0.6 * w)].astype(int)
+
+
+def wait_for_shots(pages, path: Path, name: str, done, timeout_s: float = 40.0) -> list[np.ndarray]:
+    """Shots of every page (``name_<k>.png`` under ``path``) until ``done(shots)`` holds (or the
+    time is up: the caller's assertion then says what is wrong)."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        time.sleep(1.0)
+        shots = [viewer_shot(page, path / f"{name}_{k}.png") for k, page in enumerate(pages)]
+        if done(shots) or time.monotonic() > deadline:
+            return shots
+
+
+def same_picture(a: np.ndarray, b: np.ndarray) -> float:
+    """Share of pixels drawn (not background) in both or neither of two shots: the lighting of
+    software WebGL settles for a while after the scene comes, the shapes do not."""
+    return float(((a.min(axis=2) < 235) == (b.min(axis=2) < 235)).mean())
+
+
+@contextmanager
+def two_viewers(server_url: str, tmp_path: Path) -> Iterator[tuple]:
+    """A finished synthetic session shown by two browsers (contexts) on the viewer alone:
+    (api, session id, the chromium, the two pages, their first shots once the mesh is drawn)."""
+    from playwright.sync_api import sync_playwright
+
+    api = httpx.Client(base_url=server_url, timeout=30)
+    session_id = finished_synthetic(api, "orbit?frames=8&width=160&height=120")
+    api.post(f"/api/viewer/select/{session_id}")
+    with sync_playwright() as playwright:
+        browser = playwright.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
+        pages = [browser.new_context(viewport={"width": 1000, "height": 600}).new_page() for _ in range(2)]
+        for page in pages:
+            page.goto(server_url + "/viewer")
+        deadline = time.monotonic() + 90
+        while api.get("/api/viewer").json()["clients"] < 2:
+            assert time.monotonic() < deadline, "the two viewers did not connect"
+            time.sleep(0.5)
+        wait_for_shots(pages, tmp_path, "before", lambda shots: min((s.min(axis=2) < 235).mean() for s in shots) > 0.05)
+        time.sleep(3.0)  # the lighting settles
+        before = wait_for_shots(pages, tmp_path, "before", lambda shots: True)
+        assert (before[0].min(axis=2) < 235).mean() > 0.05, f"no mesh to begin with ({tmp_path})"
+        yield api, session_id, browser, pages, before
+        browser.close()
+
+
+def test_each_browser_has_its_own_viewer_controls(server_url, tmp_path):
+    """Issue 44 item 4: two browsers on the viewer; one colours the meshes by map and then hides
+    them, the other's controls and picture do not change."""
+    with two_viewers(server_url, tmp_path) as (api, session_id, browser, pages, before):
+        mine, other = pages
+        mine.get_by_text("Colour meshes by map").click()
+        orange = lambda image: ((image[..., 2] > 150) & (image[..., 2] - image[..., 0] > 80)).mean()  # noqa: E731
+        tinted = wait_for_shots(pages, tmp_path, "tinted", lambda shots: orange(shots[0]) > 0.03)
+        assert orange(tinted[0]) > 0.03 > orange(tinted[1]), (orange(tinted[0]), orange(tinted[1]), str(tmp_path))
+        assert same_picture(tinted[1], before[1]) > 0.98, f"the other browser's picture changed ({tmp_path})"
+
+        mine.get_by_text("Meshes", exact=True).click()
+        hidden = wait_for_shots(pages, tmp_path, "hidden", lambda shots: orange(shots[0]) < 0.01)
+        assert (hidden[0].min(axis=2) < 235).mean() < 0.5 * (before[0].min(axis=2) < 235).mean(), str(tmp_path)
+        assert same_picture(hidden[1], before[1]) > 0.98, f"the other browser's picture changed ({tmp_path})"
+        assert other.get_by_label("Colour meshes by map").is_checked() is False
+        assert other.get_by_label("Meshes", exact=True).is_checked()
+
+
+def test_a_crop_box_in_one_viewer_crops_its_mesh_and_the_page_takes_it(server_url, tmp_path):
+    """Issue 44 item 11: one browser's crop box (viewer panel) hides the mesh outside it in that
+    browser only, links its cropped mesh, and the page's crop fields take it from the viewer."""
+    with two_viewers(server_url, tmp_path) as (api, session_id, browser, viewers, before):
+        mine = viewers[0]
+        mine.get_by_text("Crop box").click()
+        mine.get_by_text("Fit to the session").click()
+        fields = mine.locator("input[inputmode='decimal']")
+        mine.wait_for_function("document.querySelector(\"input[inputmode='decimal']\").value !== '-1'")
+        lo, hi = float(fields.nth(0).input_value()), float(fields.nth(3).input_value())
+        middle = round((lo + hi) / 2, 2)
+        fields.nth(0).fill(str(middle))
+        fields.nth(0).press("Enter")
+        mine.get_by_text("Crop", exact=True).click()
+        drawn = lambda image: (image.min(axis=2) < 235).mean()  # noqa: E731
+        after = wait_for_shots(viewers, tmp_path, "cropped", lambda shots: drawn(shots[0]) < 0.8 * drawn(before[0]))
+        assert drawn(after[0]) < 0.8 * drawn(before[0]), (drawn(before[0]), drawn(after[0]), str(tmp_path))
+        assert same_picture(after[1], before[1]) > 0.98, f"the other browser's picture changed ({tmp_path})"
+
+        box = api.get("/api/viewer/crop").json()
+        assert box["min"][0] == pytest.approx(middle) and box["max"][0] == pytest.approx(hi)
+        link = mine.locator("a", has_text="PLY").get_attribute("href")
+        assert link.startswith(f"/api/sessions/{session_id}/mesh?format=ply&crop="), link
+        import trimesh
+
+        cropped = trimesh.load(io.BytesIO(api.get(link).content), file_type="ply", process=False)
+        assert len(cropped.faces) and cropped.vertices[:, 0].min() >= middle - 1e-4
+
+        page = browser.new_page(viewport={"width": 1400, "height": 1000})
+        page.goto(server_url + f"/?session={session_id}")
+        page.click("#crop-details summary")
+        page.click("#crop-from-viewer")
+        page.wait_for_function("document.getElementById('crop-x0').value !== ''", timeout=20_000)
+        assert float(page.input_value("#crop-x0")) == pytest.approx(middle, abs=1e-3)
+        page.locator("#crop-details").screenshot(path=str(tmp_path / "page_crop.png"))

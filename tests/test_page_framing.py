@@ -43,7 +43,7 @@ def test_select_shows_a_session_before_its_first_event(adapter):
     assert adapter.selected == "aaaaaaaaaaaa"
     adapter.select("bbbbbbbbbbbb")  # created a moment ago: queued, no event yet
     assert adapter.selected == "bbbbbbbbbbbb"
-    assert "bbbbbbbbbbbb" in adapter._session_dropdown.options
+    assert "bbbbbbbbbbbb" in adapter.session_ids()
     for i in range(3):
         adapter.handle_event("bbbbbbbbbbbb", pose(i))
         adapter.handle_event("aaaaaaaaaaaa", pose(i + 1))
@@ -59,7 +59,7 @@ def test_panel_shows_the_phase_and_the_forwarded_frames_per_second(adapter):
     adapter.handle_event(session, StatsEvent(frames_done=1, frames_total=5, fps=2.345, keyframes=1, maps=1,
                                              loops=0, voxels=10))
     adapter.flush(force=True)
-    assert "(tracking)" in adapter._status_md.content and "2.3 frames/s" in adapter._status_md.content
+    assert "(tracking)" in adapter.status_line() and "2.3 frames/s" in adapter.status_line()
     adapter.handle_event(session, PhaseEvent("refining"))
     adapter.flush(force=True)
-    assert "(refining)" in adapter._status_md.content, "a phase change alone refreshes the panel"
+    assert "(refining)" in adapter.status_line(), "a phase change alone refreshes the panel"

@@ -218,8 +218,8 @@ def test_one_frames_per_second_for_the_page_the_viewer_and_the_plot(server, page
     assert f"{state['fps']:.1f} frames/s" in stats
     viewer = server.app.state.viewer
     deadline = time.monotonic() + 10
-    while f"{state['fps']:.1f} frames/s" not in viewer._status_md.content:
-        assert time.monotonic() < deadline, (viewer._status_md.content, state["fps"])
+    while f"{state['fps']:.1f} frames/s" not in viewer.status_line():
+        assert time.monotonic() < deadline, (viewer.status_line(), state["fps"])
         time.sleep(0.2)
     series = server.api.get(f"/api/sessions/{watched.session_id}/series").json()
     assert series["fps_frames"][-1] == state["frames_done"] == FRAMES

@@ -248,7 +248,7 @@ def test_two_agents_maps_loop_and_pose_update(adapter):
     # A new pose tracked in the moved map lands where the map is now.
     adapter.handle_event(sid, agent_pose(1, 6, 1))
     assert np.allclose(adapter.trajectory_positions(sid, 1)[-1], (T1_new @ translation(0.3, 0.5, 1.0))[:3, 3])
-    assert "2 agents" in adapter._status_md.content and "1 loop, 2 agents" in adapter._status_md.content
+    assert "2 agents" in adapter.status_line() and "1 loop, 2 agents" in adapter.status_line()
     adapter.remove_session(sid)
     assert not any(name.startswith(root) for name in adapter._handles)
 

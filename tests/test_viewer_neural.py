@@ -9,7 +9,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from server.viewer_neural import SURFACES, NeuralViews, neural_image
+from server.viewer_neural import SURFACES, NeuralViews, Wanted, neural_image
 from server.viewer_state import ViewerCamera
 from slam import matrix_to_quat_wxyz
 from tests.test_server_api import (
@@ -65,26 +65,27 @@ def test_a_view_per_camera_move_and_the_mesh_clears_it(session_map):
     views = NeuralViews(lambda session_id: mapset if session_id == "s" else None)
     browser = FakeBrowser(T)
     try:
-        views.update({1: browser}, "s")
+        other = FakeBrowser(T)  # a second browser that stays on the mesh
+        views.update({1: Wanted(browser, "s", "mesh"), 2: Wanted(other, "s", "mesh")})
         assert not browser.backgrounds, "the mesh is the default: nothing rendered"
-        views.surface = "neural normals"
-        views.update({1: browser}, "s")
-        views.update({1: browser}, "s")  # the camera has not moved: no second view
+        normals = {1: Wanted(browser, "s", "neural normals"), 2: Wanted(other, "s", "mesh")}
+        views.update(normals)
+        views.update(normals)  # the camera has not moved: no second view
         deadline = time.monotonic() + 60
         while views.views_rendered < 1:
             assert time.monotonic() < deadline, "no view rendered"
             time.sleep(0.05)
         time.sleep(0.3)
         assert views.views_rendered == 1 and len(browser.backgrounds) == 1
+        assert not other.backgrounds, "each browser has its own surface"
         image, options = browser.backgrounds[0]
         assert image.shape[2] == 3 and options["depth"].shape == image.shape[:2]
         browser.camera.update_timestamp = 2.0  # moved
-        views.update({1: browser}, "s")
+        views.update(normals)
         while views.views_rendered < 2:
             assert time.monotonic() < deadline, "no view after the camera moved"
             time.sleep(0.05)
-        views.surface = "mesh"
-        views.update({1: browser}, "s")
+        views.update({1: Wanted(browser, "s", "mesh")})
         assert browser.backgrounds[-1][0] is None, "back to the mesh: the background is cleared"
     finally:
         views.stop()
