@@ -115,7 +115,13 @@ def test_mesh_has_vertex_colours_in_the_world_frame(run, frames):
     assert len(mesh.vertices) > 100 and len(mesh.faces) > 100
     colors = np.asarray(mesh.visual.vertex_colors)
     assert colors.shape == (len(mesh.vertices), 4) and colors.dtype == np.uint8
-    assert len(np.unique(colors[:, :3], axis=0)) > 1, "colours come from the colour head, not one default"
+    # Colours come from the colour head, not a default: after this short a run (30 iterations
+    # on the first frame) the head has learnt the scene's mean colour but little detail, so
+    # a count of distinct colours (1-4 here) would test the training's luck, not the mesh.
+    observed = np.concatenate([f.rgb.reshape(-1, 3) for f in frames]).astype(np.float64)
+    observed *= 255.0 if observed.max() <= 1.0 else 1.0
+    assert np.abs(colors[:, :3].mean(axis=0) - observed.mean(axis=0)).max() < 40, "the scene's mean colour"
+    assert not (colors[:, :3] == [102, 102, 102]).all(), "not trimesh's default grey"
     # Every vertex lies in the world-frame box of the frames' back-projected depth, grown by
     # two voxels (allocation covers depth +- tr rounded out to whole voxels). The run's world is
     # its first camera's frame: the GT poses are moved into it.
