@@ -138,8 +138,8 @@ class ViewerAdapter:
         self.neural: NeuralViews | None = None
 
     @property
-    def _handles(self) -> dict[str, viser.SceneNodeHandle]:
-        """The scene nodes by path (module doc)."""
+    def nodes(self) -> dict[str, viser.SceneNodeHandle]:
+        """The shared scene nodes by path (module doc), to read: what the browsers are sent."""
         return self._scene.handles
 
     # -- lifecycle ---------------------------------------------------------------------------

@@ -182,7 +182,7 @@ def test_a_path_preview_is_drawn_in_the_viewer_and_cleared(tmp_path):
         keys = [np.array(camera_looking_at([0, 0, 0], eye)["T_world_cam"]).tolist()
                 for eye in ([1, 0, 1], [0, 1, 1], [-1, 0, 1])]
         assert app.put(url, json={"keyframes": keys, "loop": True}).status_code == 204
-        handles = app.app.state.viewer._handles
+        handles = app.app.state.viewer.nodes
         line = np.asarray(handles[f"/sessions/{created['id']}/path/line"].points)
         assert line.shape == (119, 2, 3), "120 frames of a closed path: 119 segments"
         assert np.allclose(line[0, 0], [1, 0, 1], atol=1e-6), "it starts at the first keyframe"

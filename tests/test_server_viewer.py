@@ -103,7 +103,7 @@ def test_scene_nodes_and_only_changed_chunks_resent(adapter):
     adapter.handle_event(sid, mesh_event(mesh, np.eye(4), 1))
     adapter.handle_event(sid, StatsEvent(5, 10, 4.0, 1, 1, 0, 100))
     adapter.flush(force=True)
-    names = set(adapter._handles)
+    names = set(adapter.nodes)
     assert f"/sessions/{sid}/camera/frustum" in names
     assert f"/sessions/{sid}/meshes/map_0" in names
     first = adapter.stats.chunks_sent
@@ -117,8 +117,8 @@ def test_scene_nodes_and_only_changed_chunks_resent(adapter):
     adapter.flush(force=True)
     assert adapter.stats.chunks_sent == first
     assert adapter.stats.chunks_skipped >= first
-    assert np.allclose(adapter._handles[f"/sessions/{sid}/meshes/map_0"].position, [0.3, -0.2, 0.0])
-    assert f"/sessions/{sid}/loops" in adapter._handles
+    assert np.allclose(adapter.nodes[f"/sessions/{sid}/meshes/map_0"].position, [0.3, -0.2, 0.0])
+    assert f"/sessions/{sid}/loops" in adapter.nodes
 
     # The mesh grows on one side: only the chunks there are sent again.
     grown = trimesh.util.concatenate([mesh, trimesh.creation.box((0.5, 0.5, 0.5)).apply_translation([3.2, 0, 0])])
@@ -128,7 +128,7 @@ def test_scene_nodes_and_only_changed_chunks_resent(adapter):
     assert 0 < new_chunks < first
 
     adapter.remove_session(sid)
-    assert not any(name.startswith(f"/sessions/{sid}") for name in adapter._handles)
+    assert not any(name.startswith(f"/sessions/{sid}") for name in adapter.nodes)
 
 
 def test_updates_are_rate_limited(adapter):
@@ -171,7 +171,7 @@ def agent_pose(agent: int, i: int, map_id: int) -> PoseEvent:
 
 
 def segment_points(adapter, name: str) -> np.ndarray:
-    return np.asarray(adapter._handles[name].points, dtype=np.float64)
+    return np.asarray(adapter.nodes[name].points, dtype=np.float64)
 
 
 def test_agent_colors_are_distinct_and_differ_from_maps():
@@ -196,20 +196,20 @@ def test_two_agents_maps_loop_and_pose_update(adapter):
     adapter.handle_event(sid, mesh_event(mesh, T1, 1, map_id=1))
     adapter.flush(force=True)
     root = f"/sessions/{sid}"
-    names = set(adapter._handles)
+    names = set(adapter.nodes)
     for path in ("meshes/map_0", "meshes/map_1", "regions/map_1/bounds", "trajectory/agent_0/part_0",
                  "trajectory/agent_1/part_0", "camera/frustum",
                  "camera/frustum_1", "keyframes/map_1/frusta"):
         assert f"{root}/{path}" in names, path
     # Each agent's path in its own colour; every map in its own.
-    colors_0 = np.asarray(adapter._handles[f"{root}/trajectory/agent_0/part_0"].colors).reshape(-1, 3)
-    colors_1 = np.asarray(adapter._handles[f"{root}/trajectory/agent_1/part_0"].colors).reshape(-1, 3)
+    colors_0 = np.asarray(adapter.nodes[f"{root}/trajectory/agent_0/part_0"].colors).reshape(-1, 3)
+    colors_1 = np.asarray(adapter.nodes[f"{root}/trajectory/agent_1/part_0"].colors).reshape(-1, 3)
     assert (colors_0 == agent_color(0)).all() and (colors_1 == agent_color(1)).all()
-    assert np.allclose(np.asarray(adapter._handles[f"{root}/keyframes/map_1/frusta"].colors).reshape(-1, 3)[0],
+    assert np.allclose(np.asarray(adapter.nodes[f"{root}/keyframes/map_1/frusta"].colors).reshape(-1, 3)[0],
                        map_color(1))
-    assert np.allclose(adapter._handles[f"{root}/meshes/map_1"].position, [3.0, 1.0, 0.0])
-    assert not adapter._handles[f"{root}/regions"].visible, "region boxes are off until ticked"
-    assert adapter._handles[f"{root}/meshes"].visible
+    assert np.allclose(adapter.nodes[f"{root}/meshes/map_1"].position, [3.0, 1.0, 0.0])
+    assert not adapter.nodes[f"{root}/regions"].visible, "region boxes are off until ticked"
+    assert adapter.nodes[f"{root}/meshes"].visible
     chunks_before = adapter.stats.chunks_sent
     before_0 = adapter.trajectory_positions(sid, 0)
     before_1 = adapter.trajectory_positions(sid, 1)
@@ -234,12 +234,12 @@ def test_two_agents_maps_loop_and_pose_update(adapter):
     assert np.allclose(adapter.trajectory_positions(sid, 0), before_0), "agent 0's map did not move"
     drawn = segment_points(adapter, f"{root}/trajectory/agent_1/part_0")
     assert np.allclose(drawn[:, 0], after_1[:-1], atol=1e-5) and np.allclose(drawn[:, 1], after_1[1:], atol=1e-5)
-    assert np.allclose(adapter._handles[f"{root}/meshes/map_1"].position, T1_new[:3, 3])
-    assert np.allclose(adapter._handles[f"{root}/keyframes/map_1"].position, T1_new[:3, 3])
+    assert np.allclose(adapter.nodes[f"{root}/meshes/map_1"].position, T1_new[:3, 3])
+    assert np.allclose(adapter.nodes[f"{root}/keyframes/map_1"].position, T1_new[:3, 3])
     assert adapter.stats.chunks_sent == chunks_before, "moving a map resends no mesh chunk"
     edge = segment_points(adapter, f"{root}/loops/edges")
     assert np.allclose(edge[0, 0], after_1[5], atol=1e-5) and np.allclose(edge[0, 1], before_0[1], atol=1e-5)
-    frustum = adapter._handles[f"{root}/camera/frustum_1"]
+    frustum = adapter.nodes[f"{root}/camera/frustum_1"]
     assert np.allclose(frustum.position, after_1[-1], atol=1e-6), "agent 1's camera moved with its map"
     # The keyframes now sit where the event says (drawn in the map frame under the moved node).
     frusta = segment_points(adapter, f"{root}/keyframes/map_1/frusta")
@@ -250,7 +250,7 @@ def test_two_agents_maps_loop_and_pose_update(adapter):
     assert np.allclose(adapter.trajectory_positions(sid, 1)[-1], (T1_new @ translation(0.3, 0.5, 1.0))[:3, 3])
     assert "2 agents" in adapter.status_line() and "1 loop, 2 agents" in adapter.status_line()
     adapter.remove_session(sid)
-    assert not any(name.startswith(root) for name in adapter._handles)
+    assert not any(name.startswith(root) for name in adapter.nodes)
 
 
 def test_loop_edge_without_tracked_frames_follows_its_maps(adapter):
@@ -271,9 +271,9 @@ def test_loop_edge_without_tracked_frames_follows_its_maps(adapter):
     assert np.allclose(adapter.loop_segments(sid)[0], [[1.5, 2.5, 0], [0.2, 0, 0]])
     assert np.allclose(segment_points(adapter, f"/sessions/{sid}/loops/edges")[0], [[1.5, 2.5, 0], [0.2, 0, 0]])
     # drawn to stand out: thicker than a trajectory, with a dot at each end
-    edges = adapter._handles[f"/sessions/{sid}/loops/edges"]
+    edges = adapter.nodes[f"/sessions/{sid}/loops/edges"]
     assert edges.thickness >= 6.0
-    assert np.allclose(np.asarray(adapter._handles[f"/sessions/{sid}/loops/ends"].points),
+    assert np.allclose(np.asarray(adapter.nodes[f"/sessions/{sid}/loops/ends"].points),
                        [[1.5, 2.5, 0], [0.2, 0, 0]])
 
 
@@ -289,7 +289,7 @@ def test_a_map_placed_after_its_first_pose_takes_it_along(adapter):
     expected = np.stack([(T1 @ translation(0.05 * i, 0.5, 1.0))[:3, 3] for i in range(2)])
     assert np.allclose(adapter.trajectory_positions(sid, 1), expected)
     adapter.flush(force=True)
-    assert np.allclose(adapter._handles[f"/sessions/{sid}/camera/frustum_1"].position, expected[1])
+    assert np.allclose(adapter.nodes[f"/sessions/{sid}/camera/frustum_1"].position, expected[1])
     frusta = segment_points(adapter, f"/sessions/{sid}/keyframes/map_1/frusta")
     assert np.allclose(frusta[0, 0], translation(0.0, 0.5, 1.0)[:3, 3], atol=1e-6), "keyframe in the map frame"
     T1_new = translation(2.0, 1.2, yaw=0.5)
@@ -315,5 +315,5 @@ def test_finished_session_from_disk_shows_every_agent(adapter, tmp_path):
     sid = "c0ffee000004"
     adapter.load_finished(sid, tmp_path / "missing.ply", {0: np.zeros((3, 3)), 1: np.ones((4, 3))})
     adapter.flush(force=True)
-    assert f"/sessions/{sid}/trajectory/agent_1/part_0" in adapter._handles
+    assert f"/sessions/{sid}/trajectory/agent_1/part_0" in adapter.nodes
     assert len(adapter.trajectory_positions(sid, 1)) == 4

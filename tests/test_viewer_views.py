@@ -145,8 +145,8 @@ def test_one_browsers_choices_change_its_own_scene_only(two_browsers):
     assert adapter.shadow_frames(second) == {}
     assert adapter.views()[second] == ClientView()
     # the map-coloured meshes are shared: written once, to every browser, hidden but for the first
-    assert f"{root}/tinted/map_1" in adapter._handles and not adapter._handles[f"{root}/tinted"].visible
-    assert adapter._handles[f"{root}/meshes"].visible, "the shared layer is untouched"
+    assert f"{root}/tinted/map_1" in adapter.nodes and not adapter.nodes[f"{root}/tinted"].visible
+    assert adapter.nodes[f"{root}/meshes"].visible, "the shared layer is untouched"
     # the second browser's panel still offers map 1 ticked
     assert adapter._panels[second]._map_boxes[1].value and not panel._map_boxes[1].value
 
