@@ -31,6 +31,7 @@ from .config_sections import (
     STATIC_SHAPES,
     ConfigError,
     DecoderConfig,
+    FineColorConfig,
     LoopConfig,
     LossConfig,
     MappingConfig,
@@ -44,7 +45,7 @@ from .config_sections import (
 
 __all__ = [
     "LOSS_NORMALISATIONS", "PRESETS", "RETIRED_FIELDS", "STATIC_SHAPES", "ConfigError", "DecoderConfig",
-    "LoopConfig", "LossConfig", "MappingConfig", "MeshConfig", "MultiMapConfig", "RenderConfig",
+    "FineColorConfig", "LoopConfig", "LossConfig", "MappingConfig", "MeshConfig", "MultiMapConfig", "RenderConfig",
     "RuntimeConfig", "SLAMConfig", "TrackingConfig", "VoxelConfig", "apply_overrides", "config_from_dict",
     "default_preset_name", "load_config", "preset",
 ]
@@ -62,6 +63,7 @@ class SLAMConfig:
     multimap: MultiMapConfig = field(default_factory=MultiMapConfig)
     loop: LoopConfig = field(default_factory=LoopConfig)
     mesh: MeshConfig = field(default_factory=MeshConfig)
+    fine_color: FineColorConfig = field(default_factory=FineColorConfig)
     runtime: RuntimeConfig = field(default_factory=RuntimeConfig)
 
     def to_dict(self) -> dict[str, Any]:
