@@ -60,9 +60,9 @@ def test_config_checks_the_fine_level():
 
 
 # ------------------------------------------------------------ mapping
-def _mapped(levels: int) -> Mapper:
+def _mapped(levels: int, static: str = "off") -> Mapper:
     base = preset("test")
-    config = replace(base, fine_color=replace(FINE, levels=levels))
+    config = replace(base, fine_color=replace(FINE, levels=levels), render=replace(base.render, static_shapes=static))
     frames = [prepare_frame(f, None, CPU, base.voxel.max_depth)
               for f in open_sequence("synthetic:orbit?frames=100&width=80&height=60", max_frames=2)]
     mapper = Mapper(config, CPU, seed=0)
@@ -72,8 +72,9 @@ def _mapped(levels: int) -> Mapper:
     return mapper
 
 
-def test_mapping_trains_the_fine_level_and_leaves_the_coarse_map_as_without_it():
-    with_level, without = _mapped(3), _mapped(0)
+@pytest.mark.parametrize("static", ["off", "on"])  # flat samples (slam.render) and padded (slam.padded)
+def test_mapping_trains_the_fine_level_and_leaves_the_coarse_map_as_without_it(static):
+    with_level, without = _mapped(3, static), _mapped(0, static)
     a, b = with_level.current, without.current
     assert b.fine is None and a.fine is not None
     assert torch.equal(a.voxels.embeddings, b.voxels.embeddings)
