@@ -141,3 +141,21 @@ def test_checkpoint_keeps_the_fine_level_and_old_checkpoints_load_without_it(tmp
     old = load_checkpoint(tmp_path / "old.pt")
     assert old.maps[0].fine is None
     assert render_view(old, np.eye(4), pinhole(32, 24, 16.0), 32, 24).valid.any()
+
+
+def test_the_numba_features_match_the_torch_path():
+    from slam.kernels import numba_kernels
+
+    if numba_kernels() is None:
+        pytest.skip("numba unavailable")
+    from slam.kernels.fused import hash_grid
+
+    fine = FineColor(FINE, seed=1)
+    with torch.no_grad():
+        fine.tables.normal_()
+    points = (torch.rand(300, 3) - 0.5) * 6.0
+    torch.testing.assert_close(hash_grid(points, fine.cells, fine.tables),
+                               hash_features(points, fine.tables, fine.cells), atol=1e-5, rtol=1e-5)
+    with torch.no_grad():  # the forward takes the kernel without gradients
+        torch.testing.assert_close(fine(points), fine.head(hash_features(points, fine.tables, fine.cells)),
+                                   atol=1e-5, rtol=1e-5)
