@@ -165,6 +165,14 @@ def _cpu() -> SLAMConfig:
         multimap=MultiMapConfig(
             region_size=3.0,               # laps return to other maps (decisions.md#multimap.region_size)
         ),
+        fine_color=FineColorConfig(
+            levels=4,                      # colour detail below 0.2 m voxels, no cost to tracking (decisions.md#fine_color)
+            coarsest=0.16,                 # 0.16-0.02 m beat 0.08-0.01 m on fr1/desk (decisions.md#fine_color)
+            finest=0.02,                   # with coarsest (decisions.md#fine_color)
+            fit_iterations=0,              # fits during the run cost tracking 26 % of its frames/s (decisions.md#fine_color)
+            fit_rays=8192,                 # with fit_iterations (decisions.md#fine_color)
+            final_fit_iterations=50,       # with fit_iterations (decisions.md#fine_color)
+        ),
         loop=LoopConfig(
             intra_map_iterations=0,        # a rigid move changes nothing inside (decisions.md#loop.intra_map_iterations)
         ),
