@@ -129,7 +129,7 @@ class FineColor(nn.Module):
         if not torch.is_grad_enabled() and kernels.use_numba(points, self.tables):
             from .kernels.fused import hash_grid
 
-            return self.head(hash_grid(points, self.cells, self.tables))
+            return self.head(hash_grid(points, self.cells, self.tables, HASH_PRIMES))
         return self.head(hash_features(points, self.tables, self.cells))
 
     def num_bytes(self) -> int:

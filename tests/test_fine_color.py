@@ -148,13 +148,14 @@ def test_the_numba_features_match_the_torch_path():
 
     if numba_kernels() is None:
         pytest.skip("numba unavailable")
+    from slam.fine_color import HASH_PRIMES
     from slam.kernels.fused import hash_grid
 
     fine = FineColor(FINE, seed=1)
     with torch.no_grad():
         fine.tables.normal_()
     points = (torch.rand(300, 3) - 0.5) * 6.0
-    torch.testing.assert_close(hash_grid(points, fine.cells, fine.tables),
+    torch.testing.assert_close(hash_grid(points, fine.cells, fine.tables, HASH_PRIMES),
                                hash_features(points, fine.tables, fine.cells), atol=1e-5, rtol=1e-5)
     with torch.no_grad():  # the forward takes the kernel without gradients
         torch.testing.assert_close(fine(points), fine.head(hash_features(points, fine.tables, fine.cells)),
