@@ -121,7 +121,7 @@ def office0(config, extra: int, quick: bool, points: int) -> list[Figure]:
     print(f"office0: mapping {t1 - t0:.0f} s, mesh {t2 - t1:.0f} s, metrics {t3 - t2:.0f} s, "
           f"rendering {len(frames)} views {time.perf_counter() - t3:.0f} s", flush=True)
     memory = map_memory_mb(mapper)
-    total_mb = memory["embeddings"] + memory["decoder"]
+    total_mb = memory["embeddings"] + memory["decoder"] + memory["fine"]
     size = f"{frames[0].width}x{frames[0].height}"
     label = f"office0 frames {indices[0]}-{indices[-1]}"
     return [
@@ -130,8 +130,8 @@ def office0(config, extra: int, quick: bool, points: int) -> list[Figure]:
                f"{seen.completion_ratio:.0%} of the visible surface"),
         Figure(f"{label}: median rendered depth error", views.depth_median_cm, "cm", "<= 1",
                f"{size}, {views.coverage:.0%} of pixels rendered; L1 {views.depth_l1_cm:.2f} cm"),
-        Figure("office0: map memory (embeddings + decoder)", total_mb, "MB", f"paper {PAPER_MAP_MB}",
-               f"embeddings {memory['embeddings']:.3f} MB ({memory['voxels']} voxels), "
+        Figure("office0: map memory (embeddings + decoder + fine colour)", total_mb, "MB", f"paper {PAPER_MAP_MB}",
+               f"embeddings {memory['embeddings']:.3f} MB ({memory['voxels']} voxels), fine colour {memory['fine']:.3f} MB, "
                f"decoder {memory['decoder']:.3f} MB, voxel index {memory['voxel_index']:.3f} MB more"),
     ]
 

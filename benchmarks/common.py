@@ -356,12 +356,14 @@ def mesh_in_gt_frame(mesh, estimated, ground_truth):
 
 
 def map_memory_mb(mapper) -> dict[str, float]:
-    """Embeddings and decoder MB as ``run.json`` counts them, plus the voxel index."""
+    """Embeddings and decoder MB as ``run.json`` counts them, plus the voxel index and the fine
+    colour level's tables (``slam.fine_color``; 0 without one)."""
     embed = sum(m.voxels.embeddings.numel() * m.voxels.embeddings.element_size() for m in mapper.maps.maps)
     decoder = sum(m.decoder.num_bytes() for m in mapper.maps.maps)
     index = sum(m.voxels.nbytes() for m in mapper.maps.maps) - embed
+    fine = sum(m.fine.num_bytes() for m in mapper.maps.maps if m.fine is not None)
     return {"embeddings": embed / 2**20, "decoder": decoder / 2**20, "voxel_index": index / 2**20,
-            "voxels": mapper.maps.num_voxels()}
+            "fine": fine / 2**20, "voxels": mapper.maps.num_voxels()}
 
 
 @dataclass

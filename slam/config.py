@@ -31,6 +31,7 @@ from .config_sections import (
     STATIC_SHAPES,
     ConfigError,
     DecoderConfig,
+    FineColorConfig,
     LoopConfig,
     LossConfig,
     MappingConfig,
@@ -44,7 +45,7 @@ from .config_sections import (
 
 __all__ = [
     "LOSS_NORMALISATIONS", "PRESETS", "RETIRED_FIELDS", "STATIC_SHAPES", "ConfigError", "DecoderConfig",
-    "LoopConfig", "LossConfig", "MappingConfig", "MeshConfig", "MultiMapConfig", "RenderConfig",
+    "FineColorConfig", "LoopConfig", "LossConfig", "MappingConfig", "MeshConfig", "MultiMapConfig", "RenderConfig",
     "RuntimeConfig", "SLAMConfig", "TrackingConfig", "VoxelConfig", "apply_overrides", "config_from_dict",
     "default_preset_name", "load_config", "preset",
 ]
@@ -62,6 +63,7 @@ class SLAMConfig:
     multimap: MultiMapConfig = field(default_factory=MultiMapConfig)
     loop: LoopConfig = field(default_factory=LoopConfig)
     mesh: MeshConfig = field(default_factory=MeshConfig)
+    fine_color: FineColorConfig = field(default_factory=FineColorConfig)
     runtime: RuntimeConfig = field(default_factory=RuntimeConfig)
 
     def to_dict(self) -> dict[str, Any]:
@@ -162,6 +164,14 @@ def _cpu() -> SLAMConfig:
         ),
         multimap=MultiMapConfig(
             region_size=3.0,               # laps return to other maps (decisions.md#multimap.region_size)
+        ),
+        fine_color=FineColorConfig(
+            levels=4,                      # colour detail below 0.2 m voxels, no cost to tracking (decisions.md#fine_color)
+            coarsest=0.16,                 # 0.16-0.02 m beat 0.08-0.01 m on fr1/desk (decisions.md#fine_color)
+            finest=0.02,                   # with coarsest (decisions.md#fine_color)
+            fit_iterations=0,              # fits during the run cost tracking 26 % of its frames/s (decisions.md#fine_color)
+            fit_rays=8192,                 # with fit_iterations (decisions.md#fine_color)
+            final_fit_iterations=50,       # with fit_iterations (decisions.md#fine_color)
         ),
         loop=LoopConfig(
             intra_map_iterations=0,        # a rigid move changes nothing inside (decisions.md#loop.intra_map_iterations)

@@ -337,6 +337,44 @@ class LoopConfig:
 
 
 @dataclass(frozen=True)
+class FineColorConfig:
+    """The fine level of colour (``slam.fine_color``): a hash grid of colour features queried at
+    rendered surface points, a residual on the coarse colour of views and meshes, trained by
+    mapping only (tracking never renders it)."""
+
+    levels: int = 0
+    """Grids from ``coarsest`` to ``finest`` (geometric steps); 0: no fine level."""
+    features: int = 2
+    """Floats per table row."""
+    table_log2: int = 14
+    """Each level's table holds 2^table_log2 rows (hash collisions share a row)."""
+    coarsest: float = 0.08
+    """Cell edge of the coarsest level (metres)."""
+    finest: float = 0.01
+    """Cell edge of the finest level (metres)."""
+    lr: float = 1e-2
+    """Adam learning rate of the tables and the head."""
+    fit_iterations: int = 4
+    """After each windowed optimisation, this many steps of the fine level alone on observed
+    surface points of the keyframes (one coarse decoder sample per point: no rendering)."""
+    fit_rays: int = 2048
+    """Points per fit step, drawn from up to ``FIT_KEYFRAMES`` random keyframes."""
+    final_fit_iterations: int = 100
+    """Fit steps after the final bundle adjustment, over every keyframe."""
+
+    def __post_init__(self) -> None:
+        for name in ("levels", "features", "table_log2", "fit_iterations", "fit_rays", "final_fit_iterations"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+                raise ConfigError(f"fine_color.{name} must be an integer >= 0, got {value!r}")
+        if self.levels and (self.features < 1 or not 1 <= self.table_log2 <= 24):
+            raise ConfigError("fine_color.features must be >= 1 and table_log2 in 1-24 when levels > 0")
+        if not 0 < self.finest <= self.coarsest:
+            raise ConfigError(f"fine_color needs 0 < finest <= coarsest, got {self.finest} and {self.coarsest}")
+        _check_non_negative("fine_color.lr", self.lr)
+
+
+@dataclass(frozen=True)
 class MeshConfig:
     resolution: int = 8
     """Marching-cubes cells per voxel edge."""

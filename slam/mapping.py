@@ -34,6 +34,7 @@ import numpy as np
 import torch
 
 from .config import SLAMConfig
+from .fine_color import coarse_point_color, fine_loss, fit_loss
 from .frames import (
     FrameStack,
     draw_device,
@@ -53,6 +54,12 @@ from .profiling import MAPPING_ITERATION, scope
 from .render import TrainingThinning, render_rays
 from .transfer import to_host
 from .voxels import grow_adam_state, lookup_sorted, morton_encode, voxel_coords_of
+
+
+FIT_KEYFRAMES = 8
+"""Keyframes a fit step of the fine colour level draws its points from (``Mapper.fit_fine``)."""
+FIT_KEYFRAMES_FINAL = 1 << 30
+"""... after the final bundle adjustment: every keyframe."""
 
 
 @dataclass(frozen=True)
@@ -269,6 +276,9 @@ class Mapper:
         # On the device: rays and offsets are drawn where they are used (on a GPU: no upload,
         # which would wait for the queue); on the CPU it is the generator it always was.
         self._gen = torch.Generator(device=device).manual_seed(seed)
+        # The fine colour level's fits draw from their own streams (``fit_fine``).
+        self._fine_rng = random.Random(seed + 1)
+        self._fine_gen = torch.Generator(device=device).manual_seed(seed + 1)
         self.static = config.render.uses_static_shapes(device)
         """Iterations render padded samples (``slam.padded``; ``render.static_shapes``)."""
         self._optimizers: dict[int, torch.optim.Optimizer] = {}
@@ -312,10 +322,13 @@ class Mapper:
             m = self.config.mapping
             # Static shapes: the fused step (one kernel for every parameter, its step count on
             # the device), as a GPU wants it; else torch's default (foreach on CUDA).
-            opt = torch.optim.Adam([
+            groups = [
                 {"params": [submap.voxels.embeddings], "lr": m.lr_embed},
                 {"params": list(submap.decoder.parameters()), "lr": m.lr_decoder},
-            ], fused=True if self.static else None)
+            ]
+            if submap.fine is not None:
+                groups.append({"params": list(submap.fine.parameters()), "lr": self.config.fine_color.lr})
+            opt = torch.optim.Adam(groups, fused=True if self.static else None)
             self._optimizers[submap.map_id] = opt
         return opt
 
@@ -401,6 +414,7 @@ class Mapper:
             self._keyframe_pending[agent] = False
             current = None if is_kf or not tracked.tracking_ok else (tracked.frame, T_map_cam)
             losses, T_current = self._optimize_window(submap, iters, current)
+            self.fit_fine(submap, self.config.fine_color.fit_iterations)
         else:
             T_current = None
         self.version += 1
@@ -464,7 +478,42 @@ class Mapper:
         # At least a few rays per keyframe: long sequences cost a little more per iteration
         # rather than leaving keyframes out.
         per_frame = max(num_rays // len(kfs), 4)
-        return self._joint_optimisation(submap, list(kfs), [], iterations, per_frame, deadline)[0]
+        losses = self._joint_optimisation(submap, list(kfs), [], iterations, per_frame, deadline)[0]
+        self.fit_fine(submap, self.config.fine_color.final_fit_iterations, FIT_KEYFRAMES_FINAL)
+        return losses
+
+    def fit_fine(self, submap: SubMap, iterations: int, keyframes: int = 0) -> None:
+        """``iterations`` Adam steps of the fine colour level alone (``slam.fine_color``) on
+        ``fine_color.fit_rays`` observed surface points of random keyframes (at most
+        ``keyframes``, default ``FIT_KEYFRAMES``); nothing when the map has no fine level. Its
+        own random stream: the coarse map's draws are those of a run without it."""
+        kfs = [kf for kf in submap.keyframes if kf.frame is not None]
+        if submap.fine is None or iterations <= 0 or not kfs:
+            return
+        t0 = time.perf_counter()
+        optimizer = self._ensure_optimizer(submap)
+        view, cfg = submap.view(), self.config.fine_color
+        for _ in range(iterations):
+            chosen = self._fine_rng.sample(kfs, min(len(kfs), keyframes or FIT_KEYFRAMES))
+            points, rgb_gt = self._fine_points(chosen, max(cfg.fit_rays // len(chosen), 1))
+            with torch.no_grad():
+                coarse, inside = coarse_point_color(points, view, submap.decoder)
+            optimizer.zero_grad(set_to_none=True)
+            fit_loss(submap.fine, points, coarse, inside, rgb_gt).backward()
+            optimizer.step()  # only the fine level has gradients; Adam skips the rest
+        self.timer.add("fine_fit", time.perf_counter() - t0)
+
+    def _fine_points(self, keyframes: list[Keyframe], per_frame: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """``per_frame`` observed pixels of each keyframe -> map-frame points (N, 3) at their
+        depth and their colours (N, 3)."""
+        points, colours = [], []
+        for kf in keyframes:
+            batch = sample_pixels(kf.frame, per_frame, self._fine_gen)
+            cam = batch.dirs_cam * batch.depth[:, None]
+            T = kf.T_map_cam.detach()
+            points.append(cam @ T[:3, :3].T + T[:3, 3])
+            colours.append(batch.rgb)
+        return torch.cat(points), torch.cat(colours)
 
     def _joint_optimisation(self, submap: SubMap, keyframes: list[Keyframe],
                             fixed: list[tuple[TensorFrame, torch.Tensor]], iterations: int,
@@ -544,6 +593,10 @@ class Mapper:
                                 normalisation=self.config.loss.normalisation)
         if w.exposure is not None:
             losses = w.exposure.regularised(losses)
+        if submap.fine is not None:  # the fine level learns the residual; nothing else gets its gradient
+            use = out.hit & (d_gt > 0)
+            fine = fine_loss(submap.fine, o, d, out.color, out.depth, use, c_gt)
+            losses = replace(losses, total=losses.total + w.weights.rgb * fine)
         return losses
 
     def _render_window(self, submap: SubMap, w: "_JointWindow", o: torch.Tensor, d: torch.Tensor,

@@ -13,13 +13,14 @@ parent and floats in its own group until a loop joins it.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
 
 from .config import SLAMConfig
 from .decoder import Decoder
+from .fine_color import FineColor
 from .frames import TensorFrame
 from .render import MapView
 from .voxels import SparseVoxelMap, lookup_sorted
@@ -78,6 +79,9 @@ class SubMap:
     T_parent_map: torch.Tensor | None = None
     """(4, 4) this map's pose in its parent's frame when it was started: the tracking chain's
     measurement of their relation (the pose graph's sequential edge)."""
+    fine: FineColor | None = None
+    """The fine colour level (``slam.fine_color``), None without one (``fine_color.levels`` 0,
+    or a checkpoint written before it existed)."""
 
     @classmethod
     def create(cls, map_id: int, agent: int, config: SLAMConfig, device: torch.device,
@@ -88,7 +92,8 @@ class SubMap:
                                 config.voxel.embed_init_std, device=device, seed=seed + map_id)
         decoder = Decoder(config.decoder, config.voxel.embed_dim).to(device)
         T = torch.eye(4, device=device) if T_world_map is None else T_world_map.to(device)
-        return cls(map_id, agent, voxels, decoder, T)
+        fine = FineColor(config.fine_color, seed + map_id).to(device) if config.fine_color.levels else None
+        return cls(map_id, agent, voxels, decoder, T, fine=fine)
 
     def view(self) -> MapView:
         return MapView.of(self.voxels)
@@ -133,8 +138,9 @@ class SubMap:
         return MapView(v.voxel_codes[keep], v.voxel_corners[keep], v.embeddings, v.voxel_size)
 
     def memory_bytes(self) -> tuple[int, int]:
-        """(embeddings + voxel index bytes, decoder bytes)."""
-        return self.voxels.nbytes(), self.decoder.num_bytes()
+        """(embeddings + voxel index + fine level bytes, decoder bytes)."""
+        fine = 0 if self.fine is None else self.fine.num_bytes()
+        return self.voxels.nbytes() + fine, self.decoder.num_bytes()
 
     def state_dict(self) -> dict:
         return {
@@ -148,6 +154,7 @@ class SubMap:
             "parent": self.parent,
             "reason": self.reason,
             "T_parent_map": None if self.T_parent_map is None else self.T_parent_map.detach().cpu(),
+            "fine": None if self.fine is None else {k: v.detach().cpu() for k, v in self.fine.state_dict().items()},
             "keyframes": [
                 {"frame_index": kf.frame_index, "timestamp": kf.timestamp,
                  "T_map_cam": kf.T_map_cam.detach().cpu(), "K": kf.K.detach().cpu()}
@@ -171,11 +178,25 @@ class SubMap:
         submap.reason = str(state.get("reason", "start"))
         if state.get("T_parent_map") is not None:
             submap.T_parent_map = state["T_parent_map"].to(device)
+        submap.fine = _fine_from_state(state.get("fine"), config, device)
         # Keyframe images are not stored in checkpoints; only their poses.
         for kf in state.get("keyframes", []):
             submap.keyframes.append(Keyframe(kf["frame_index"], kf["timestamp"], None,
                                              kf["K"].to(device), kf["T_map_cam"].to(device)))
         return submap
+
+
+def _fine_from_state(state: dict | None, config: SLAMConfig, device) -> FineColor | None:
+    """A checkpoint's fine level; None when it has none (written before the level existed or
+    without it): its views are the coarse map's, whatever the config now says. The stored
+    tables give the level's shape."""
+    if state is None:
+        return None
+    levels, rows, features = state["tables"].shape
+    shape = dict(levels=int(levels), table_log2=int(rows).bit_length() - 1, features=int(features))
+    fine = FineColor(replace(config.fine_color, **shape))
+    fine.load_state_dict(state)
+    return fine.to(device)
 
 
 @dataclass

@@ -10,7 +10,8 @@ unallocated voxels are never decoded and marching cubes skips the cubes of unall
 voxels, so no surface appears in space that was never observed. Level 0 is the surface (the
 SDF is in units of the truncation, see ``slam.render``, which does not move its zero).
 
-Vertex colours come from the colour head at each vertex; vertices on block boundaries are
+Vertex colours come from the colour head at each vertex, plus the fine colour level's residual
+there when the map has one (``slam.fine_color``); vertices on block boundaries are
 merged, degenerate faces dropped. ``extract_mesh`` places every submap in the world frame by
 its ``T_world_map``.
 """
@@ -107,6 +108,19 @@ def _color_at(lattice: torch.Tensor, voxel_index: torch.Tensor, voxel_ijk: torch
         emb = _embeddings_at(lattice[sl], voxel_index[sl], voxel_ijk, view, resolution)
         _, feature = decoder.sdf_and_feature(emb)
         out[sl] = decoder.color(feature)
+    return out
+
+
+@torch.no_grad()
+def _with_fine_color(fine, rgb: torch.Tensor, points: torch.Tensor, chunk_points: int) -> torch.Tensor:
+    """(V, 3) vertex colours plus the fine level's residual at the (V, 3) float64 map-frame
+    vertices, clamped to [0, 1], as views colour the same surface; ``rgb`` without one."""
+    if fine is None:
+        return rgb
+    out = torch.empty_like(rgb)
+    for start in range(0, rgb.shape[0], chunk_points):
+        sl = slice(start, start + chunk_points)
+        out[sl] = (rgb[sl] + fine(points[sl])).clamp(0.0, 1.0)
     return out
 
 
@@ -274,6 +288,7 @@ def extract_submap_mesh(submap, resolution: int, *, block_voxels: int = 8,
     moved = to_device({"vertices": vertices, "vertex_voxel": vertex_voxel}, view.voxel_codes.device)
     rgb = _color_at(moved["vertices"], moved["vertex_voxel"], voxel_ijk.to(torch.float64), view, decoder,
                     resolution, chunk_points)
+    rgb = _with_fine_color(submap.fine, rgb, moved["vertices"] * (view.voxel_size / resolution), chunk_points)
     colors = np.concatenate([
         np.round(rgb.cpu().numpy() * 255.0).clip(0, 255).astype(np.uint8),
         np.full((rgb.shape[0], 1), 255, dtype=np.uint8),

@@ -54,6 +54,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from .fine_color import with_fine
 from .render import band_grid, camera_rays, rays_in_map, render_rays
 
 # The tuned constants below are measured in benchmarks/decisions.md (views.*), one entry each.
@@ -227,7 +228,8 @@ def _render_submap_chunk(submap, T_map_cam: torch.Tensor, dirs_cam: torch.Tensor
     # voxel lie a step apart; 1.5 steps allows for float error.
     surface = rays_near_surface(out.sdf, out.samples.t, out.samples.ray_index, num_rays,
                                 step / render.truncation, 1.5 * step)
-    return out.color, out.depth, surface
+    color = with_fine(submap.fine, origins, dirs, out.color, out.depth, surface) if with_color else out.color
+    return color, out.depth, surface
 
 
 CROP_SLACK = 1e-3

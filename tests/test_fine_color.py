@@ -1,0 +1,162 @@
+"""The fine colour level (slam.fine_color): hash features against their reference, training by
+mapping only (the coarse map unchanged), views, meshes and checkpoints with and without it."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from slam.checkpoint import load_checkpoint, save_checkpoint
+from slam.config import ConfigError, FineColorConfig, apply_overrides, preset
+from slam.data import open_sequence
+from slam.fine_color import (FineColor, corner_rows_and_weights, fine_loss, hash_features,
+                             hash_features_reference, level_cells, with_fine)
+from slam.frames import prepare_frame
+from slam.mapping import Mapper, TrackedFrame
+from slam.maps import MapSet
+from slam.mesh import extract_submap_mesh
+from slam.views import render_view
+from tests.test_mesh_views import CONFIG, exact_submap, patch, pinhole, plane_z, single_thread  # noqa: F401 (autouse)
+
+FINE = FineColorConfig(levels=3, features=2, table_log2=8, coarsest=0.08, finest=0.02)
+CPU = torch.device("cpu")
+
+
+def test_levels_run_from_coarsest_to_finest():
+    assert level_cells(FINE).tolist() == pytest.approx([0.08, 0.04, 0.02])
+
+
+def test_hash_features_match_the_reference_and_weights_sum_to_one():
+    fine = FineColor(FINE, seed=3)
+    points = torch.randn(50, 3) * 2.0  # negative coordinates too
+    rows, weights = corner_rows_and_weights(points, fine.cells, 1 << FINE.table_log2)
+    assert rows.shape == weights.shape == (50, 3, 8)
+    assert int(rows.min()) >= 0 and int(rows.max()) < 3 * (1 << FINE.table_log2)
+    torch.testing.assert_close(weights.sum(-1), torch.ones(50, 3))
+    features = hash_features(points, fine.tables, fine.cells)
+    assert features.shape == (50, 6)
+    torch.testing.assert_close(features, hash_features_reference(points, fine.tables, fine.cells))
+    assert fine(points).shape == (50, 3)
+
+
+def test_fine_loss_trains_only_the_fine_level():
+    fine = FineColor(FINE)
+    o, d = torch.zeros(8, 3, requires_grad=True), torch.rand(8, 3, requires_grad=True)
+    color, depth = torch.rand(8, 3, requires_grad=True), torch.rand(8, requires_grad=True)
+    fine_loss(fine, o, d, color, depth, torch.ones(8, dtype=torch.bool), torch.rand(8, 3)).backward()
+    assert all(t.grad is None for t in (o, d, color, depth))
+    assert fine.tables.grad is not None and fine.tables.grad.abs().sum() > 0
+
+
+def test_config_checks_the_fine_level():
+    with pytest.raises(ConfigError):
+        FineColorConfig(levels=-1)
+    with pytest.raises(ConfigError):
+        FineColorConfig(levels=2, finest=0.1, coarsest=0.05)
+    assert preset("test").fine_color.levels == 0
+
+
+# ------------------------------------------------------------ mapping
+def _mapped(levels: int, static: str = "off") -> Mapper:
+    base = preset("test")
+    config = replace(base, fine_color=replace(FINE, levels=levels), render=replace(base.render, static_shapes=static))
+    frames = [prepare_frame(f, None, CPU, base.voxel.max_depth)
+              for f in open_sequence("synthetic:orbit?frames=100&width=80&height=60", max_frames=2)]
+    mapper = Mapper(config, CPU, seed=0)
+    for frame in frames:
+        mapper.process(TrackedFrame(frame, torch.from_numpy(frame.T_world_cam_gt).float()))
+    mapper.global_bundle_adjustment(mapper.current, 3, 128)
+    return mapper
+
+
+@pytest.mark.parametrize("static", ["off", "on"])  # flat samples (slam.render) and padded (slam.padded)
+def test_mapping_trains_the_fine_level_and_leaves_the_coarse_map_as_without_it(static):
+    with_level, without = _mapped(3, static), _mapped(0, static)
+    a, b = with_level.current, without.current
+    assert b.fine is None and a.fine is not None
+    assert torch.equal(a.voxels.embeddings, b.voxels.embeddings)
+    for (name, p), q in zip(a.decoder.state_dict().items(), b.decoder.state_dict().values()):
+        assert torch.equal(p, q), name
+    for ka, kb in zip(a.keyframes, b.keyframes):
+        assert torch.equal(ka.T_map_cam, kb.T_map_cam)
+    assert a.fine.tables.abs().max() > 10 * 1e-4  # trained away from its initial range
+    assert "fine_fit" in with_level.timer.totals
+
+
+# ------------------------------------------------------------ views, meshes, checkpoints
+def _shifted(submap, shift: float):
+    """``submap`` with a fine level whose residual is ``shift`` everywhere."""
+    submap.fine = FineColor(FINE)
+    with torch.no_grad():
+        submap.fine.tables.zero_()
+        submap.fine.head.bias.fill_(shift)
+    return submap
+
+
+def test_with_fine_adds_the_residual_on_surface_rays_only():
+    color = torch.full((4, 3), 0.5)
+    surface = torch.tensor([True, False, True, False])
+    fine = _shifted(exact_submap(patch(0, 1), plane_z(0.1)), 0.7).fine
+    out = with_fine(fine, torch.zeros(4, 3), torch.ones(4, 3), color, torch.ones(4), surface)
+    assert out[surface].eq(1.0).all() and out[~surface].eq(0.5).all()  # clamped to 1
+    assert with_fine(None, torch.zeros(4, 3), torch.ones(4, 3), color, torch.ones(4), surface) is color
+
+
+@pytest.mark.parametrize("method", ["banded", "full"])
+def test_views_add_the_fine_residual(method):
+    K = pinhole(32, 24, 16.0)
+    plain = MapSet(CONFIG, [exact_submap(patch(-2, 2), plane_z(0.13))])
+    fine = MapSet(CONFIG, [_shifted(exact_submap(patch(-2, 2), plane_z(0.13)), -0.1)])
+    a = render_view(plain, np.eye(4), K, 32, 24, method=method)
+    b = render_view(fine, np.eye(4), K, 32, 24, method=method)
+    assert a.valid.any()
+    np.testing.assert_array_equal(a.depth, b.depth)
+    np.testing.assert_allclose(b.rgb[a.valid], np.clip(a.rgb[a.valid] - 0.1, 0, 1), atol=1e-5)
+
+
+def test_mesh_vertex_colours_add_the_fine_residual():
+    plain = extract_submap_mesh(exact_submap(patch(-2, 3), plane_z(0.1)), 4)
+    fine = extract_submap_mesh(_shifted(exact_submap(patch(-2, 3), plane_z(0.1)), -0.2), 4)
+    np.testing.assert_array_equal(plain.vertices, fine.vertices)
+    expected = np.clip(plain.visual.vertex_colors[:, :3].astype(int) - 51, 0, 255)  # 0.2 of 255
+    assert np.abs(fine.visual.vertex_colors[:, :3].astype(int) - expected).max() <= 1
+
+
+def test_checkpoint_keeps_the_fine_level_and_old_checkpoints_load_without_it(tmp_path):
+    config = apply_overrides(CONFIG, {"fine_color": {"levels": 3, "table_log2": 8}})
+    submap = exact_submap(patch(-2, 2), plane_z(0.13))
+    submap.fine = FineColor(replace(FINE, finest=0.01), seed=5)
+    loaded = load_checkpoint(save_checkpoint(MapSet(config, [submap]), tmp_path / "map.pt")).maps[0]
+    assert torch.equal(loaded.fine.tables, submap.fine.tables)
+    torch.testing.assert_close(loaded.fine.cells, submap.fine.cells)  # the stored levels, not the config's
+    points = torch.rand(20, 3)
+    torch.testing.assert_close(loaded.fine(points), submap.fine(points))
+    # A checkpoint written before the level existed has no "fine" entry: no fine level.
+    payload = torch.load(tmp_path / "map.pt", weights_only=True)
+    del payload["maps"][0]["fine"]
+    torch.save(payload, tmp_path / "old.pt")
+    old = load_checkpoint(tmp_path / "old.pt")
+    assert old.maps[0].fine is None
+    assert render_view(old, np.eye(4), pinhole(32, 24, 16.0), 32, 24).valid.any()
+
+
+def test_the_numba_features_match_the_torch_path():
+    from slam.kernels import numba_kernels
+
+    if numba_kernels() is None:
+        pytest.skip("numba unavailable")
+    from slam.fine_color import HASH_PRIMES
+    from slam.kernels.fused import hash_grid
+
+    fine = FineColor(FINE, seed=1)
+    with torch.no_grad():
+        fine.tables.normal_()
+    points = (torch.rand(300, 3) - 0.5) * 6.0
+    torch.testing.assert_close(hash_grid(points, fine.cells, fine.tables, HASH_PRIMES),
+                               hash_features(points, fine.tables, fine.cells), atol=1e-5, rtol=1e-5)
+    with torch.no_grad():  # the forward takes the kernel without gradients
+        torch.testing.assert_close(fine(points), fine.head(hash_features(points, fine.tables, fine.cells)),
+                                   atol=1e-5, rtol=1e-5)
