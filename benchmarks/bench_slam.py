@@ -92,7 +92,7 @@ def worker_voxfusion(source: Path, max_frames: int, out: Path, preset_name: str,
     if result.status != "finished":
         raise RuntimeError(f"voxfusion run {result.status}: {result.error}")
     return {"frames": result.frames, "seconds": info["timings_s"]["wall"], "fps": result.fps,
-            "map_mb": info["map_memory_mb"]["embeddings"] + info["map_memory_mb"]["decoder"],
+            "map_mb": sum(info["map_memory_mb"].values()),
             "keyframes": result.keyframes, "busy_share": info["busy_share"],
             "tracking_failures": info["tracking_failures"], "run_ate_m": info["ate_rmse_m"],
             "timings_s": info["timings_s"]}

@@ -271,7 +271,8 @@ def _stats(side: _MapperSide) -> MapperStats:
         list(closer.candidates) if closer is not None else [],
         closer.rejected if closer is not None else 0,
         closer.timings_ms() if closer is not None else {},
-        side.refinement, side.keyframe_graph)
+        side.refinement, side.keyframe_graph,
+        sum(m.fine.num_bytes() for m in maps if m.fine is not None))
 
 
 def final_budget(mapping, keyframes: int, elapsed: float) -> FinalBudget:

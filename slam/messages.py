@@ -160,6 +160,8 @@ class MapperStats:
     keyframe_graph: dict | None = None
     """What the end-of-run keyframe pose graph did (``KeyframeGraphResult.summary``; None
     when it did not run: no verified loop, loops off, or a stopped run)."""
+    fine_color_bytes: int = 0
+    """Bytes of the maps' fine colour levels (``slam.fine_color``; 0 without one)."""
 
 
 @dataclass(frozen=True)

@@ -323,6 +323,7 @@ def write_outputs(out: Path, config: SLAMConfig, tracks: list["AgentTrack"], sta
         "map_memory_mb": {
             "embeddings": (stats.map_bytes if stats else 0) / 2**20,
             "decoder": (stats.decoder_bytes if stats else 0) / 2**20,
+            "fine_color": (stats.fine_color_bytes if stats else 0) / 2**20,
         },
         "final_bundle_adjustment": (asdict(stats.refinement)
                                     if stats and stats.refinement else None),

@@ -160,3 +160,18 @@ def test_the_numba_features_match_the_torch_path():
     with torch.no_grad():  # the forward takes the kernel without gradients
         torch.testing.assert_close(fine(points), fine.head(hash_features(points, fine.tables, fine.cells)),
                                    atol=1e-5, rtol=1e-5)
+
+
+def test_run_json_counts_the_fine_level_in_the_map_memory(tmp_path):
+    import json
+
+    from slam.runtime import run_slam
+
+    base = preset("test")
+    config = replace(apply_overrides(base, {"fine_color": {"levels": 2, "table_log2": 8}}),
+                     runtime=replace(base.runtime, processes=False))
+    frames = list(open_sequence("synthetic:orbit?frames=100&width=40&height=30", max_frames=2))
+    assert run_slam([frames], config, tmp_path).status == "finished"
+    memory = json.loads((tmp_path / "run.json").read_text())["map_memory_mb"]
+    fine = load_checkpoint(tmp_path / "map.pt").maps[0].fine
+    assert fine is not None and memory["fine_color"] == pytest.approx(fine.num_bytes() / 2**20)

@@ -163,6 +163,7 @@ def test_run_json_fields(run):
     assert (info["frames"], info["frames_total"], info["loops"]) == (NUM_FRAMES, NUM_FRAMES, 0)
     assert info["maps"] == 1 and info["keyframes"] >= 1 and info["voxels"] > 0
     assert info["map_memory_mb"]["embeddings"] > 0 and info["map_memory_mb"]["decoder"] > 0
+    assert info["map_memory_mb"]["fine_color"] == 0, "the test preset has no fine colour level"
     assert info["timings_s"]["wall"] > 0 and info["fps"] > 0
     assert set(info["busy_share"]) == {"tracking", "mapping"}
     assert len(info["keyframe_poses"]) == info["keyframes"]
