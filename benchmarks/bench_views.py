@@ -18,6 +18,12 @@ PSNR, SSIM and sharpness of training views at tracked poses on every real sequen
 ``bench_real.py``, and Replica room0's held-out views, per preset, with pictures:
 
     python benchmarks/bench_views.py --quality [--presets cpu] [--sequences desk,room0] [--out DIR]
+                                     [--seeds N] [--reuse BENCH_REAL_WORK_DIR] [--fine-ablation]
+
+``--seeds N`` runs each sequence with seeds 0..N-1 and prints mean ± std over them;
+``--fine-ablation`` also renders each map without its fine colour level, a paired A/B of the
+level (the coarse map and trajectory are the same with and without it); ``--reuse`` scores
+the deterministic runs of a ``bench_real.py`` work folder instead of running again.
 """
 
 from __future__ import annotations
@@ -129,14 +135,21 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--sequences", default="", help="--quality: comma list (default: all of bench_real.py)")
     parser.add_argument("--out", type=Path, default=Path("out/view-quality"), help="--quality: runs and pictures")
     parser.add_argument("--timeout", type=float, default=3600, help="--quality: seconds a run may take")
+    parser.add_argument("--seeds", type=int, default=1, help="--quality: runs per sequence, seeds 0..N-1")
+    parser.add_argument("--reuse", type=Path, default=None,
+                        help="--quality: a bench_real.py work folder whose deterministic runs are scored")
+    parser.add_argument("--fine-ablation", action="store_true",
+                        help="--quality: also render every map without its fine colour level (paired A/B)")
     args = parser.parse_args(argv)
     if args.quality:
         import view_quality
 
         rows = view_quality.run([s for s in args.sequences.split(",") if s], args.presets.split(","), args.out,
-                                args.timeout)
+                                args.timeout, seeds=args.seeds, reuse=args.reuse, fine_ablation=args.fine_ablation)
         print()
         print(view_quality.table(rows))
+        print()
+        print(view_quality.summary_table(rows))
         return 0
 
     import torch

@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import json
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -160,14 +160,25 @@ def picture(pairs: list[tuple[object, object]], path: Path, mask: np.ndarray | N
     return path
 
 
-def training_views(run_dir: Path, sequence, width: int = VIEW_WIDTH, views: int = VIEWS):
+def without_fine(mapset):
+    """``mapset`` with every submap's fine colour level dropped (the coarse map alone); the same
+    objects, changed in place."""
+    for submap in mapset.maps:
+        submap.fine = None
+    return mapset
+
+
+def training_views(run_dir: Path, sequence, width: int = VIEW_WIDTH, views: int = VIEWS, fine: bool = True):
     """(RenderedView, input Frame) pairs: every k-th input frame rendered from ``run_dir``'s
-    ``map.pt`` at its pose in ``trajectory.txt``."""
+    ``map.pt`` at its pose in ``trajectory.txt``; ``fine`` False: without the map's fine
+    colour level."""
     from slam import load_checkpoint, read_tum
     from slam.eval.trajectory import associate
     from slam.views import render_view
 
     mapset = load_checkpoint(run_dir / "map.pt")
+    if not fine:
+        without_fine(mapset)
     trajectory = read_tum(run_dir / "trajectory.txt")
     estimate_idx, frame_idx = associate(trajectory.timestamps, np.asarray(sequence.timestamps, np.float64), max_dt=1e-3)
     order = np.argsort(frame_idx)
@@ -182,8 +193,10 @@ def training_views(run_dir: Path, sequence, width: int = VIEW_WIDTH, views: int 
     return pairs
 
 
-def held_out_views(config, width: int = VIEW_WIDTH):
-    """Replica room0: a map of frames 0, 2, ..., 18 at their GT poses, views of 1, 3, ..., 19."""
+def held_out_views(config, width: int = VIEW_WIDTH, fine_too: bool = False):
+    """Replica room0: a map of frames 0, 2, ..., 18 at their GT poses, views of 1, 3, ..., 19.
+    Returns the pairs, and with ``fine_too`` also the pairs of the same map without its fine
+    colour level (else None)."""
     from common import map_with_gt_poses
 
     from slam.data import open_sequence
@@ -192,15 +205,21 @@ def held_out_views(config, width: int = VIEW_WIDTH):
     sequence = open_sequence(REPLICA / "room0")
     mapped = [pipeline_frame(sequence[i], config.runtime.input_width) for i in range(0, 20, 2)]
     mapper = map_with_gt_poses(mapped, config)
-    pairs = []
-    for i in range(1, 20, 2):
-        frame = pipeline_frame(sequence[i], width)
-        pairs.append((render_view(mapper.maps, frame.T_world_cam, frame.K, frame.width, frame.height), frame))
-    return pairs
+    views = [pipeline_frame(sequence[i], width) for i in range(1, 20, 2)]
+
+    def render_all():
+        return [(render_view(mapper.maps, f.T_world_cam, f.K, f.width, f.height), f) for f in views]
+
+    pairs = render_all()
+    if not fine_too:
+        return pairs, None
+    without_fine(mapper.maps)
+    return pairs, render_all()
 
 
-def scores_row(name: str, preset: str, kind: str, scores: ViewScores, picture_path: Path | None) -> dict:
-    return {"sequence": name, "preset": preset, "kind": kind, **scores.__dict__,
+def scores_row(name: str, preset: str, kind: str, scores: ViewScores, picture_path: Path | None,
+               seed: int = 0) -> dict:
+    return {"sequence": name, "preset": preset, "kind": kind, "seed": seed, **scores.__dict__,
             "picture": str(picture_path) if picture_path else None}
 
 
@@ -214,41 +233,112 @@ def table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def run(sequence_names: list[str] | None, presets: list[str], out: Path, timeout: float) -> list[dict]:
-    """Every sequence x preset: one deterministic run, its training views (and room0's held-out
-    views); prints a line per result and returns the rows."""
-    from bench_real import Variant, run_voxfusion, sequences
+def run(sequence_names: list[str] | None, presets: list[str], out: Path, timeout: float,
+        seeds: int = 1, reuse: Path | None = None, fine_ablation: bool = False) -> list[dict]:
+    """Every sequence x preset x seed: one deterministic run (``runtime.seed`` = seed), its
+    training views (and room0's held-out views); prints a line per result and returns the rows.
 
-    from slam.config import load_config
+    ``reuse``: a ``bench_real.py`` work folder whose ``{sequence}_{name}_{seed}`` runs
+    (``--variant name=... --deterministic 1``) are scored instead of running again; ``presets``
+    may then name its variants (room0's held-out map takes the run's config).
+    ``fine_ablation``: every map is also rendered without its fine colour level, a paired A/B
+    of the level on the very same coarse map and trajectory (the level leaves both untouched).
+    """
+    from bench_real import sequences
+
+    from slam import load_checkpoint
     from slam.data import open_sequence
 
     rows = []
     for seq in sequences(None):
         if sequence_names and seq.name not in sequence_names:
             continue
+        sequence = open_sequence(seq.path, max_frames=seq.max_frames)
         for preset in presets:
-            run_dir = out / f"{seq.name}-{preset}"
-            run_voxfusion(seq, Variant(preset, preset), run_dir, ["--deterministic", "1"], timeout)
-            sequence = open_sequence(seq.path, max_frames=seq.max_frames)
-            pairs = training_views(run_dir, sequence)
-            seen = observed_mask(sequence, pairs[0][1])
-            row = scores_row(seq.name, preset, "training", score_views(pairs, seen),
-                             picture(pairs, out / f"{seq.name}-{preset}.png", seen))
-            rows.append(row)
-            print(_line(row), flush=True)
-            if seq.name == "room0":
-                config = load_config(preset)
-                pairs = held_out_views(config)
-                row = scores_row(seq.name, preset, "held-out", score_views(pairs),
-                                 picture(pairs, out / f"{seq.name}-{preset}-held-out.png"))
-                rows.append(row)
-                print(_line(row), flush=True)
+            for seed in range(seeds):
+                run_dir = _run_dir(seq, preset, seed, out, reuse, timeout)
+                tag = f"{seq.name}-{preset}-s{seed}"
+                for fine in (True, False) if fine_ablation else (True,):
+                    pairs = training_views(run_dir, sequence, fine=fine)
+                    seen = observed_mask(sequence, pairs[0][1])
+                    name = preset if fine else f"{preset} coarse only"
+                    row = scores_row(seq.name, name, "training", score_views(pairs, seen),
+                                     picture(pairs, out / f"{tag}{'' if fine else '-coarse'}.png", seen), seed)
+                    rows.append(row)
+                    print(_line(row), flush=True)
+                if seq.name == "room0":
+                    config = load_checkpoint(run_dir / "map.pt").config  # a reused variant's overrides too
+                    config = replace(config, runtime=replace(config.runtime, seed=seed))
+                    pairs, coarse = held_out_views(config, fine_too=fine_ablation)
+                    for name, views in ((preset, pairs), (f"{preset} coarse only", coarse)):
+                        if views is None:
+                            continue
+                        suffix = "" if name == preset else "-coarse"
+                        row = scores_row(seq.name, name, "held-out", score_views(views),
+                                         picture(views, out / f"{tag}-held-out{suffix}.png"), seed)
+                        rows.append(row)
+                        print(_line(row), flush=True)
+    out.mkdir(parents=True, exist_ok=True)
     (out / "quality.json").write_text(json.dumps(rows, indent=1))
     return rows
 
 
+def _run_dir(seq, preset: str, seed: int, out: Path, reuse: Path | None, timeout: float) -> Path:
+    """The run to score: ``reuse``'s when it has one, else a new deterministic run in ``out``."""
+    from bench_real import Variant, run_voxfusion
+
+    if reuse is not None and (reuse / f"{seq.name}_{preset}_{seed}" / "map.pt").is_file():
+        return reuse / f"{seq.name}_{preset}_{seed}"
+    run_dir = out / f"{seq.name}-{preset}-s{seed}"
+    run_voxfusion(seq, Variant(preset, preset), run_dir, ["--deterministic", "1"], timeout, seed=seed)
+    return run_dir
+
+
+def summary(rows: list[dict]) -> list[dict]:
+    """Per sequence, kind and preset: mean and sample std over seeds of PSNR, SSIM, sharpness;
+    with an ablation (``"<preset> coarse only"`` rows), the verdict of the decision rule for the
+    preset against its coarse-only twin (higher is better): ``better`` / ``worse`` when the
+    means differ by more than the larger spread (and 0.05 dB), and the paired PSNR gain."""
+    import statistics
+
+    groups: dict[tuple, list[dict]] = {}
+    for r in rows:
+        groups.setdefault((r["sequence"], r["kind"], r["preset"]), []).append(r)
+
+    def stats(values):
+        return statistics.fmean(values), statistics.stdev(values) if len(values) > 1 else 0.0
+
+    out = []
+    for (seq, kind, preset), members in groups.items():
+        row = {"sequence": seq, "kind": kind, "preset": preset, "runs": len(members)}
+        for key in ("psnr_db", "ssim", "sharpness"):
+            row[key], row[key + "_std"] = stats([m[key] for m in members])
+        twin = groups.get((seq, kind, f"{preset} coarse only"))
+        if twin:
+            base, base_std = stats([m["psnr_db"] for m in twin])
+            spread = max(row["psnr_db_std"], base_std, 0.05)
+            gain = row["psnr_db"] - base
+            row["verdict"] = "better" if gain > spread else "worse" if gain < -spread else "within spread"
+            by_seed = {m["seed"]: m["psnr_db"] for m in twin}
+            row["paired_gain_db"] = stats([m["psnr_db"] - by_seed[m["seed"]] for m in members if m["seed"] in by_seed])
+        out.append(row)
+    return out
+
+
+def summary_table(rows: list[dict]) -> str:
+    lines = ["| sequence | views | preset | runs | PSNR dB | SSIM | sharpness | paired gain dB | verdict |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for r in summary(rows):
+        gain = r.get("paired_gain_db")
+        lines.append(f"| {r['sequence']} | {r['kind']} | {r['preset']} | {r['runs']} | "
+                     f"{r['psnr_db']:.2f} ± {r['psnr_db_std']:.2f} | {r['ssim']:.3f} ± {r['ssim_std']:.3f} | "
+                     f"{r['sharpness']:.2f} ± {r['sharpness_std']:.2f} | "
+                     f"{'' if gain is None else f'{gain[0]:+.2f} ± {gain[1]:.2f}'} | {r.get('verdict', '')} |")
+    return "\n".join(lines)
+
+
 def _line(row: dict) -> str:
-    return (f"{row['sequence']} {row['preset']} {row['kind']} views: PSNR {row['psnr_db']:.2f} dB "
+    return (f"{row['sequence']} {row['preset']} seed {row['seed']} {row['kind']} views: PSNR {row['psnr_db']:.2f} dB "
             f"({row['psnr_hit_db']:.2f} where hit, {row['holes']:.1%} holes), SSIM "
             f"{row['ssim']:.3f}, sharpness {row['sharpness']:.2f}, depth L1 {row['depth_l1_cm']:.2f} cm -> "
             f"{row['picture']}")

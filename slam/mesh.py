@@ -100,27 +100,18 @@ def _lattice_sdf(lattice_ids: np.ndarray, voxel_index: np.ndarray, view: MapView
 
 
 def _color_at(lattice: torch.Tensor, voxel_index: torch.Tensor, voxel_ijk: torch.Tensor,
-              view: MapView, decoder, resolution: int, chunk_points: int) -> torch.Tensor:
-    """RGB in [0, 1] of the colour head at (S, 3) float64 lattice coordinates -> (S, 3)."""
+              view: MapView, decoder, resolution: int, chunk_points: int, fine=None) -> torch.Tensor:
+    """RGB in [0, 1] at (S, 3) float64 lattice coordinates -> (S, 3): the colour head's, plus
+    the fine colour level's residual at the same map-frame points when ``fine`` is given
+    (clamped to [0, 1], as views colour the same surface)."""
     out = torch.empty(lattice.shape[0], 3, dtype=torch.float32, device=lattice.device)
+    metres_per_cell = view.voxel_size / resolution
     for start in range(0, lattice.shape[0], chunk_points):
         sl = slice(start, start + chunk_points)
         emb = _embeddings_at(lattice[sl], voxel_index[sl], voxel_ijk, view, resolution)
         _, feature = decoder.sdf_and_feature(emb)
-        out[sl] = decoder.color(feature)
-    return out
-
-
-@torch.no_grad()
-def _with_fine_color(fine, rgb: torch.Tensor, points: torch.Tensor, chunk_points: int) -> torch.Tensor:
-    """(V, 3) vertex colours plus the fine level's residual at the (V, 3) float64 map-frame
-    vertices, clamped to [0, 1], as views colour the same surface; ``rgb`` without one."""
-    if fine is None:
-        return rgb
-    out = torch.empty_like(rgb)
-    for start in range(0, rgb.shape[0], chunk_points):
-        sl = slice(start, start + chunk_points)
-        out[sl] = (rgb[sl] + fine(points[sl])).clamp(0.0, 1.0)
+        rgb = decoder.color(feature)
+        out[sl] = rgb if fine is None else (rgb + fine(lattice[sl] * metres_per_cell)).clamp(0.0, 1.0)
     return out
 
 
@@ -287,8 +278,7 @@ def extract_submap_mesh(submap, resolution: int, *, block_voxels: int = 8,
     vertices, faces, vertex_voxel = _merge_blocks(blocks)
     moved = to_device({"vertices": vertices, "vertex_voxel": vertex_voxel}, view.voxel_codes.device)
     rgb = _color_at(moved["vertices"], moved["vertex_voxel"], voxel_ijk.to(torch.float64), view, decoder,
-                    resolution, chunk_points)
-    rgb = _with_fine_color(submap.fine, rgb, moved["vertices"] * (view.voxel_size / resolution), chunk_points)
+                    resolution, chunk_points, fine=submap.fine)
     colors = np.concatenate([
         np.round(rgb.cpu().numpy() * 255.0).clip(0, 255).astype(np.uint8),
         np.full((rgb.shape[0], 1), 255, dtype=np.uint8),
