@@ -336,6 +336,10 @@ class LoopConfig:
             raise ConfigError("loop: top_k >= 1, min_inliers >= 6 and geometry_rays >= 1 are required")
 
 
+FINE_FIT_SURFACES = ("observed", "rendered")
+"""Where ``fine_color``'s final fit learns (``FineColorConfig.final_fit_surface``)."""
+
+
 @dataclass(frozen=True)
 class FineColorConfig:
     """The fine level of colour (``slam.fine_color``): a hash grid of colour features queried at
@@ -361,6 +365,11 @@ class FineColorConfig:
     """Points per fit step, drawn from up to ``FIT_KEYFRAMES`` random keyframes."""
     final_fit_iterations: int = 100
     """Fit steps after the final bundle adjustment, over every keyframe."""
+    final_fit_surface: str = "observed"
+    """Where the final fit learns: ``observed``, at each keyframe pixel's measured depth (against
+    the decoder's colour there); ``rendered``, at the surface the coarse map renders for that
+    pixel (against the rendered coarse colour), where views query the level, with an Adam of
+    its own decaying to zero (``Mapper.fit_fine_rendered``)."""
 
     def __post_init__(self) -> None:
         for name in ("levels", "features", "table_log2", "fit_iterations", "fit_rays", "final_fit_iterations"):
@@ -372,6 +381,9 @@ class FineColorConfig:
         if not 0 < self.finest <= self.coarsest:
             raise ConfigError(f"fine_color needs 0 < finest <= coarsest, got {self.finest} and {self.coarsest}")
         _check_non_negative("fine_color.lr", self.lr)
+        if self.final_fit_surface not in FINE_FIT_SURFACES:
+            raise ConfigError(f"fine_color.final_fit_surface must be one of {FINE_FIT_SURFACES}, "
+                              f"got {self.final_fit_surface!r}")
 
 
 @dataclass(frozen=True)

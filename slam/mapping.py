@@ -25,6 +25,7 @@ The ``Mapper`` is plain state with no process code; ``slam.runtime`` runs it in 
 
 from __future__ import annotations
 
+import math
 import random
 import time
 from dataclasses import dataclass, field, replace
@@ -60,6 +61,10 @@ FIT_KEYFRAMES = 8
 """Keyframes a fit step of the fine colour level draws its points from (``Mapper.fit_fine``)."""
 FIT_KEYFRAMES_FINAL = 1 << 30
 """... after the final bundle adjustment: every keyframe."""
+
+FIT_KEYFRAMES_RENDERED = 128
+"""Keyframes the rendered-surface fit renders at most (evenly spread): 128 half images of a
+320-wide run are some 2.5 M points."""
 
 
 @dataclass(frozen=True)
@@ -479,7 +484,10 @@ class Mapper:
         # rather than leaving keyframes out.
         per_frame = max(num_rays // len(kfs), 4)
         losses = self._joint_optimisation(submap, list(kfs), [], iterations, per_frame, deadline)[0]
-        self.fit_fine(submap, self.config.fine_color.final_fit_iterations, FIT_KEYFRAMES_FINAL)
+        if self.config.fine_color.final_fit_surface == "rendered":
+            self.fit_fine_rendered(submap, self.config.fine_color.final_fit_iterations)
+        else:
+            self.fit_fine(submap, self.config.fine_color.final_fit_iterations, FIT_KEYFRAMES_FINAL)
         return losses
 
     def fit_fine(self, submap: SubMap, iterations: int, keyframes: int = 0) -> None:
@@ -502,6 +510,62 @@ class Mapper:
             fit_loss(submap.fine, points, coarse, inside, rgb_gt).backward()
             optimizer.step()  # only the fine level has gradients; Adam skips the rest
         self.timer.add("fine_fit", time.perf_counter() - t0)
+
+    def fit_fine_rendered(self, submap: SubMap, iterations: int) -> None:
+        """``iterations`` steps of the fine colour level alone on the surface the coarse map
+        renders for the keyframes (``fine_color.final_fit_surface`` "rendered"): each keyframe
+        (at most ``FIT_KEYFRAMES_RENDERED``, evenly spread) is rendered at half its size, and
+        the level learns ``input - rendered coarse colour`` at each pixel's rendered surface
+        point, the very point a view adds it at. Where the coarse surface lies centimetres
+        off the measured one (0.2 m voxels on real data), a fit at the measured depth puts the
+        colour where no view looks (fr1/desk training views 18.0 -> 21.1 dB; decisions.md#fine_color).
+        Its own Adam, cosine-decayed to zero: a decaying step leaves less sampling noise."""
+        kfs = [kf for kf in submap.keyframes if kf.frame is not None]
+        if submap.fine is None or iterations <= 0 or not kfs:
+            return
+        t0 = time.perf_counter()
+        if len(kfs) > FIT_KEYFRAMES_RENDERED:
+            kfs = [kfs[i] for i in np.linspace(0, len(kfs) - 1, FIT_KEYFRAMES_RENDERED).round().astype(int)]
+        points, residual = self._rendered_residuals(submap, kfs)
+        if points.shape[0] == 0:
+            return
+        cfg = self.config.fine_color
+        optimizer = torch.optim.Adam(submap.fine.parameters(), lr=cfg.lr)
+        decay = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda k: 0.5 * (1.0 + math.cos(math.pi * k / iterations)))
+        draw = draw_device(self._fine_gen, self.device)
+        for _ in range(iterations):
+            pick = torch.randint(0, points.shape[0], (max(cfg.fit_rays, 1),), generator=self._fine_gen,
+                                 device=draw).to(points.device)
+            optimizer.zero_grad(set_to_none=True)
+            (submap.fine(points[pick]) - residual[pick]).abs().mean().backward()
+            optimizer.step()
+            decay.step()
+        self.timer.add("fine_fit", time.perf_counter() - t0)
+
+    def _rendered_residuals(self, submap: SubMap, keyframes: list[Keyframe]) -> tuple[torch.Tensor, torch.Tensor]:
+        """Map-frame surface points (N, 3) and colour residuals (N, 3) of ``keyframes`` rendered
+        at half size: each pixel of the half image is a 2x2 block of the keyframe, its colour
+        the block's mean, used where all four have measured depth (TUM's undistortion border
+        has none) and the coarse map renders a surface."""
+        from .views import coarse_surface
+
+        points, residuals = [], []
+        for kf in keyframes:
+            frame = kf.frame
+            h, w = frame.height // 2, frame.width // 2
+            if h == 0 or w == 0:
+                continue
+            K = frame.K.clone()
+            K[:2] /= 2.0  # the half image's pixel (i + 0.5) is the centre of the block 2i, 2i + 1
+            color, point, surface = coarse_surface(submap, kf.T_map_cam.detach(), K, w, h, self.config)
+            rgb = frame.rgb[:2 * h, :2 * w].reshape(h, 2, w, 2, 3).mean((1, 3)).reshape(-1, 3)
+            measured = frame.depth[:2 * h, :2 * w].reshape(h, 2, w, 2).amin((1, 3)).reshape(-1) > 0
+            use = torch.nonzero(surface & measured, as_tuple=True)[0]
+            points.append(point[use])
+            residuals.append(rgb[use] - color[use])
+        if not points:
+            return torch.zeros(0, 3, device=self.device), torch.zeros(0, 3, device=self.device)
+        return torch.cat(points), torch.cat(residuals)
 
     def _fine_points(self, keyframes: list[Keyframe], per_frame: int) -> tuple[torch.Tensor, torch.Tensor]:
         """``per_frame`` observed pixels of each keyframe -> map-frame points (N, 3) at their

@@ -207,11 +207,13 @@ def rendered_voxels(submap):
 @torch.no_grad()
 def _render_submap_chunk(submap, T_map_cam: torch.Tensor, dirs_cam: torch.Tensor, config,
                          near: torch.Tensor, far: torch.Tensor, *, with_color: bool = True,
-                         traverse: bool = True, decoder=None, view=None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+                         traverse: bool = True, decoder=None, view=None,
+                         fine: bool = True) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Render (R, 3) camera-frame directions in one submap between ``near`` and ``far`` (R,).
 
-    -> colour (R, 3) (zero without ``with_color``: the coarse pass needs depth only), depth
-    (R,), surface (R,) bool, all on the submap's device. ``traverse=False`` for short
+    -> colour (R, 3) (zero without ``with_color``: the coarse pass needs depth only; without
+    the fine colour level when ``fine`` is False), depth (R,), surface (R,) bool, all on the
+    submap's device. ``traverse=False`` for short
     ranges: samples by lookup instead of the voxel traversal (``render_rays``). ``decoder``
     defaults to the submap's (``view_decoder`` gives a faster one for views); ``view`` to its
     optimised voxels (``rendered_voxels``: pass it to build it once per image, not per chunk).
@@ -228,7 +230,7 @@ def _render_submap_chunk(submap, T_map_cam: torch.Tensor, dirs_cam: torch.Tensor
     # voxel lie a step apart; 1.5 steps allows for float error.
     surface = rays_near_surface(out.sdf, out.samples.t, out.samples.ray_index, num_rays,
                                 step / render.truncation, 1.5 * step)
-    color = with_fine(submap.fine, origins, dirs, out.color, out.depth, surface) if with_color else out.color
+    color = with_fine(submap.fine, origins, dirs, out.color, out.depth, surface) if with_color and fine else out.color
     return color, out.depth, surface
 
 
@@ -443,9 +445,10 @@ def _pixel_bands(submap, T_map_cam: torch.Tensor, dirs_cam: torch.Tensor, config
 
 def _render_submap_banded(submap, T_map_cam: torch.Tensor, dirs_cam: torch.Tensor, config,
                           near: float, chunk: int, width: int, height: int, stride: int, decoder=None,
-                          view=None, planar_tolerance: float = PLANAR_TOLERANCE, ray_range=None
-                          ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The ``banded`` method for one submap: (H * W, 3) directions -> colour, depth, surface."""
+                          view=None, planar_tolerance: float = PLANAR_TOLERANCE, ray_range=None,
+                          fine: bool = True) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The ``banded`` method for one submap: (H * W, 3) directions -> colour, depth, surface
+    (colour without the fine level when ``fine`` is False)."""
     banded, band_near, band_far = _pixel_bands(submap, T_map_cam, dirs_cam, config, near, chunk, width, height,
                                                stride, decoder=decoder, view=view, planar_tolerance=planar_tolerance,
                                                ray_range=ray_range)
@@ -459,7 +462,8 @@ def _render_submap_banded(submap, T_map_cam: torch.Tensor, dirs_cam: torch.Tenso
     for start, end in runs:
         idx = banded[start:end]
         c, d, s = _render_submap_chunk(submap, T_map_cam, dirs_cam[idx], config, band_near[start:end],
-                                       band_far[start:end], traverse=False, decoder=decoder, view=view)
+                                       band_far[start:end], traverse=False, decoder=decoder, view=view,
+                                       fine=fine)
         rgb[idx], depth[idx], surface[idx] = c, d, s
     return rgb, depth, surface
 
@@ -477,6 +481,25 @@ def _check_view_options(width: int, height: int, method: str, precision: str, co
         raise ValueError(f"coarse_stride must be at least 1, got {coarse_stride}")
     if not float(planar_tolerance) >= 0:
         raise ValueError(f"planar_tolerance must be at least 0 (metres; 0 turns it off), got {planar_tolerance}")
+
+
+@torch.no_grad()
+def coarse_surface(submap, T_map_cam: torch.Tensor, K: torch.Tensor, width: int, height: int, config,
+                   near: float = DEFAULT_NEAR) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """One submap seen by a ``width`` x ``height`` pinhole camera (K (3, 3)) at T_map_cam (4, 4),
+    in the map's own frame and without its fine colour level, as ``render_view`` renders it
+    (``banded``, decoder precision ``auto``) -> coarse colour (H * W, 3), the map-frame surface
+    point of each pixel (H * W, 3) (its ray at the rendered depth) and surface (H * W,) bool.
+    The fine level's rendered-surface fit learns its residual against these
+    (``Mapper.fit_fine_rendered``), so that views add it at the very points it was fitted."""
+    device = submap.voxels.device
+    T_map_cam = T_map_cam.to(device, torch.float32)
+    dirs_cam = camera_rays(K.to(device, torch.float32), pixel_centres(width, height).to(device))
+    color, depth, surface = _render_submap_banded(
+        submap, T_map_cam, dirs_cam, config, near, config.render.chunk_rays, width, height, DEFAULT_COARSE_STRIDE,
+        decoder=view_decoder(submap.decoder, device, "auto"), view=rendered_voxels(submap), fine=False)
+    origins, dirs = rays_in_map(T_map_cam, dirs_cam)
+    return color, origins + depth[:, None] * dirs, surface
 
 
 def render_view(mapset, T_world_cam, K, width: int, height: int, *, chunk_rays: int | None = None,

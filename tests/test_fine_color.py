@@ -18,7 +18,7 @@ from slam.frames import prepare_frame
 from slam.mapping import Mapper, TrackedFrame
 from slam.maps import MapSet
 from slam.mesh import extract_submap_mesh
-from slam.views import render_view
+from slam.views import coarse_surface, render_view
 from tests.test_mesh_views import CONFIG, exact_submap, patch, pinhole, plane_z, single_thread  # noqa: F401 (autouse)
 
 FINE = FineColorConfig(levels=3, features=2, table_log2=8, coarsest=0.08, finest=0.02)
@@ -60,21 +60,26 @@ def test_config_checks_the_fine_level():
 
 
 # ------------------------------------------------------------ mapping
-def _mapped(levels: int, static: str = "off") -> Mapper:
+def _frames(count: int = 2):
+    return [prepare_frame(f, None, CPU, preset("test").voxel.max_depth)
+            for f in open_sequence("synthetic:orbit?frames=100&width=80&height=60", max_frames=count)]
+
+
+def _mapped(levels: int, static: str = "off", surface: str = "observed", fine: FineColorConfig = FINE) -> Mapper:
     base = preset("test")
-    config = replace(base, fine_color=replace(FINE, levels=levels), render=replace(base.render, static_shapes=static))
-    frames = [prepare_frame(f, None, CPU, base.voxel.max_depth)
-              for f in open_sequence("synthetic:orbit?frames=100&width=80&height=60", max_frames=2)]
+    config = replace(base, fine_color=replace(fine, levels=levels, final_fit_surface=surface),
+                     render=replace(base.render, static_shapes=static))
     mapper = Mapper(config, CPU, seed=0)
-    for frame in frames:
+    for frame in _frames():
         mapper.process(TrackedFrame(frame, torch.from_numpy(frame.T_world_cam_gt).float()))
     mapper.global_bundle_adjustment(mapper.current, 3, 128)
     return mapper
 
 
-@pytest.mark.parametrize("static", ["off", "on"])  # flat samples (slam.render) and padded (slam.padded)
-def test_mapping_trains_the_fine_level_and_leaves_the_coarse_map_as_without_it(static):
-    with_level, without = _mapped(3, static), _mapped(0, static)
+@pytest.mark.parametrize("static, surface", [("off", "observed"), ("on", "observed"), ("off", "rendered")])
+def test_mapping_trains_the_fine_level_and_leaves_the_coarse_map_as_without_it(static, surface):
+    # flat samples (slam.render) and padded (slam.padded); both final fits
+    with_level, without = _mapped(3, static, surface), _mapped(0, static)
     a, b = with_level.current, without.current
     assert b.fine is None and a.fine is not None
     assert torch.equal(a.voxels.embeddings, b.voxels.embeddings)
@@ -175,3 +180,31 @@ def test_run_json_counts_the_fine_level_in_the_map_memory(tmp_path):
     memory = json.loads((tmp_path / "run.json").read_text())["map_memory_mb"]
     fine = load_checkpoint(tmp_path / "map.pt").maps[0].fine
     assert fine is not None and memory["fine_color"] == pytest.approx(fine.num_bytes() / 2**20)
+
+
+def test_coarse_surface_is_the_view_without_the_fine_level():
+    K = pinhole(32, 24, 16.0)
+    submap = _shifted(exact_submap(patch(-2, 2), plane_z(0.13)), -0.1)
+    view = render_view(MapSet(CONFIG, [exact_submap(patch(-2, 2), plane_z(0.13))]), np.eye(4), K, 32, 24)
+    color, points, surface = coarse_surface(submap, torch.eye(4), torch.as_tensor(K, dtype=torch.float32), 32, 24,
+                                            CONFIG)
+    np.testing.assert_array_equal(surface.numpy(), view.valid.reshape(-1))
+    np.testing.assert_allclose(color[surface].numpy(), view.rgb.reshape(-1, 3)[view.valid.reshape(-1)], atol=1e-5)
+    # each point is its pixel's ray at the rendered z-depth
+    np.testing.assert_allclose(points[surface, 2].numpy(), view.depth.reshape(-1)[view.valid.reshape(-1)], atol=1e-5)
+
+
+def test_the_rendered_surface_fit_brings_views_at_the_keyframes_closer_to_the_input():
+    # tables big enough that the 2 keyframes' cells rarely share a row (FINE's 2^8 rows would)
+    mapper = _mapped(3, surface="rendered", fine=replace(FINE, table_log2=14, final_fit_iterations=40))
+    mapset = mapper.maps
+    errors = {}
+    for label in ("fine", "coarse"):
+        if label == "coarse":
+            mapset.maps[0].fine = None
+        total = 0.0
+        for frame in _frames():
+            view = render_view(mapset, frame.T_world_cam_gt, frame.K.numpy(), frame.width, frame.height)
+            total += float(np.abs(view.rgb - frame.rgb.numpy())[view.valid].mean())
+        errors[label] = total
+    assert errors["fine"] < 0.8 * errors["coarse"], errors
