@@ -264,8 +264,7 @@ def run(sequence_names: list[str] | None, presets: list[str], out: Path, timeout
                     name = preset if fine else f"{preset} coarse only"
                     row = scores_row(seq.name, name, "training", score_views(pairs, seen),
                                      picture(pairs, out / f"{tag}{'' if fine else '-coarse'}.png", seen), seed)
-                    rows.append(row)
-                    print(_line(row), flush=True)
+                    _record(rows, row, out)
                 if seq.name == "room0":
                     config = load_checkpoint(run_dir / "map.pt").config  # a reused variant's overrides too
                     config = replace(config, runtime=replace(config.runtime, seed=seed))
@@ -276,11 +275,16 @@ def run(sequence_names: list[str] | None, presets: list[str], out: Path, timeout
                         suffix = "" if name == preset else "-coarse"
                         row = scores_row(seq.name, name, "held-out", score_views(views),
                                          picture(views, out / f"{tag}-held-out{suffix}.png"), seed)
-                        rows.append(row)
-                        print(_line(row), flush=True)
+                        _record(rows, row, out)
+    return rows
+
+
+def _record(rows: list[dict], row: dict, out: Path) -> None:
+    """Adds ``row``, prints it and rewrites ``out``/quality.json (a stopped run keeps its rows)."""
+    rows.append(row)
+    print(_line(row), flush=True)
     out.mkdir(parents=True, exist_ok=True)
     (out / "quality.json").write_text(json.dumps(rows, indent=1))
-    return rows
 
 
 def _run_dir(seq, preset: str, seed: int, out: Path, reuse: Path | None, timeout: float) -> Path:

@@ -16,7 +16,11 @@ written, and the tables bound its memory whatever the scene (``num_bytes``). Map
 on the residual of its rays, ``|C_coarse.detach() + delta(x.detach()) - C_gt|`` (``fine_loss``):
 the coarse embeddings, the decoder and the poses get no gradient from it, so the coarse
 optimisation, and tracking, which renders the coarse level only, are exactly as without it.
-Views (``slam.views``) and mesh vertex colours (``slam.mesh``) add ``delta``.
+After the final bundle adjustment ``Mapper.fit_fine_rendered`` (or ``fit_fine``, at the
+measured depth) fits it to the keyframes at the surface the coarse map renders for each of
+their pixels (``slam.views.coarse_surface``): where 0.2 m voxels put that surface centimetres
+off the measured one, the colour lands where views look. Views (``slam.views``) and mesh
+vertex colours (``slam.mesh``) add ``delta``.
 """
 
 from __future__ import annotations

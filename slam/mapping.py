@@ -62,9 +62,12 @@ FIT_KEYFRAMES = 8
 FIT_KEYFRAMES_FINAL = 1 << 30
 """... after the final bundle adjustment: every keyframe."""
 
-FIT_KEYFRAMES_RENDERED = 128
-"""Keyframes the rendered-surface fit renders at most (evenly spread): 128 half images of a
-320-wide run are some 2.5 M points."""
+FIT_KEYFRAMES_RENDERED = 32
+"""Keyframes the rendered-surface fit renders at most (evenly spread): the renders are its
+cost, and 32 of fr1/rpy's 46-61 keyframes gave the views of all of them (decisions.md#fine_color)."""
+FIT_RENDER_BLOCK = 2
+"""The rendered-surface fit renders a keyframe at 1/FIT_RENDER_BLOCK of its size: a pixel of
+that image is a block of FIT_RENDER_BLOCK^2 keyframe pixels, its colour their mean."""
 
 
 @dataclass(frozen=True)
@@ -514,7 +517,8 @@ class Mapper:
     def fit_fine_rendered(self, submap: SubMap, iterations: int) -> None:
         """``iterations`` steps of the fine colour level alone on the surface the coarse map
         renders for the keyframes (``fine_color.final_fit_surface`` "rendered"): each keyframe
-        (at most ``FIT_KEYFRAMES_RENDERED``, evenly spread) is rendered at half its size, and
+        (at most ``FIT_KEYFRAMES_RENDERED``, evenly spread) is rendered at 1/``FIT_RENDER_BLOCK``
+        of its size, and
         the level learns ``input - rendered coarse colour`` at each pixel's rendered surface
         point, the very point a view adds it at. Where the coarse surface lies centimetres
         off the measured one (0.2 m voxels on real data), a fit at the measured depth puts the
@@ -544,22 +548,26 @@ class Mapper:
 
     def _rendered_residuals(self, submap: SubMap, keyframes: list[Keyframe]) -> tuple[torch.Tensor, torch.Tensor]:
         """Map-frame surface points (N, 3) and colour residuals (N, 3) of ``keyframes`` rendered
-        at half size: each pixel of the half image is a 2x2 block of the keyframe, its colour
-        the block's mean, used where all four have measured depth (TUM's undistortion border
-        has none) and the coarse map renders a surface."""
-        from .views import coarse_surface
+        at 1/b of their size (b = ``FIT_RENDER_BLOCK``): each pixel of the small image is a
+        b x b block of the keyframe, its colour the block's mean, used where all of the block
+        has measured depth (TUM's undistortion border has none) and the coarse map renders a
+        surface."""
+        from .views import coarse_surface, rendered_voxels, view_decoder
 
+        b = FIT_RENDER_BLOCK
+        decoder, view = view_decoder(submap.decoder, self.device, "auto"), rendered_voxels(submap)
         points, residuals = [], []
         for kf in keyframes:
             frame = kf.frame
-            h, w = frame.height // 2, frame.width // 2
+            h, w = frame.height // b, frame.width // b
             if h == 0 or w == 0:
                 continue
             K = frame.K.clone()
-            K[:2] /= 2.0  # the half image's pixel (i + 0.5) is the centre of the block 2i, 2i + 1
-            color, point, surface = coarse_surface(submap, kf.T_map_cam.detach(), K, w, h, self.config)
-            rgb = frame.rgb[:2 * h, :2 * w].reshape(h, 2, w, 2, 3).mean((1, 3)).reshape(-1, 3)
-            measured = frame.depth[:2 * h, :2 * w].reshape(h, 2, w, 2).amin((1, 3)).reshape(-1) > 0
+            K[:2] /= b  # the small image's pixel (i + 0.5) is the centre of the block bi .. bi + b - 1
+            color, point, surface = coarse_surface(submap, kf.T_map_cam.detach(), K, w, h, self.config,
+                                                   decoder=decoder, view=view)
+            rgb = frame.rgb[:b * h, :b * w].reshape(h, b, w, b, 3).mean((1, 3)).reshape(-1, 3)
+            measured = frame.depth[:b * h, :b * w].reshape(h, b, w, b).amin((1, 3)).reshape(-1) > 0
             use = torch.nonzero(surface & measured, as_tuple=True)[0]
             points.append(point[use])
             residuals.append(rgb[use] - color[use])

@@ -485,19 +485,22 @@ def _check_view_options(width: int, height: int, method: str, precision: str, co
 
 @torch.no_grad()
 def coarse_surface(submap, T_map_cam: torch.Tensor, K: torch.Tensor, width: int, height: int, config,
-                   near: float = DEFAULT_NEAR) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+                   near: float = DEFAULT_NEAR, decoder=None, view=None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """One submap seen by a ``width`` x ``height`` pinhole camera (K (3, 3)) at T_map_cam (4, 4),
     in the map's own frame and without its fine colour level, as ``render_view`` renders it
     (``banded``, decoder precision ``auto``) -> coarse colour (H * W, 3), the map-frame surface
     point of each pixel (H * W, 3) (its ray at the rendered depth) and surface (H * W,) bool.
     The fine level's rendered-surface fit learns its residual against these
-    (``Mapper.fit_fine_rendered``), so that views add it at the very points it was fitted."""
+    (``Mapper.fit_fine_rendered``), so that views add it at the very points it was fitted.
+    ``decoder`` and ``view``: ``view_decoder(submap.decoder, device, "auto")`` and
+    ``rendered_voxels(submap)``, built here unless given (give them to render many cameras)."""
     device = submap.voxels.device
     T_map_cam = T_map_cam.to(device, torch.float32)
     dirs_cam = camera_rays(K.to(device, torch.float32), pixel_centres(width, height).to(device))
     color, depth, surface = _render_submap_banded(
         submap, T_map_cam, dirs_cam, config, near, config.render.chunk_rays, width, height, DEFAULT_COARSE_STRIDE,
-        decoder=view_decoder(submap.decoder, device, "auto"), view=rendered_voxels(submap), fine=False)
+        decoder=decoder or view_decoder(submap.decoder, device, "auto"), view=view or rendered_voxels(submap),
+        fine=False)
     origins, dirs = rays_in_map(T_map_cam, dirs_cam)
     return color, origins + depth[:, None] * dirs, surface
 
