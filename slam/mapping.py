@@ -62,9 +62,10 @@ FIT_KEYFRAMES = 8
 FIT_KEYFRAMES_FINAL = 1 << 30
 """... after the final bundle adjustment: every keyframe."""
 
-FIT_KEYFRAMES_RENDERED = 32
+FIT_KEYFRAMES_RENDERED = 16
 """Keyframes the rendered-surface fit renders at most (evenly spread): the renders are its
-cost, and 32 of fr1/rpy's 46-61 keyframes gave the views of all of them (decisions.md#fine_color)."""
+cost, and 16 of fr1/rpy's 45-61 keyframes give views within 0.07 dB of all of them
+(decisions.md#fine_color)."""
 FIT_RENDER_BLOCK = 2
 """The rendered-surface fit renders a keyframe at 1/FIT_RENDER_BLOCK of its size: a pixel of
 that image is a block of FIT_RENDER_BLOCK^2 keyframe pixels, its colour their mean."""
