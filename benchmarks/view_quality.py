@@ -239,8 +239,9 @@ def run(sequence_names: list[str] | None, presets: list[str], out: Path, timeout
     training views (and room0's held-out views); prints a line per result and returns the rows.
 
     ``reuse``: a ``bench_real.py`` work folder whose ``{sequence}_{name}_{seed}`` runs
-    (``--variant name=... --deterministic 1``) are scored instead of running again; ``presets``
-    may then name its variants (room0's held-out map takes the run's config).
+    (``--variant name=... --deterministic 1``) are scored instead of running again (a run it
+    lacks is skipped); ``presets`` may then name its variants (room0's held-out map takes the
+    run's config).
     ``fine_ablation``: every map is also rendered without its fine colour level, a paired A/B
     of the level on the very same coarse map and trajectory (the level leaves both untouched).
     """
@@ -257,6 +258,9 @@ def run(sequence_names: list[str] | None, presets: list[str], out: Path, timeout
         for preset in presets:
             for seed in range(seeds):
                 run_dir = _run_dir(seq, preset, seed, out, reuse, timeout)
+                if run_dir is None:
+                    print(f"{seq.name} {preset} seed {seed}: no run in {reuse}, skipped", flush=True)
+                    continue
                 tag = f"{seq.name}-{preset}-s{seed}"
                 for fine in (True, False) if fine_ablation else (True,):
                     pairs = training_views(run_dir, sequence, fine=fine)
@@ -287,12 +291,15 @@ def _record(rows: list[dict], row: dict, out: Path) -> None:
     (out / "quality.json").write_text(json.dumps(rows, indent=1))
 
 
-def _run_dir(seq, preset: str, seed: int, out: Path, reuse: Path | None, timeout: float) -> Path:
-    """The run to score: ``reuse``'s when it has one, else a new deterministic run in ``out``."""
+def _run_dir(seq, preset: str, seed: int, out: Path, reuse: Path | None, timeout: float) -> Path | None:
+    """The run to score: with ``reuse``, its run (None when it has none: a reused folder's
+    variants need not be presets, and a sequence it lacks is not run anew); else a new
+    deterministic run in ``out``."""
     from bench_real import Variant, run_voxfusion
 
-    if reuse is not None and (reuse / f"{seq.name}_{preset}_{seed}" / "map.pt").is_file():
-        return reuse / f"{seq.name}_{preset}_{seed}"
+    if reuse is not None:
+        found = reuse / f"{seq.name}_{preset}_{seed}"
+        return found if (found / "map.pt").is_file() else None
     run_dir = out / f"{seq.name}-{preset}-s{seed}"
     run_voxfusion(seq, Variant(preset, preset), run_dir, ["--deterministic", "1"], timeout, seed=seed)
     return run_dir

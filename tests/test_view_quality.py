@@ -41,3 +41,16 @@ def test_summary_says_within_spread_and_worse():
     assert summary(close)[0]["verdict"] == "within spread"
     lower = [_row("cpu", 0, 14.0), _row("cpu", 1, 14.1), _row("cpu coarse only", 0, 16.0), _row("cpu coarse only", 1, 16.1)]
     assert summary(lower)[0]["verdict"] == "worse"
+
+
+def test_a_reused_folder_gives_its_runs_and_nothing_for_the_runs_it_lacks(tmp_path):
+    from types import SimpleNamespace
+
+    from view_quality import _run_dir
+
+    seq = SimpleNamespace(name="desk")
+    (tmp_path / "desk_fr_1").mkdir()
+    (tmp_path / "desk_fr_1" / "map.pt").write_bytes(b"")
+    assert _run_dir(seq, "fr", 1, tmp_path / "out", tmp_path, 1.0) == tmp_path / "desk_fr_1"
+    assert _run_dir(seq, "fr", 2, tmp_path / "out", tmp_path, 1.0) is None  # not run anew
+    assert not (tmp_path / "out").exists()
