@@ -22,15 +22,13 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_real import sequences  # noqa: E402
-from common import pipeline_frame  # noqa: E402
-from view_quality import VIEW_WIDTH, VIEWS, observed_mask, score_views  # noqa: E402
+from view_quality import observed_mask, score_views, tracked_views  # noqa: E402
 
 
 def main(argv: list[str]) -> int:
     import slam.mapping as mapping
-    from slam import load_checkpoint, read_tum
+    from slam import load_checkpoint
     from slam.data import open_sequence
-    from slam.eval.trajectory import associate
     from slam.frames import prepare_frame
     from slam.views import render_view
 
@@ -39,12 +37,7 @@ def main(argv: list[str]) -> int:
     seq = next(s for s in sequences(None) if s.name == name)
     sequence = open_sequence(seq.path, max_frames=seq.max_frames)
     stamps = np.asarray(sequence.timestamps, np.float64)
-    trajectory = read_tum(run_dir / "trajectory.txt")
-    estimate_idx, frame_idx = associate(trajectory.timestamps, stamps, max_dt=1e-3)
-    order = np.argsort(frame_idx)
-    estimate_idx, frame_idx = estimate_idx[order], frame_idx[order]
-    chosen = np.linspace(0, len(frame_idx) - 1, min(VIEWS, len(frame_idx))).round().astype(int)
-    views = [(pipeline_frame(sequence[int(frame_idx[c])], VIEW_WIDTH), trajectory.poses[estimate_idx[c]]) for c in chosen]
+    views = tracked_views(run_dir, sequence)
     seen = observed_mask(sequence, views[0][0])
 
     def score(mapset, tag: str) -> None:

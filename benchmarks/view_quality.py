@@ -168,29 +168,36 @@ def without_fine(mapset):
     return mapset
 
 
-def training_views(run_dir: Path, sequence, width: int = VIEW_WIDTH, views: int = VIEWS, fine: bool = True):
-    """(RenderedView, input Frame) pairs: every k-th input frame rendered from ``run_dir``'s
-    ``map.pt`` at its pose in ``trajectory.txt``; ``fine`` False: without the map's fine
-    colour level."""
-    from slam import load_checkpoint, read_tum
+def tracked_views(run_dir: Path, sequence, width: int = VIEW_WIDTH, views: int = VIEWS) -> list[tuple[object, np.ndarray]]:
+    """(input Frame at ``width``, its tracked T_world_cam (4, 4)) of every k-th frame of
+    ``run_dir``'s ``trajectory.txt`` (at most ``views``, evenly spaced over the run)."""
+    from slam import read_tum
     from slam.eval.trajectory import associate
-    from slam.views import render_view
 
-    mapset = load_checkpoint(run_dir / "map.pt")
-    if not fine:
-        without_fine(mapset)
     trajectory = read_tum(run_dir / "trajectory.txt")
     estimate_idx, frame_idx = associate(trajectory.timestamps, np.asarray(sequence.timestamps, np.float64), max_dt=1e-3)
     order = np.argsort(frame_idx)
     estimate_idx, frame_idx = estimate_idx[order], frame_idx[order]
     chosen = np.linspace(0, len(frame_idx) - 1, min(views, len(frame_idx))).round().astype(int)
-    pairs = []
+    out = []
     for c in chosen:
         frame = pipeline_frame(sequence[int(frame_idx[c])], width)
         assert abs(frame.timestamp - trajectory.timestamps[estimate_idx[c]]) < 1e-3, "view paired with another frame"
-        view = render_view(mapset, trajectory.poses[estimate_idx[c]], frame.K, frame.width, frame.height)
-        pairs.append((view, frame))
-    return pairs
+        out.append((frame, trajectory.poses[estimate_idx[c]]))
+    return out
+
+
+def training_views(run_dir: Path, sequence, width: int = VIEW_WIDTH, views: int = VIEWS, fine: bool = True):
+    """(RenderedView, input Frame) pairs of ``tracked_views``, rendered from ``run_dir``'s
+    ``map.pt``; ``fine`` False: without the map's fine colour level."""
+    from slam import load_checkpoint
+    from slam.views import render_view
+
+    mapset = load_checkpoint(run_dir / "map.pt")
+    if not fine:
+        without_fine(mapset)
+    return [(render_view(mapset, T, frame.K, frame.width, frame.height), frame)
+            for frame, T in tracked_views(run_dir, sequence, width, views)]
 
 
 def held_out_views(config, width: int = VIEW_WIDTH, fine_too: bool = False):

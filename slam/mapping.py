@@ -519,11 +519,11 @@ class Mapper:
         """``iterations`` steps of the fine colour level alone on the surface the coarse map
         renders for the keyframes (``fine_color.final_fit_surface`` "rendered"): each keyframe
         (at most ``FIT_KEYFRAMES_RENDERED``, evenly spread) is rendered at 1/``FIT_RENDER_BLOCK``
-        of its size, and
-        the level learns ``input - rendered coarse colour`` at each pixel's rendered surface
-        point, the very point a view adds it at. Where the coarse surface lies centimetres
-        off the measured one (0.2 m voxels on real data), a fit at the measured depth puts the
-        colour where no view looks (fr1/desk training views 18.0 -> 21.1 dB; decisions.md#fine_color).
+        of its size, and the level learns ``input - rendered coarse colour`` at each pixel's
+        rendered surface point, the very point a view adds it at. Where the coarse surface lies
+        centimetres off the measured one (0.2 m voxels on real data), a fit at the measured
+        depth puts the colour where no view looks (fr1/desk training views 17.9 -> 20.1 dB,
+        3 seeds; decisions.md#fine_color).
         Its own Adam, cosine-decayed to zero: a decaying step leaves less sampling noise."""
         kfs = [kf for kf in submap.keyframes if kf.frame is not None]
         if submap.fine is None or iterations <= 0 or not kfs:
