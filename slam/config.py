@@ -126,7 +126,7 @@ def _cpu() -> SLAMConfig:
         render=RenderConfig(
             step_ratio=0.1,                # the paper's coarse end (decisions.md#preset.cpu)
             max_hits=16,                   # a 2-core budget, not A/B'd yet (decisions.md#preset.cpu)
-            truncation=0.1,                # a 2-core budget, not A/B'd yet (decisions.md#preset.cpu)
+            truncation=0.1,                # 0.05 worse on 3 real sequences (decisions.md#preset.cpu)
         ),
         loss=LossConfig(
             rgb_weight=10.0,               # 0.5 leaves colour near the mean (decisions.md#loss.rgb_weight)
@@ -134,7 +134,7 @@ def _cpu() -> SLAMConfig:
         ),
         tracking=TrackingConfig(
             optimizer="gauss_newton",      # 6 LM steps beat 40 Adam steps (decisions.md#tracking.optimizer)
-            num_rays=512,                  # a 2-core budget, not A/B'd yet (decisions.md#preset.cpu)
+            num_rays=512,                  # 1024 within spread everywhere at 0.9x (decisions.md#preset.cpu)
             iterations=4,                  # as accurate as 6 at 0.54-0.74x the time (decisions.md#tracking.iterations)
             rgb_weight=20.0,               # colour alone sees along a plain wall (decisions.md#tracking.rgb_weight)
             color_weight_eps=5e-2,         # a fifth of the peak (decisions.md#tracking.color_weight_eps)
@@ -148,13 +148,14 @@ def _cpu() -> SLAMConfig:
         mapping=MappingConfig(
             num_rays=192,                  # many small steps beat few large (decisions.md#mapping.num_rays)
             iterations=12,                 # with num_rays (decisions.md#mapping.num_rays)
-            window_size=4,                 # a 2-core budget, not A/B'd yet (decisions.md#preset.cpu)
+            window_size=4,                 # 6 no better on fr1/rpy and fr1/desk (decisions.md#preset.cpu)
             first_frame_iterations=100,    # the field default, ours (decisions.md#preset.paper)
             final_iterations=500,          # what the window never gave (decisions.md#mapping.final_iterations)
             final_rays=512,                # iterations count more than rays (decisions.md#mapping.final_iterations)
             final_iterations_per_keyframe=50,  # a budget for short runs (decisions.md#mapping.final_time_share)
             final_time_share=0.15,         # 10 s of a minute's run (decisions.md#mapping.final_time_share)
             optimize_current_pose=True,    # the paper's way (decisions.md#mapping.optimize_current_pose)
+            frame_correction="interpolated",  # better on all 5 real sequences, paired (decisions.md#mapping.frame_correction)
             thin_samples=True,             # 1.5x faster mapping step (decisions.md#mapping.thin_samples)
             free_space_stride=2,           # with thin_samples (decisions.md#mapping.thin_samples)
             color_weight_eps=5e-2,         # with thin_samples (decisions.md#mapping.thin_samples)
@@ -170,8 +171,11 @@ def _cpu() -> SLAMConfig:
             coarsest=0.16,                 # 0.16-0.02 m beat 0.08-0.01 m on fr1/desk (decisions.md#fine_color)
             finest=0.02,                   # with coarsest (decisions.md#fine_color)
             fit_iterations=0,              # fits during the run cost tracking 26 % of its frames/s (decisions.md#fine_color)
-            fit_rays=8192,                 # with fit_iterations (decisions.md#fine_color)
-            final_fit_iterations=50,       # with fit_iterations (decisions.md#fine_color)
+            features=1,                    # one float a row, 2^17 rows at the finest level (decisions.md#fine_color)
+            table_log2=17,                 # with features and level_tables: 0.66 MB (decisions.md#fine_color)
+            level_tables="surface",        # coarser levels' tables shrink with their cells (decisions.md#fine_color)
+            fit_rays=4096,                 # 200 small steps beat 50 large (decisions.md#fine_color)
+            final_fit_iterations=200,      # with fit_rays (decisions.md#fine_color)
             final_fit_surface="rendered",  # where views query it: +0.2-2.1 dB (decisions.md#fine_color)
         ),
         loop=LoopConfig(

@@ -201,6 +201,10 @@ class TrackingConfig:
             raise ConfigError(f"tracking.optimizer must be 'adam' or 'gauss_newton', got {self.optimizer!r}")
 
 
+FRAME_CORRECTIONS = ("latest", "interpolated")
+"""How frames follow their keyframes' bundle adjustment (``MappingConfig.frame_correction``)."""
+
+
 @dataclass(frozen=True)
 class MappingConfig:
     num_rays: int = 1024
@@ -221,6 +225,11 @@ class MappingConfig:
     optimize_current_pose: bool = False
     """With ``optimize_poses``: a newest frame that is no keyframe has its pose optimised too (the
     paper), and that pose replaces the tracked one; False: its tracked pose is held fixed."""
+    frame_correction: str = "latest"
+    """How the trajectory's frames follow bundle adjustment's keyframe poses
+    (``slam.outputs.refine_with_keyframes``): ``latest``, each frame the correction of the latest
+    keyframe at or before it; ``interpolated``, a frame between two keyframes their two
+    corrections blended by its place between them."""
     keyframe_ratio: float = 0.05
     """p_kf threshold: new-voxel / observed-voxel ratio that makes a keyframe."""
     keyframe_max_interval: int = 50
@@ -252,6 +261,7 @@ class MappingConfig:
 
     def __post_init__(self) -> None:
         _check_choice("mapping.exposure", self.exposure, EXPOSURE_MODES)
+        _check_choice("mapping.frame_correction", self.frame_correction, FRAME_CORRECTIONS)
         _check_non_negative("mapping.exposure_prior", self.exposure_prior)
         _check_non_negative("mapping.exposure_lr", self.exposure_lr)
         if isinstance(self.free_space_stride, bool) or not isinstance(self.free_space_stride, int) \
@@ -339,6 +349,9 @@ class LoopConfig:
 FINE_FIT_SURFACES = ("observed", "rendered")
 """Where ``fine_color``'s final fit learns (``FineColorConfig.final_fit_surface``)."""
 
+FINE_LEVEL_TABLES = ("equal", "surface")
+"""How ``fine_color``'s levels share rows (``FineColorConfig.level_tables``)."""
+
 
 @dataclass(frozen=True)
 class FineColorConfig:
@@ -351,7 +364,11 @@ class FineColorConfig:
     features: int = 2
     """Floats per table row."""
     table_log2: int = 14
-    """Each level's table holds 2^table_log2 rows (hash collisions share a row)."""
+    """The finest level's table holds 2^table_log2 rows (hash collisions share a row)."""
+    level_tables: str = "equal"
+    """``equal``: every level's table is as large as the finest's; ``surface``: a coarser level's
+    shrinks with the number of its cells a surface crosses, (cell / finest)^2 fewer rows
+    (``slam.fine_color.level_rows``), so that the finest level gets the rows."""
     coarsest: float = 0.08
     """Cell edge of the coarsest level (metres)."""
     finest: float = 0.01
@@ -381,6 +398,7 @@ class FineColorConfig:
         if not 0 < self.finest <= self.coarsest:
             raise ConfigError(f"fine_color needs 0 < finest <= coarsest, got {self.finest} and {self.coarsest}")
         _check_non_negative("fine_color.lr", self.lr)
+        _check_choice("fine_color.level_tables", self.level_tables, FINE_LEVEL_TABLES)
         if self.final_fit_surface not in FINE_FIT_SURFACES:
             raise ConfigError(f"fine_color.final_fit_surface must be one of {FINE_FIT_SURFACES}, "
                               f"got {self.final_fit_surface!r}")

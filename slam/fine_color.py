@@ -6,8 +6,10 @@ smooth colour: at 1.5 m a voxel spans some 40 pixels of a 320-wide view, so text
 keys and edges vanish. The fine level adds a colour *residual* ``delta(x)`` at the surface
 point ``x`` a pixel sees (its rendered depth along its ray), from a multi-resolution hash
 grid (Instant-NGP, Co-SLAM): ``levels`` grids from ``coarsest`` to ``finest`` metres (geometric
-steps), each corner hashed into a table of ``2^table_log2`` rows of ``features`` floats,
-trilinearly interpolated, concatenated and mapped to RGB by one linear layer:
+steps), each corner hashed into its level's table of rows of ``features`` floats,
+trilinearly interpolated, concatenated and mapped to RGB by one linear layer (with
+``level_tables`` "surface" a coarser level's table is smaller, as a surface crosses fewer of
+its cells):
 
     C_view = C_coarse + delta(o + D d)        (D: rendered z-depth, d: ray with z = 1)
 
@@ -52,16 +54,35 @@ CORNERS = torch.tensor([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1
 """(8, 3) corner offsets of a cell, in the order of ``slam.render.trilinear_weights``."""
 
 
+def level_rows(config: FineColorConfig) -> list[int]:
+    """Rows of each level's table, coarsest first: ``2^table_log2`` each (``equal``), or with
+    ``level_tables`` "surface" the finest level's ``2^table_log2`` divided by the surface-area
+    ratio (cell / finest)^2 rounded to a power of two, at least 16. A surface crosses about
+    that many times fewer cells of a coarser level, so its table needs that many fewer rows
+    for as few collisions. Example: 4 levels 0.16-0.02 m, table_log2 16 -> [2^10, 2^12, 2^14, 2^16]."""
+    rows = 1 << config.table_log2
+    if config.level_tables == "equal":
+        return [rows] * config.levels
+    shrinks = [round(2 * math.log2(cell / config.finest)) for cell in level_cells(config).tolist()]
+    return [max(min(16, rows), rows >> min(shrink, config.table_log2)) for shrink in shrinks]
+
+
 def hash_rows(ijk: torch.Tensor, table_size: int) -> torch.Tensor:
     """(..., 3) int64 cell corners -> (...) int64 rows in [0, table_size) (a power of two)."""
     h = ijk[..., 0] * HASH_PRIMES[0] ^ ijk[..., 1] * HASH_PRIMES[1] ^ ijk[..., 2] * HASH_PRIMES[2]
     return h & (table_size - 1)
 
 
-def corner_rows_and_weights(points: torch.Tensor, cells: torch.Tensor, table_size: int
+def offsets_of(rows: torch.Tensor) -> torch.Tensor:
+    """(L,) int64 rows of each level's table -> (L,) int64 first row of each in the flat table."""
+    return torch.cumsum(rows, 0) - rows
+
+
+def corner_rows_and_weights(points: torch.Tensor, cells: torch.Tensor, rows: torch.Tensor
                             ) -> tuple[torch.Tensor, torch.Tensor]:
-    """(N, 3) map-frame points, (L,) cell edges -> rows (N, L, 8) int64 into the flattened
-    (L * table_size) tables and trilinear weights (N, L, 8) float32 (each row sums to 1).
+    """(N, 3) map-frame points, (L,) cell edges, (L,) int64 rows of each level's table (powers
+    of two) -> rows (N, L, 8) int64 into the flat table (the levels' tables one after another)
+    and trilinear weights (N, L, 8) float32 (each row sums to 1).
 
     The hash is a xor of one term per axis, so each axis' two terms and two weights are formed
     once and the 8 corners combine them (a third of the work of hashing every corner)."""
@@ -77,54 +98,66 @@ def corner_rows_and_weights(points: torch.Tensor, cells: torch.Tensor, table_siz
     # Corner (a, b, c) at index 4a + 2b + c, the order of CORNERS.
     hashed = (h[0][..., :, None, None] ^ h[1][..., None, :, None] ^ h[2][..., None, None, :]).flatten(-3)
     weights = (w[0][..., :, None, None] * w[1][..., None, :, None] * w[2][..., None, None, :]).flatten(-3)
-    level_offset = torch.arange(cells.numel(), device=points.device)[None, :, None] * table_size
-    return (hashed & (table_size - 1)) + level_offset, weights
+    rows = rows.to(points.device)
+    return (hashed & (rows - 1)[None, :, None]) + offsets_of(rows)[None, :, None], weights
 
 
-def hash_features(points: torch.Tensor, tables: torch.Tensor, cells: torch.Tensor) -> torch.Tensor:
-    """(N, 3) points, tables (L, T, F), (L,) cell edges -> (N, L * F) interpolated features."""
-    levels, table_size, features = tables.shape
-    rows, weights = corner_rows_and_weights(points, cells, table_size)
-    corner = tables.reshape(-1, features)[rows]                                          # (N, L, 8, F)
-    return (weights[..., None] * corner).sum(2).reshape(points.shape[0], levels * features)
+def hash_features(points: torch.Tensor, tables: torch.Tensor, cells: torch.Tensor, rows: torch.Tensor
+                  ) -> torch.Tensor:
+    """(N, 3) points, flat tables (R, F), (L,) cell edges, (L,) int64 rows of each level's
+    table (summing to R) -> (N, L * F) interpolated features."""
+    features = tables.shape[1]
+    index, weights = corner_rows_and_weights(points, cells, rows)
+    corner = tables[index]                                                               # (N, L, 8, F)
+    return (weights[..., None] * corner).sum(2).reshape(points.shape[0], cells.numel() * features)
 
 
-def hash_features_reference(points: torch.Tensor, tables: torch.Tensor, cells: torch.Tensor) -> torch.Tensor:
+def hash_features_reference(points: torch.Tensor, tables: torch.Tensor, cells: torch.Tensor,
+                            rows: torch.Tensor) -> torch.Tensor:
     """``hash_features`` one point, level and corner at a time (the tests' reference)."""
+    starts = [0]
+    for n in rows.tolist()[:-1]:
+        starts.append(starts[-1] + n)
     out = []
     for p in points.to(torch.float64):
         row = []
         for level, cell in enumerate(cells.tolist()):
             x = p / cell
             base = torch.floor(x)
-            acc = torch.zeros(tables.shape[2], dtype=torch.float64)
+            acc = torch.zeros(tables.shape[1], dtype=torch.float64)
             for corner in CORNERS:
                 ijk = base.to(torch.int64) + corner
                 w = torch.prod(torch.where(corner.bool(), x - base, 1 - (x - base)))
-                acc += w * tables[level, int(hash_rows(ijk, tables.shape[1]))].to(torch.float64)
+                acc += w * tables[starts[level] + int(hash_rows(ijk, int(rows[level])))].to(torch.float64)
             row.append(acc)
         out.append(torch.cat(row))
-    return torch.stack(out).to(tables.dtype) if out else tables.new_zeros(0, tables.shape[0] * tables.shape[2])
+    return torch.stack(out).to(tables.dtype) if out else tables.new_zeros(0, cells.numel() * tables.shape[1])
 
 
 class FineColor(nn.Module):
-    """The fine level: hash tables (L, T, F) and a linear head (L * F -> 3)."""
+    """The fine level: one flat hash table (R, F) holding every level's rows one after another
+    (``rows``: (L,) of each level's) and a linear head (L * F -> 3)."""
 
-    def __init__(self, config: FineColorConfig, seed: int = 0):
+    def __init__(self, config: FineColorConfig, seed: int = 0, rows: list[int] | None = None):
+        """``rows``: each level's table size (a checkpoint's); default ``level_rows(config)``."""
         super().__init__()
         if config.levels < 1:
             raise ValueError("a FineColor needs fine_color.levels >= 1")
+        rows = level_rows(config) if rows is None else [int(r) for r in rows]
+        if len(rows) != config.levels or any(r < 1 or r & (r - 1) for r in rows):
+            raise ValueError(f"a FineColor needs one power-of-two table size per level, got {rows}")
         self.config = config
         # Its own generator: the coarse map's random draws stay those of a run without it.
         gen = torch.Generator().manual_seed(seed)
-        size, width = 1 << config.table_log2, config.levels * config.features
-        tables = (torch.rand(config.levels, size, config.features, generator=gen) * 2 - 1) * INIT_SCALE
+        width = config.levels * config.features
+        tables = (torch.rand(sum(rows), config.features, generator=gen) * 2 - 1) * INIT_SCALE
         self.tables = nn.Parameter(tables)
         self.head = nn.Linear(width, 3)
         with torch.no_grad():
             self.head.weight.copy_(torch.randn(3, width, generator=gen) / math.sqrt(width))
             self.head.bias.zero_()
         self.register_buffer("cells", level_cells(config))  # stored: a checkpoint keeps its levels
+        self.register_buffer("rows", torch.tensor(rows, dtype=torch.int64))
 
     def forward(self, points: torch.Tensor) -> torch.Tensor:
         """(N, 3) map-frame points -> (N, 3) colour residual. Without gradients (views,
@@ -133,8 +166,8 @@ class FineColor(nn.Module):
         if not torch.is_grad_enabled() and kernels.use_numba(points, self.tables):
             from .kernels.fused import hash_grid
 
-            return self.head(hash_grid(points, self.cells, self.tables, HASH_PRIMES))
-        return self.head(hash_features(points, self.tables, self.cells))
+            return self.head(hash_grid(points, self.cells, self.tables, self.rows, HASH_PRIMES))
+        return self.head(hash_features(points, self.tables, self.cells, self.rows))
 
     def num_bytes(self) -> int:
         return sum(p.numel() * p.element_size() for p in self.parameters())

@@ -189,12 +189,18 @@ class SubMap:
 def _fine_from_state(state: dict | None, config: SLAMConfig, device) -> FineColor | None:
     """A checkpoint's fine level; None when it has none (written before the level existed or
     without it): its views are the coarse map's, whatever the config now says. The stored
-    tables give the level's shape."""
+    tables give the level's shape: (R, F) with each level's rows in ``rows``, or, written before
+    levels had sizes of their own, (L, T, F)."""
     if state is None:
         return None
-    levels, rows, features = state["tables"].shape
-    shape = dict(levels=int(levels), table_log2=int(rows).bit_length() - 1, features=int(features))
-    fine = FineColor(replace(config.fine_color, **shape))
+    state = dict(state)
+    if state["tables"].dim() == 3:
+        levels, table, features = state["tables"].shape
+        state["tables"] = state["tables"].reshape(levels * table, features)
+        state["rows"] = torch.full((levels,), table, dtype=torch.int64)
+    rows, features = state["rows"].tolist(), int(state["tables"].shape[1])
+    fine = FineColor(replace(config.fine_color, levels=len(rows), features=features,
+                             table_log2=max(rows).bit_length() - 1), rows=rows)
     fine.load_state_dict(state)
     return fine.to(device)
 

@@ -2,7 +2,9 @@
 
 Every frame is recorded in the frame of the map it was tracked against; its world pose is
 composed at the end with that map's final ``T_world_map`` (so loop closure moves it with its
-map), then moved by bundle adjustment's correction of its latest keyframe, and frames whose
+map), then moved by bundle adjustment's correction of its latest keyframe (or, with
+``mapping.frame_correction`` "interpolated", the corrections of the keyframes either side
+blended), and frames whose
 tracking failed are interpolated between their well-tracked neighbours.
 
 While the run goes on, ``write_progress`` rewrites the trajectories so far (the poses as
@@ -63,22 +65,39 @@ class ProgressSample:
 
 
 def refine_with_keyframes(poses: np.ndarray, frame_indices: list[int],
-                          keyframe_poses: dict[int, list[float]]) -> np.ndarray:
+                          keyframe_poses: dict[int, list[float]], interpolate: bool = False) -> np.ndarray:
     """Tracked world poses (N, 4, 4) moved by bundle adjustment's keyframe corrections.
 
     Each frame takes the correction ``T_kf_BA T_kf_tracked^-1`` of the latest keyframe at or
     before it (so keyframes get their bundle-adjusted pose and the frames tracked against them
-    follow); frames before the first keyframe are unchanged. ``keyframe_poses``: frame index ->
-    the keyframe's optimised T_world_cam as 16 row-major numbers (``run.json``'s form).
+    follow); frames before the first keyframe are unchanged. With ``interpolate`` a frame
+    between two keyframes takes their corrections blended by its place between them (rotation
+    by slerp, translation linearly; ``mapping.frame_correction`` "interpolated"): it was
+    tracked against a map that bundle adjustment moved with both. ``keyframe_poses``: frame
+    index -> the keyframe's optimised T_world_cam as 16 row-major numbers (``run.json``'s form).
     """
     out = np.array(poses, dtype=np.float64, copy=True)
-    correction = None
-    for i, index in enumerate(frame_indices):
-        refined = keyframe_poses.get(index)
-        if refined is not None:
-            correction = np.asarray(refined, np.float64).reshape(4, 4) @ np.linalg.inv(poses[i])
-        if correction is not None:
-            out[i] = correction @ poses[i]
+    at = [i for i, index in enumerate(frame_indices) if index in keyframe_poses]
+    corrections = [np.asarray(keyframe_poses[frame_indices[i]], np.float64).reshape(4, 4) @ np.linalg.inv(poses[i])
+                   for i in at]
+    for k, (start, correction) in enumerate(zip(at, corrections)):
+        end = at[k + 1] if k + 1 < len(at) else len(poses)
+        for i in range(start, end):
+            if interpolate and end < len(poses) and i > start:
+                out[i] = blend_poses(correction, corrections[k + 1], (i - start) / (end - start)) @ poses[i]
+            else:
+                out[i] = correction @ poses[i]
+    return out
+
+
+def blend_poses(a: np.ndarray, b: np.ndarray, s: float) -> np.ndarray:
+    """(4, 4) rigid transforms ``a`` at s = 0 to ``b`` at s = 1: rotation by slerp, translation
+    linearly."""
+    from scipy.spatial.transform import Rotation, Slerp
+
+    out = np.eye(4)
+    out[:3, :3] = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([a[:3, :3], b[:3, :3]])))([s]).as_matrix()[0]
+    out[:3, 3] = (1.0 - s) * a[:3, 3] + s * b[:3, 3]
     return out
 
 
@@ -142,7 +161,7 @@ class AgentTrajectory:
 
 
 def agent_trajectory(track: "AgentTrack", stats: "MapperStats | None", fallback_poses: dict[int, np.ndarray],
-                     use_gt_poses: bool) -> AgentTrajectory:
+                     use_gt_poses: bool, interpolate_corrections: bool = False) -> AgentTrajectory:
     """An agent's final world trajectory (see the module doc)."""
     records = track.records
     map_poses = stats.map_poses if stats is not None else fallback_poses
@@ -152,7 +171,7 @@ def agent_trajectory(track: "AgentTrack", stats: "MapperStats | None", fallback_
     tracked = np.array([r.tracked for r in records])
     if not use_gt_poses and stats is not None:
         kf = {k.frame_index: k.T_world_cam for k in stats.keyframe_records if k.agent == track.agent}
-        poses = refine_with_keyframes(poses, indices, kf)
+        poses = refine_with_keyframes(poses, indices, kf, interpolate_corrections)
         poses = interpolate_untracked(poses, ts, tracked)
     return AgentTrajectory(track.agent, ts, poses, [r.gt for r in records], int((~tracked).sum()))
 
@@ -285,7 +304,8 @@ def write_outputs(out: Path, config: SLAMConfig, tracks: list["AgentTrack"], sta
                   use_gt_poses: bool, map_poses: dict[int, np.ndarray] | None = None,
                   map_waits: tuple[int, float] = (0, 0.0), frames_skipped: list[dict] | None = None,
                   progress: list[ProgressSample] | None = None) -> RunResult:
-    trajectories = [agent_trajectory(t, stats, map_poses or {}, use_gt_poses) for t in tracks if t.records]
+    interpolate = config.mapping.frame_correction == "interpolated"
+    trajectories = [agent_trajectory(t, stats, map_poses or {}, use_gt_poses, interpolate) for t in tracks if t.records]
     _write_trajectories(out, trajectories, len(tracks) > 1)
     agents = [{
         "agent": t.agent, "frames": len(t.poses), "trajectory": "trajectory.txt" if len(tracks) == 1 else f"trajectory_{t.agent}.txt",

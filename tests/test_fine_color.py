@@ -13,7 +13,7 @@ from slam.checkpoint import load_checkpoint, save_checkpoint
 from slam.config import ConfigError, FineColorConfig, apply_overrides, preset
 from slam.data import open_sequence
 from slam.fine_color import (FineColor, corner_rows_and_weights, fine_loss, hash_features,
-                             hash_features_reference, level_cells, with_fine)
+                             hash_features_reference, level_cells, level_rows, with_fine)
 from slam.frames import prepare_frame
 from slam.mapping import Mapper, TrackedFrame
 from slam.maps import MapSet
@@ -22,6 +22,7 @@ from slam.views import coarse_surface, render_view
 from tests.test_mesh_views import CONFIG, exact_submap, patch, pinhole, plane_z, single_thread  # noqa: F401 (autouse)
 
 FINE = FineColorConfig(levels=3, features=2, table_log2=8, coarsest=0.08, finest=0.02)
+BY_SURFACE = replace(FINE, level_tables="surface")
 CPU = torch.device("cpu")
 
 
@@ -29,16 +30,32 @@ def test_levels_run_from_coarsest_to_finest():
     assert level_cells(FINE).tolist() == pytest.approx([0.08, 0.04, 0.02])
 
 
-def test_hash_features_match_the_reference_and_weights_sum_to_one():
-    fine = FineColor(FINE, seed=3)
+def test_surface_tables_shrink_with_the_area_a_coarser_cell_covers():
+    assert level_rows(FINE) == [256, 256, 256]
+    assert level_rows(BY_SURFACE) == [16, 64, 256]  # cells 0.08, 0.04, 0.02: 16x, 4x, 1x fewer rows
+    paper_like = FineColorConfig(levels=4, table_log2=16, coarsest=0.16, finest=0.02, level_tables="surface")
+    assert level_rows(paper_like) == [1 << 10, 1 << 12, 1 << 14, 1 << 16]
+    assert level_rows(replace(paper_like, table_log2=5)) == [16, 16, 16, 32]  # never below 16 rows
+    assert FineColor(BY_SURFACE).tables.shape == (16 + 64 + 256, 2)
+    with pytest.raises(ConfigError):
+        replace(FINE, level_tables="bigger")
+
+
+@pytest.mark.parametrize("config", [FINE, BY_SURFACE], ids=["equal", "surface"])
+def test_hash_features_match_the_reference_and_weights_sum_to_one(config):
+    fine = FineColor(config, seed=3)
+    with torch.no_grad():
+        fine.tables.normal_()
     points = torch.randn(50, 3) * 2.0  # negative coordinates too
-    rows, weights = corner_rows_and_weights(points, fine.cells, 1 << FINE.table_log2)
+    rows, weights = corner_rows_and_weights(points, fine.cells, fine.rows)
     assert rows.shape == weights.shape == (50, 3, 8)
-    assert int(rows.min()) >= 0 and int(rows.max()) < 3 * (1 << FINE.table_log2)
+    starts = torch.cumsum(fine.rows, 0) - fine.rows
+    for level in range(3):  # each level reads its own table only
+        assert bool((rows[:, level] >= starts[level]).all() and (rows[:, level] < starts[level] + fine.rows[level]).all())
     torch.testing.assert_close(weights.sum(-1), torch.ones(50, 3))
-    features = hash_features(points, fine.tables, fine.cells)
+    features = hash_features(points, fine.tables, fine.cells, fine.rows)
     assert features.shape == (50, 6)
-    torch.testing.assert_close(features, hash_features_reference(points, fine.tables, fine.cells))
+    torch.testing.assert_close(features, hash_features_reference(points, fine.tables, fine.cells, fine.rows))
     assert fine(points).shape == (50, 3)
 
 
@@ -139,6 +156,18 @@ def test_checkpoint_keeps_the_fine_level_and_old_checkpoints_load_without_it(tmp
     torch.testing.assert_close(loaded.fine.cells, submap.fine.cells)  # the stored levels, not the config's
     points = torch.rand(20, 3)
     torch.testing.assert_close(loaded.fine(points), submap.fine(points))
+    # Written before levels had tables of their own sizes: one (L, T, F) tensor.
+    payload = torch.load(tmp_path / "map.pt", weights_only=True)
+    state = payload["maps"][0]["fine"]
+    state["tables"] = state["tables"].reshape(3, 256, 2)
+    del state["rows"]
+    torch.save(payload, tmp_path / "levels.pt")
+    torch.testing.assert_close(load_checkpoint(tmp_path / "levels.pt").maps[0].fine(points), submap.fine(points))
+    # Tables of unequal sizes come back with their sizes, whatever the config says.
+    submap.fine = FineColor(BY_SURFACE, seed=6)
+    loaded = load_checkpoint(save_checkpoint(MapSet(config, [submap]), tmp_path / "surface.pt")).maps[0]
+    assert loaded.fine.rows.tolist() == [16, 64, 256]
+    torch.testing.assert_close(loaded.fine(points), submap.fine(points))
     # A checkpoint written before the level existed has no "fine" entry: no fine level.
     payload = torch.load(tmp_path / "map.pt", weights_only=True)
     del payload["maps"][0]["fine"]
@@ -148,7 +177,8 @@ def test_checkpoint_keeps_the_fine_level_and_old_checkpoints_load_without_it(tmp
     assert render_view(old, np.eye(4), pinhole(32, 24, 16.0), 32, 24).valid.any()
 
 
-def test_the_numba_features_match_the_torch_path():
+@pytest.mark.parametrize("config", [FINE, BY_SURFACE], ids=["equal", "surface"])
+def test_the_numba_features_match_the_torch_path(config):
     from slam.kernels import numba_kernels
 
     if numba_kernels() is None:
@@ -156,14 +186,14 @@ def test_the_numba_features_match_the_torch_path():
     from slam.fine_color import HASH_PRIMES
     from slam.kernels.fused import hash_grid
 
-    fine = FineColor(FINE, seed=1)
+    fine = FineColor(config, seed=1)
     with torch.no_grad():
         fine.tables.normal_()
     points = (torch.rand(300, 3) - 0.5) * 6.0
-    torch.testing.assert_close(hash_grid(points, fine.cells, fine.tables, HASH_PRIMES),
-                               hash_features(points, fine.tables, fine.cells), atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(hash_grid(points, fine.cells, fine.tables, fine.rows, HASH_PRIMES),
+                               hash_features(points, fine.tables, fine.cells, fine.rows), atol=1e-5, rtol=1e-5)
     with torch.no_grad():  # the forward takes the kernel without gradients
-        torch.testing.assert_close(fine(points), fine.head(hash_features(points, fine.tables, fine.cells)),
+        torch.testing.assert_close(fine(points), fine.head(hash_features(points, fine.tables, fine.cells, fine.rows)),
                                    atol=1e-5, rtol=1e-5)
 
 

@@ -21,7 +21,7 @@ import trimesh
 
 import slam.runtime as runtime
 from slam.checkpoint import load_checkpoint
-from slam.config import SLAMConfig, preset
+from slam.config import ConfigError, SLAMConfig, apply_overrides, preset
 from slam.data import DataError, open_sequence
 from slam.data.frame import Frame
 from slam.eval.trajectory import read_tum
@@ -204,6 +204,31 @@ def test_refine_with_keyframes_moves_each_frame_with_its_keyframe():
         np.testing.assert_allclose(np.linalg.inv(refined[2]) @ refined[i],
                                    np.linalg.inv(tracked[2]) @ tracked[i], atol=1e-12)
     assert np.array_equal(runtime.refine_with_keyframes(tracked, [0, 1, 2, 3, 4], {}), tracked)
+
+
+def test_interpolated_corrections_blend_the_keyframes_either_side():
+    def pose(x: float, yaw: float = 0.0) -> np.ndarray:
+        T = np.eye(4)
+        T[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
+        T[0, 3] = x
+        return T
+
+    tracked = np.stack([pose(0.1 * i) for i in range(7)])
+    # Keyframes 0 and 4: bundle adjustment leaves the first and moves the second 0.4 m in x
+    # and 0.2 rad in yaw; frames 5, 6 after the last keyframe keep its correction.
+    ba = {0: tracked[0].ravel().tolist(), 4: (pose(0.8, 0.2)).ravel().tolist()}
+    refined = runtime.refine_with_keyframes(tracked, list(range(7)), ba, interpolate=True)
+    latest = runtime.refine_with_keyframes(tracked, list(range(7)), ba)
+    np.testing.assert_allclose(refined[[0, 4, 5, 6]], latest[[0, 4, 5, 6]], atol=1e-12)
+    np.testing.assert_allclose(latest[1:4], tracked[1:4], atol=1e-12)  # latest: keyframe 0 did not move
+    correction = pose(0.8, 0.2) @ np.linalg.inv(tracked[4])
+    for i in (1, 2, 3):  # a quarter, half, three quarters of the way: yaw and shift in proportion
+        blended = refined[i] @ np.linalg.inv(tracked[i])
+        s = i / 4
+        np.testing.assert_allclose(np.arctan2(blended[1, 0], blended[0, 0]), 0.2 * s, atol=1e-12)
+        np.testing.assert_allclose(blended[:3, 3], s * correction[:3, 3], atol=1e-12)
+    with pytest.raises(ConfigError):
+        apply_overrides(preset("cpu"), {"mapping": {"frame_correction": "nearest"}})
 
 
 def test_events_arrive_in_order(run, frames):

@@ -184,15 +184,16 @@ def thin_mask(ray_index: torch.Tensor, t: torch.Tensor, depth: torch.Tensor, pha
     return keep, stands_for
 
 
-def hash_grid(points: torch.Tensor, cells: torch.Tensor, tables: torch.Tensor,
+def hash_grid(points: torch.Tensor, cells: torch.Tensor, tables: torch.Tensor, rows: torch.Tensor,
               primes: tuple[int, int, int]) -> torch.Tensor:
     """The fine colour level's features (N, L * F) of (N, 3) points, (L,) float64 cell edges,
-    (L, T, F) tables and the hash's 3 primes, forward only (views and meshes;
-    ``slam.fine_color.hash_features``)."""
-    levels, rows, features = tables.shape
-    out = points.new_empty(points.shape[0], levels * features)
-    numba_kernels().hash_grid(_np(points), _np(cells.to(torch.float64)), _np(tables.reshape(-1, features)),
-                              int(rows), np.array(primes, np.int64), sync_numba_threads(), out.numpy())
+    the flat (R, F) tables, (L,) int64 rows of each level's table and the hash's 3 primes,
+    forward only (views and meshes; ``slam.fine_color.hash_features``)."""
+    rows = rows.to(torch.int64)
+    out = points.new_empty(points.shape[0], cells.numel() * tables.shape[1])
+    numba_kernels().hash_grid(_np(points), _np(cells.to(torch.float64)), _np(tables), _np(rows),
+                              _np(torch.cumsum(rows, 0) - rows), np.array(primes, np.int64),
+                              sync_numba_threads(), out.numpy())
     return out
 
 
@@ -228,6 +229,7 @@ def _run_every_kernel() -> None:
                  torch.tensor([0, 1], dtype=torch.int64))
     traverse(torch.zeros(2, 3), torch.ones(2, 3), torch.zeros(2), torch.full((2,), 2.0), torch.ones(2, 3),
              torch.full((2, 3), 2, dtype=torch.int64), torch.tensor([0, 1], dtype=torch.int64), 1.0, 1)
-    hash_grid(torch.rand(3, 3), torch.tensor([0.1, 0.05], dtype=torch.float64), torch.randn(2, 8, 2), (1, 3, 5))
+    hash_grid(torch.rand(3, 3), torch.tensor([0.1, 0.05], dtype=torch.float64), torch.randn(12, 2),
+              torch.tensor([4, 8]), (1, 3, 5))
     thin_mask(torch.tensor([0, 0, 1]), torch.tensor([0.5, 1.0, 2.0]), torch.tensor([1.0, 3.0]),
               torch.tensor([0, 1]), 0.1, 10.0, 2)

@@ -408,17 +408,17 @@ def thin_mask(ray_index, t, depth, phase, truncation, max_depth, stride, keep_ou
 
 
 @_TwoWays
-def hash_grid(points, cells, tables, table_size, primes, chunks, out):
+def hash_grid(points, cells, tables, rows, offsets, primes, chunks, out):
     """The fine colour level's features (``slam.fine_color.hash_features``), forward only.
 
-    points (N, 3) float32, cells (L,) float64 cell edges, tables (L * T, F) float32 with
-    ``table_size`` T a power of two, primes (3,) int64 -> out (N, L * F): per level, the
+    points (N, 3) float32, cells (L,) float64 cell edges, tables (R, F) float32 holding the
+    levels' tables one after another, rows (L,) int64 each level's size (a power of two),
+    offsets (L,) int64 its first row, primes (3,) int64 -> out (N, L * F): per level, the
     trilinear sum over the point's cell's 8 corners of the rows their spatial hash names.
     """
     N = out.shape[0]
     L = cells.shape[0]
     F = tables.shape[1]
-    mask = table_size - 1
     for t in prange(chunks):
         lo, hi = _chunk(N, chunks, t)
         base = np.empty(3, np.int64)
@@ -435,7 +435,7 @@ def hash_grid(points, cells, tables, table_size, primes, chunks, out):
                 for c in range(8):
                     ca, cb, cc = (c >> 2) & 1, (c >> 1) & 1, c & 1
                     h = ((base[0] + ca) * primes[0]) ^ ((base[1] + cb) * primes[1]) ^ ((base[2] + cc) * primes[2])
-                    row = level * table_size + (h & mask)
+                    row = offsets[level] + (h & (rows[level] - 1))
                     w0 = frac[0] if ca else _ONE - frac[0]
                     w1 = frac[1] if cb else _ONE - frac[1]
                     w2 = frac[2] if cc else _ONE - frac[2]
