@@ -187,12 +187,7 @@ def test_trajectory_carries_the_bundle_adjusted_keyframe_poses(run, frames):
 
 
 def test_refine_with_keyframes_moves_each_frame_with_its_keyframe():
-    def pose(x: float, yaw: float = 0.0) -> np.ndarray:
-        T = np.eye(4)
-        T[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
-        T[0, 3] = x
-        return T
-
+    pose = _pose
     tracked = np.stack([pose(0.0), pose(0.1), pose(0.2, 0.1), pose(0.3, 0.1), pose(0.4, 0.2)])
     ba_kf2 = pose(0.25, 0.12)
     refined = runtime.refine_with_keyframes(tracked, [5, 6, 7, 8, 9], {5: pose(0.0).ravel().tolist(),
@@ -206,13 +201,16 @@ def test_refine_with_keyframes_moves_each_frame_with_its_keyframe():
     assert np.array_equal(runtime.refine_with_keyframes(tracked, [0, 1, 2, 3, 4], {}), tracked)
 
 
-def test_interpolated_corrections_blend_the_keyframes_either_side():
-    def pose(x: float, yaw: float = 0.0) -> np.ndarray:
-        T = np.eye(4)
-        T[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
-        T[0, 3] = x
-        return T
+def _pose(x: float, yaw: float = 0.0) -> np.ndarray:
+    """(4, 4): x metres along x, ``yaw`` radians about z."""
+    T = np.eye(4)
+    T[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
+    T[0, 3] = x
+    return T
 
+
+def test_interpolated_corrections_blend_the_keyframes_either_side():
+    pose = _pose
     tracked = np.stack([pose(0.1 * i) for i in range(7)])
     # Keyframes 0 and 4: bundle adjustment leaves the first and moves the second 0.4 m in x
     # and 0.2 rad in yaw; frames 5, 6 after the last keyframe keep its correction.
