@@ -171,11 +171,8 @@ def _cpu() -> SLAMConfig:
             coarsest=0.16,                 # 0.16-0.02 m beat 0.08-0.01 m on fr1/desk (decisions.md#fine_color)
             finest=0.02,                   # with coarsest (decisions.md#fine_color)
             fit_iterations=0,              # fits during the run cost tracking 26 % of its frames/s (decisions.md#fine_color)
-            features=1,                    # one float a row, 2^17 rows at the finest level (decisions.md#fine_color)
-            table_log2=17,                 # with features and level_tables: 0.66 MB (decisions.md#fine_color)
-            level_tables="surface",        # coarser levels' tables shrink with their cells (decisions.md#fine_color)
-            fit_rays=4096,                 # 200 small steps beat 50 large (decisions.md#fine_color)
-            final_fit_iterations=200,      # with fit_rays (decisions.md#fine_color)
+            fit_rays=8192,                 # with fit_iterations (decisions.md#fine_color)
+            final_fit_iterations=50,       # 200 look better but eat the final BA's time (decisions.md#fine_color)
             final_fit_surface="rendered",  # where views query it: +0.2-2.1 dB (decisions.md#fine_color)
         ),
         loop=LoopConfig(
