@@ -105,8 +105,6 @@ def interpolate_untracked(poses: np.ndarray, timestamps: np.ndarray, tracked: np
     """Poses (N, 4, 4) where frames with ``tracked`` (N,) False are replaced by the pose
     interpolated in time between the nearest tracked frames before and after (rotation by
     slerp, translation linearly); held at the nearest one at either end."""
-    from scipy.spatial.transform import Rotation, Slerp
-
     out = np.array(poses, dtype=np.float64, copy=True)
     good = np.flatnonzero(tracked)
     if len(good) == 0 or len(good) == len(poses):
@@ -119,9 +117,7 @@ def interpolate_untracked(poses: np.ndarray, timestamps: np.ndarray, tracked: np
         a, b = before[-1], after[0]
         span = timestamps[b] - timestamps[a]
         s = 0.5 if span <= 0 else float(np.clip((timestamps[i] - timestamps[a]) / span, 0.0, 1.0))
-        rot = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([poses[a][:3, :3], poses[b][:3, :3]])))([s])
-        out[i, :3, :3] = rot.as_matrix()[0]
-        out[i, :3, 3] = (1 - s) * poses[a][:3, 3] + s * poses[b][:3, 3]
+        out[i] = blend_poses(poses[a], poses[b], s)
     return out
 
 
