@@ -170,9 +170,12 @@ def _cpu() -> SLAMConfig:
             levels=4,                      # colour detail below 0.2 m voxels, no cost to tracking (decisions.md#fine_color)
             coarsest=0.16,                 # 0.16-0.02 m beat 0.08-0.01 m on fr1/desk (decisions.md#fine_color)
             finest=0.02,                   # with coarsest (decisions.md#fine_color)
+            features=1,                    # rows count more than features a row (decisions.md#fine_color)
+            table_log2=17,                 # the finest level's rows: 0.7 MB in all (decisions.md#fine_color)
+            level_tables="surface",        # coarser levels cross fewer cells (decisions.md#fine_color)
             fit_iterations=0,              # fits during the run cost tracking 26 % of its frames/s (decisions.md#fine_color)
-            fit_rays=8192,                 # with fit_iterations (decisions.md#fine_color)
-            final_fit_iterations=50,       # 200 look better but eat the final BA's time (decisions.md#fine_color)
+            fit_rays=4096,                 # many small final steps beat few large (decisions.md#fine_color)
+            final_fit_iterations=200,      # with fit_rays: +0.2-1.4 dB at the same frames/s (decisions.md#fine_color)
             final_fit_surface="rendered",  # where views query it: +0.2-2.1 dB (decisions.md#fine_color)
         ),
         loop=LoopConfig(

@@ -392,7 +392,9 @@ def test_a_crop_box_in_one_viewer_crops_its_mesh_and_the_page_takes_it(server_ur
         fields.nth(0).fill(str(middle))
         fields.nth(0).press("Enter")
         mine.get_by_text("Crop", exact=True).click()
-        drawn = lambda image: (image.min(axis=2) < 235).mean()  # noqa: E731
+        # The mesh's pixels: the box's own blue lines (CROP_COLOR) are drawn only after the crop,
+        # and over a thin mesh they make up a fifth of what the crop removed.
+        drawn = lambda image: ((image.min(axis=2) < 235) & (image[..., 0] - image[..., 2] <= 80)).mean()  # noqa: E731
         after = wait_for_shots(viewers, tmp_path, "cropped", lambda shots: drawn(shots[0]) < 0.8 * drawn(before[0]))
         assert drawn(after[0]) < 0.8 * drawn(before[0]), (drawn(before[0]), drawn(after[0]), str(tmp_path))
         assert same_picture(after[1], before[1]) > 0.98, f"the other browser's picture changed ({tmp_path})"
