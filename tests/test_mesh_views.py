@@ -21,7 +21,7 @@ from slam.config import preset
 from slam.maps import MapSet, SubMap
 from slam.mesh import empty_mesh, export_mesh, extract_mesh, extract_submap_mesh, mesh_to_bytes
 from slam.render import camera_rays, interpolate_embeddings, rays_in_map
-from slam.views import (RenderedView, band_chunks, band_sample_counts, coarse_grid, depth_bands, planar_depths,
+from slam.views import (RenderedView, fused_linear_available, band_chunks, band_sample_counts, coarse_grid, depth_bands, planar_depths,
                         rays_near_surface, render_view)
 from slam.voxels import morton_decode
 
@@ -558,6 +558,34 @@ def test_banded_view_composites_submaps_like_the_full_render():
         render_view(mapset, np.eye(4), K, 40, 30, planar_tolerance=-0.01)
     with pytest.raises(ValueError, match="precision"):
         render_view(mapset, np.eye(4), K, 40, 30, precision="float16")
+
+
+@pytest.mark.skipif(not fused_linear_available(), reason="needs oneDNN's fused linear and native bfloat16")
+@pytest.mark.parametrize("color_layers", [0, 2])
+def test_fused_bfloat16_decoder_matches_its_plain_twin(color_layers):
+    """The fused path (one oneDNN call a layer, the feature rows and the colour head's first
+    layer multiplied into one) gives the plain bfloat16 layers' SDF and colour, and the float32
+    decoder's within bfloat16's rounding."""
+    from slam.decoder import Decoder
+    from slam.views import Bfloat16Decoder
+
+    torch.manual_seed(0)
+    decoder = Decoder(dataclasses.replace(preset("cpu").decoder, color_layers=color_layers), 16)
+    emb = torch.randn(5000, 16)
+    with torch.no_grad():
+        exact_sdf, exact_hidden = decoder.sdf_and_hidden(emb)
+        exact_rgb = decoder.color(decoder.feature_from_hidden(exact_hidden))
+        outputs = []
+        for fused in (True, False):
+            twin = Bfloat16Decoder(decoder, fused=fused)
+            sdf, hidden = twin.sdf_and_hidden(emb)
+            outputs.append((sdf, twin.color_from_hidden(hidden)))
+    (fused_sdf, fused_rgb), (plain_sdf, plain_rgb) = outputs
+    assert fused_sdf.dtype == fused_rgb.dtype == torch.float32 and fused_rgb.shape == (5000, 3)
+    scale = exact_sdf.abs().max()
+    assert (fused_sdf - plain_sdf).abs().max() < 0.02 * scale
+    assert (fused_sdf - exact_sdf).abs().max() < 0.02 * scale
+    assert (fused_rgb - plain_rgb).abs().max() < 0.01 and (fused_rgb - exact_rgb).abs().mean() < 2e-3
 
 
 @pytest.mark.parametrize("method", ["banded", "full"])
