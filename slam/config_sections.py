@@ -387,8 +387,15 @@ class FineColorConfig:
     the decoder's colour there); ``rendered``, at the surface the coarse map renders for that
     pixel (against the rendered coarse colour), where views query the level, with an Adam of
     its own decaying to zero (``Mapper.fit_fine_rendered``)."""
+    fit_render_block: int = 2
+    """The rendered-surface fit renders each keyframe at 1/``fit_render_block`` of its size: a
+    pixel of that image is a block of that many squared keyframe pixels, its colour their mean
+    (1: every keyframe pixel, at 4x the render time of 2)."""
 
     def __post_init__(self) -> None:
+        if isinstance(self.fit_render_block, bool) or not isinstance(self.fit_render_block, int) \
+                or self.fit_render_block < 1:
+            raise ConfigError(f"fine_color.fit_render_block must be an integer >= 1, got {self.fit_render_block!r}")
         for name in ("levels", "features", "table_log2", "fit_iterations", "fit_rays", "final_fit_iterations"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 0:

@@ -66,9 +66,6 @@ FIT_KEYFRAMES_RENDERED = 16
 """Keyframes the rendered-surface fit renders at most (evenly spread): the renders are its
 cost, and 16 of fr1/rpy's 45-61 keyframes give views within 0.07 dB of all of them
 (decisions.md#fine_color)."""
-FIT_RENDER_BLOCK = 2
-"""The rendered-surface fit renders a keyframe at 1/FIT_RENDER_BLOCK of its size: a pixel of
-that image is a block of FIT_RENDER_BLOCK^2 keyframe pixels, its colour their mean."""
 
 
 @dataclass(frozen=True)
@@ -518,7 +515,7 @@ class Mapper:
     def fit_fine_rendered(self, submap: SubMap, iterations: int) -> None:
         """``iterations`` steps of the fine colour level alone on the surface the coarse map
         renders for the keyframes (``fine_color.final_fit_surface`` "rendered"): each keyframe
-        (at most ``FIT_KEYFRAMES_RENDERED``, evenly spread) is rendered at 1/``FIT_RENDER_BLOCK``
+        (at most ``FIT_KEYFRAMES_RENDERED``, evenly spread) is rendered at 1/``fine_color.fit_render_block``
         of its size, and the level learns ``input - rendered coarse colour`` at each pixel's
         rendered surface point, the very point a view adds it at. Where the coarse surface lies
         centimetres off the measured one (0.2 m voxels on real data), a fit at the measured
@@ -549,13 +546,13 @@ class Mapper:
 
     def _rendered_residuals(self, submap: SubMap, keyframes: list[Keyframe]) -> tuple[torch.Tensor, torch.Tensor]:
         """Map-frame surface points (N, 3) and colour residuals (N, 3) of ``keyframes`` rendered
-        at 1/b of their size (b = ``FIT_RENDER_BLOCK``): each pixel of the small image is a
+        at 1/b of their size (b = ``fine_color.fit_render_block``): each pixel of the small image is a
         b x b block of the keyframe, its colour the block's mean, used where all of the block
         has measured depth (TUM's undistortion border has none) and the coarse map renders a
         surface."""
         from .views import coarse_surface, rendered_voxels, view_decoder
 
-        b = FIT_RENDER_BLOCK
+        b = self.config.fine_color.fit_render_block
         decoder, view = view_decoder(submap.decoder, self.device, "auto"), rendered_voxels(submap)
         points, residuals = [], []
         for kf in keyframes:

@@ -73,6 +73,8 @@ def test_config_checks_the_fine_level():
         FineColorConfig(levels=-1)
     with pytest.raises(ConfigError):
         FineColorConfig(levels=2, finest=0.1, coarsest=0.05)
+    with pytest.raises(ConfigError, match="fit_render_block"):
+        FineColorConfig(fit_render_block=0)
     assert preset("test").fine_color.levels == 0
 
 
@@ -238,3 +240,16 @@ def test_the_rendered_surface_fit_brings_views_at_the_keyframes_closer_to_the_in
             total += float(np.abs(view.rgb - frame.rgb.numpy())[view.valid].mean())
         errors[label] = total
     assert errors["fine"] < 0.8 * errors["coarse"], errors
+
+
+@pytest.mark.parametrize("block", [1, 2])
+def test_the_rendered_surface_fit_learns_from_blocks_of_the_keyframe(block):
+    """``fit_render_block`` b: one fit point per b x b block of a keyframe's pixels, its
+    colour the block's mean."""
+    mapper = _mapped(2, surface="rendered", fine=replace(FINE, fit_render_block=block))
+    submap = mapper.maps.maps[0]
+    frame = submap.keyframes[0].frame
+    points, residual = mapper._rendered_residuals(submap, submap.keyframes[:1])
+    assert points.shape == residual.shape and points.shape[1] == 3
+    blocks = (frame.height // block) * (frame.width // block)
+    assert 0.5 * blocks < points.shape[0] <= blocks
