@@ -23,7 +23,7 @@ from server.budget import RequestBudget
 from server.decoding import shared_helper
 from server.errors import error_text, validation_message
 from server.path_jobs import PathJobs
-from server.rendering import MapCache, MeshFiles, NoMapYet
+from server.rendering import MapCache, MeshFiles, NoMapYet, with_threads
 from server.routes_pages import STATIC_DIR
 from server.sessions import SessionConflict, SessionManager, SessionNotFound, register_error_handlers
 from server.settings import Settings, settings_from_env
@@ -142,8 +142,8 @@ def _one_error_shape(schema: dict) -> dict:
 def cached_map(maps: MapCache, manager: SessionManager, session_id: str):
     """A session's newest map set from the cache, or None while it has none (the viewer's
     neural views ask from their own thread)."""
-    try:
-        return maps.get(session_id, manager.session_dir(session_id) / "map.pt")
+    try:  # this thread renders what it gets: its thread count is set here
+        return with_threads(manager.render_threads(), maps.get, session_id, manager.session_dir(session_id) / "map.pt")
     except (NoMapYet, SessionNotFound):
         return None
 
@@ -171,7 +171,6 @@ def create_app(settings: Settings | None = None, demo: DemoSession | None = None
         settings.data_dir.mkdir(parents=True, exist_ok=True)
         redact_access_log()  # here: uvicorn has configured its loggers by now
         threads_before = torch.get_num_threads()
-        torch.set_num_threads(settings.render_threads)
         viewer = None
         if settings.viewer_enabled:
             viewer = ViewerAdapter(settings.viewer_host, settings.viewer_port)
@@ -180,6 +179,7 @@ def create_app(settings: Settings | None = None, demo: DemoSession | None = None
         hooks = [map_cache.evict] + ([viewer.remove_session] if viewer else [])
         manager = SessionManager(settings, event_sinks=[viewer.handle_event] if viewer else [], removal_hooks=hooks)
         manager.start()
+        torch.set_num_threads(manager.render_threads())
         if viewer is not None:
             viewer.map_source = lambda session_id: cached_map(map_cache, manager, session_id)
         app.state.settings = settings

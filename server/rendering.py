@@ -11,12 +11,25 @@ import threading
 from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable, TypeVar
 
 import cv2
 import numpy as np
 
+T = TypeVar("T")
+
 CACHED_MAPS = 4
 """Loaded maps kept in memory (least recently used first out)."""
+
+
+def with_threads(threads: int, work: Callable[..., T], *args, **kwargs) -> T:
+    """``work(*args, **kwargs)`` with torch's intra-op threads at ``threads`` in the calling
+    thread (OpenMP keeps the count per thread: a pool thread must set it itself)."""
+    import torch
+
+    if torch.get_num_threads() != threads:
+        torch.set_num_threads(threads)
+    return work(*args, **kwargs)
 
 
 class NoMapYet(RuntimeError):

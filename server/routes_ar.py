@@ -20,7 +20,7 @@ from server.decoding import DecodeFailed, shared_helper
 from server.deps import get_assets, get_manager, get_map_cache, require_token
 from server.errors import error_text, strip_paths
 from server.inputs import input_frame
-from server.rendering import Camera, MapCache, check_pose, intrinsics_matrix, png_from_rgb, render
+from server.rendering import Camera, MapCache, check_pose, intrinsics_matrix, png_from_rgb, render, with_threads
 from server.routes_render import load_map
 from server.schemas import ARRequest, ErrorOut
 from server.sessions import SessionManager, check_session_id
@@ -101,7 +101,7 @@ async def background_for(request: ARRequest, session_id: str, manager: SessionMa
                                 "background 'render' needs T_world_cam and intrinsics")
         camera = Camera(T, K, *size)
         mapset = await load_map(manager, maps, session_id)
-        view = await run_in_threadpool(render, mapset, camera)
+        view = await run_in_threadpool(with_threads, manager.render_threads(), render, mapset, camera)
         return Background(np.asarray(view.rgb), np.asarray(view.depth), camera)
     index, agent = int(request.background.split(":", 1)[1]), request.agent
     state = manager.get(session_id)

@@ -23,6 +23,7 @@ from server.rendering import (
     png_from_normals,
     png_from_rgb,
     render,
+    with_threads,
 )
 from server.routes_series import estimated_trajectory
 from server.schemas import (
@@ -99,7 +100,7 @@ async def render_image(session_id: str, request: CameraRequest,
     camera = camera_from(request)
     mapset = await load_map(manager, maps, session_id)
     crop = None if request.crop is None else (request.crop.min, request.crop.max)
-    view = await run_in_threadpool(render, mapset, camera, crop=crop)
+    view = await run_in_threadpool(with_threads, manager.render_threads(), render, mapset, camera, crop=crop)
     if output == "color":
         data = await run_in_threadpool(png_from_rgb, view.rgb)
     elif output == "depth":
@@ -122,7 +123,7 @@ async def pick(session_id: str, request: PickRequest, manager: SessionManager = 
         raise HTTPException(422,
                             f"pixel ({request.u}, {request.v}) is outside the {camera.width}x{camera.height} image")
     mapset = await load_map(manager, maps, session_id)
-    result = await run_in_threadpool(pick_surface, mapset, camera, request.u, request.v)
+    result = await run_in_threadpool(with_threads, manager.render_threads(), pick_surface, mapset, camera, request.u, request.v)
     if result is None:
         return PickOut(hit=False)
     return PickOut(hit=True, point=result.point.tolist(), normal=result.normal.tolist(), depth=result.depth)

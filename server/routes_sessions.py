@@ -19,7 +19,7 @@ from server.budget import MAX_FRAMES_OPTION, MAX_STRIDE
 from server.decoding import DecodeFailed, shared_helper
 from server.deps import get_manager, get_map_cache, get_mesh_files, get_settings, require_token
 from server.errors import strip_paths, validation_message
-from server.rendering import MapCache, MeshFiles, NoMapYet, mesh_bytes_from_arrays
+from server.rendering import MapCache, MeshFiles, NoMapYet, mesh_bytes_from_arrays, with_threads
 from server.schemas import ErrorOut, SessionCreated, SessionCreateJSON, SessionOut, SessionOutputs
 from server.sessions import SessionManager, SessionNotFound, SessionStatus, check_session_id, new_session_id
 from server.settings import Settings
@@ -424,7 +424,8 @@ async def get_mesh(session_id: str, format: Literal["ply", "glb", "obj"] = Query
         return Response(data, media_type=MESH_MEDIA_TYPES[format], headers=headers)
     try:
         mapset = await run_in_threadpool(maps.get, session_id, directory / "map.pt")
-        data = await run_in_threadpool(mesh_files.extract_from_map, mapset, format)
+        data = await run_in_threadpool(with_threads, manager.render_threads(), mesh_files.extract_from_map, mapset,
+                                      format)
     except NoMapYet as error:
         if ply.is_file():
             return FileResponse(ply, media_type=MESH_MEDIA_TYPES["ply"], filename=filename)

@@ -59,7 +59,7 @@ from server.session_store import (
     write_progress,
     write_status,
 )
-from server.settings import Settings
+from server.settings import Settings, render_threads_now, usable_cores
 from server.stream import StreamInput
 from server.tracks import FrameCamera, TrackedPose
 from server.worker import SourceSpec, WorkerDone, WorkerJob, WorkerStarted, describe_sources
@@ -389,6 +389,11 @@ class SessionManager:
     def running_count(self) -> int:
         with self._lock:
             return sum(1 for s in self._sessions.values() if s.active)
+
+    def render_threads(self) -> int:
+        """torch threads for the API process's next render, mesh or pick
+        (``Settings.render_threads``, ``render_threads_now``)."""
+        return render_threads_now(self.settings.render_threads, self.running_count(), usable_cores())
 
     # -- cancelling and deleting -------------------------------------------------------------
 

@@ -49,6 +49,22 @@ def default_max_sessions() -> int:
     return max(1, (os.cpu_count() or 1) // 4)
 
 
+def usable_cores() -> int:
+    """Cores this process may run on (its CPU affinity where the OS tells it)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
+def render_threads_now(render_threads: int, running_sessions: int, cores: int) -> int:
+    """torch threads for the API process's next render: ``render_threads`` when set (>= 1);
+    automatic (0): ``cores`` while no session runs, 1 while any does."""
+    if render_threads >= 1:
+        return render_threads
+    return max(1, cores) if running_sessions == 0 else 1
+
+
 EXECUTORS = ("local", "ray")
 RAY_MAX_SESSIONS = 64
 """Default ``max_sessions`` with the ``ray`` executor: sessions handed to the cluster at once.
@@ -87,9 +103,12 @@ class Settings:
     """A running stream session that gets no frame for this long is finished with the frames it
     has (failed when it has none), so that a forgotten stream does not hold a running slot
     forever; 0 = never."""
-    render_threads: int = 1
-    """torch intra-op threads in the API process. One: the API shares the cores with the SLAM
-    workers, and oversubscribed cores made a 160x120 render 3-6x slower (2 s -> 7-12 s)."""
+    render_threads: int = 0
+    """torch intra-op threads in the API process for renders, meshes and AR; 0: automatic
+    (``render_threads_now``), every core while no session runs and one while any does. One
+    while sessions run: a running session's two processes take every core between them, and
+    oversubscribed cores made a 160x120 render 3-6x slower (2 s -> 7-12 s); every core while
+    none runs: a 640x480 view 0.90 s at two threads against 1.40 s at one (benchmarks/README.md)."""
     executor: str = "local"
     """``local`` (spawned worker processes here) or ``ray`` (``server.ray_executor``)."""
     ray_address: str = "auto"
@@ -189,7 +208,7 @@ def settings_from_env(env: Mapping[str, str] | None = None) -> Settings:
         max_queued=_int(env, "VOXFUSION_MAX_QUEUED", 32, 1),
         viewer_port=_int(env, "VOXFUSION_VIEWER_PORT", 8080, -1),
         cancel_grace_s=_float(env, "VOXFUSION_CANCEL_GRACE_S", 10.0, 0.0),
-        render_threads=_int(env, "VOXFUSION_RENDER_THREADS", 1, 1),
+        render_threads=_int(env, "VOXFUSION_RENDER_THREADS", 0, 0),
         stream_idle_timeout_s=_float(env, "VOXFUSION_STREAM_IDLE_S", 300.0, 0.0),
         executor=executor,
         ray_address=env.get("VOXFUSION_RAY_ADDRESS") or "auto",

@@ -166,6 +166,40 @@ def test_render_colour_and_depth(client, synthetic_session):
     assert 300 < np.median(seen) < 8000, "millimetres, a room-sized scene"
 
 
+def test_render_threads_follow_the_running_sessions():
+    from server.settings import render_threads_now, settings_from_env
+
+    assert render_threads_now(0, running_sessions=0, cores=8) == 8, "idle: a view gets every core"
+    assert render_threads_now(0, running_sessions=1, cores=8) == 1, "a running session takes every core"
+    assert render_threads_now(3, running_sessions=0, cores=8) == 3 == render_threads_now(3, 2, 8)
+    assert settings_from_env({}).render_threads == 0
+    assert settings_from_env({"VOXFUSION_RENDER_THREADS": "2"}).render_threads == 2
+
+
+@needs_runtime
+def test_a_render_uses_every_core_while_no_session_runs(client, synthetic_session, monkeypatch):
+    import torch
+
+    import server.routes_render as routes
+    from server.settings import usable_cores
+
+    seen = []
+
+    def counting_render(*args, **kwargs):
+        seen.append(torch.get_num_threads())  # in the pool thread that renders
+        return render(*args, **kwargs)
+
+    render = routes.render
+    monkeypatch.setattr(routes, "render", counting_render)
+    before = torch.get_num_threads()
+    try:
+        response = client.post(f"/api/sessions/{synthetic_session}/render", json=first_pose_camera(client, synthetic_session))
+    finally:
+        torch.set_num_threads(before)  # the test client may render in this very thread
+    assert response.status_code == 200, response.text
+    assert seen == [usable_cores()]
+
+
 @needs_runtime
 def test_render_rejects_bad_cameras(client, synthetic_session):
     url = f"/api/sessions/{synthetic_session}/render"
