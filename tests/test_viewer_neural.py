@@ -9,7 +9,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from server.viewer_neural import SURFACES, NeuralViews, Wanted, neural_image
+from server.viewer_neural import SURFACES, VIEW_WIDTH, NeuralViews, Wanted, band_starts, neural_image
 from server.viewer_state import ViewerCamera
 from slam import matrix_to_quat_wxyz
 from tests.test_server_api import (
@@ -62,7 +62,8 @@ def test_each_surface_is_an_image_with_its_depth(session_map):
 @needs_runtime
 def test_a_view_per_camera_move_and_the_mesh_clears_it(session_map):
     mapset, T = session_map
-    views = NeuralViews(lambda session_id: mapset if session_id == "s" else None)
+    # Sharper views of a resting camera off: this counts the views of moves.
+    views = NeuralViews(lambda session_id: mapset if session_id == "s" else None, refined_width=VIEW_WIDTH)
     browser = FakeBrowser(T)
     try:
         other = FakeBrowser(T)  # a second browser that stays on the mesh
@@ -87,5 +88,61 @@ def test_a_view_per_camera_move_and_the_mesh_clears_it(session_map):
             time.sleep(0.05)
         views.update({1: Wanted(browser, "s", "mesh")})
         assert browser.backgrounds[-1][0] is None, "back to the mesh: the background is cleared"
+    finally:
+        views.stop()
+
+
+def _wait(condition, what: str, seconds: float = 60) -> None:
+    deadline = time.monotonic() + seconds
+    while not condition():
+        assert time.monotonic() < deadline, what
+        time.sleep(0.05)
+
+
+def test_bands_cover_the_image_on_the_coarse_stride():
+    assert band_starts(300, 4) == [0, 76, 152, 228]
+    assert band_starts(192, 1) == [0]
+    assert band_starts(5, 4) == [0, 4]
+    assert band_starts(480, 4) == [0, 120, 240, 360]
+
+
+@needs_runtime
+def test_a_view_in_bands_is_the_view_whole_and_stops_when_stale(session_map):
+    mapset, T = session_map
+    camera = ViewerCamera(T_world_cam=T, fov_y=0.8, width=400, height=300)
+    whole, whole_depth = neural_image(mapset, camera, "neural colour", width=160)
+    banded, banded_depth = neural_image(mapset, camera, "neural colour", width=160, bands=3)
+    assert banded.shape == whole.shape == (120, 160, 3)
+    seen = (whole_depth < 20) & (banded_depth < 20)
+    assert seen.mean() > 0.5 and (seen == (whole_depth < 20)).mean() > 0.99
+    # Each band is its own view of the same rays: equal up to where a band's coarse pass
+    # sees the surface otherwise than the whole image's does.
+    close = np.abs(whole.astype(int) - banded.astype(int)).max(axis=-1) <= 2
+    assert close.mean() > 0.98
+    assert np.abs(whole_depth[seen] - banded_depth[seen]).mean() < 1e-3
+    asked = []
+    assert neural_image(mapset, camera, "neural colour", width=160, bands=3,
+                        stale=lambda: asked.append(1) or len(asked) >= 2) is None
+    assert len(asked) == 2, "asked before the second and third band, dropped before the third"
+
+
+@needs_runtime
+def test_a_resting_camera_gets_a_sharper_view_and_a_move_drops_it(session_map):
+    mapset, T = session_map
+    views = NeuralViews(lambda session_id: mapset if session_id == "s" else None, refine_after_s=0.5)
+    browser = FakeBrowser(T)  # a 400 x 300 browser
+    try:
+        wanted = {1: Wanted(browser, "s", "neural colour")}
+        views.update(wanted)
+        _wait(lambda: views.views_rendered == 1, "no view of the move")
+        browser.camera.update_timestamp = 2.0  # moved before the sharper view was due
+        views.update(wanted)
+        _wait(lambda: views.views_refined == 1, "no sharper view once the camera rested")
+        assert views.views_rendered == 2
+        shapes = [image.shape for image, _ in browser.backgrounds]
+        assert shapes == [(192, 256, 3), (192, 256, 3), (300, 400, 3)], "one sharper view, of the resting camera"
+        assert browser.backgrounds[-1][1]["depth"].shape == (300, 400)
+        time.sleep(0.7)
+        assert views.views_refined == 1 and len(browser.backgrounds) == 3, "a resting camera is refined once"
     finally:
         views.stop()
