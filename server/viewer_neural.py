@@ -84,7 +84,9 @@ def neural_image(mapset, camera: ViewerCamera, surface: str, width: int = VIEW_W
         if top > 0 and stale():
             return None
         band = _render_rows(mapset, camera.T_world_cam, K, w, top, bottom, box)
-        rgb.append(band.rgb), z.append(band.depth), valid.append(band.valid)
+        rgb.append(band.rgb)
+        z.append(band.depth)
+        valid.append(band.valid)
     rgb, z, valid = np.concatenate(rgb), np.concatenate(z), np.concatenate(valid)
     depth = np.where(valid, z, 0.0)
     panels = {"neural colour": lambda: np.clip(rgb, 0, 1),
@@ -161,7 +163,6 @@ class NeuralViews:
         self._thread.start()
         self.views_rendered = 0
         self.views_refined = 0
-        self.refines_dropped = 0
 
     def update(self, wanted: dict[int, Wanted]) -> None:
         """Ask for a view for every client (id -> what it wants) whose camera, session or surface
@@ -227,7 +228,7 @@ class NeuralViews:
                 image, depth = neural_image(mapset, request.camera, request.surface, crop=request.crop)
                 request.client.scene.set_background_image(image, format="jpeg", depth=depth)
                 self.views_rendered += 1
-                if min(request.camera.width, self.refined_width) > VIEW_WIDTH:
+                if self._sharper_width(request) > VIEW_WIDTH:
                     with self._wake:
                         if not self._is_stale(client_id, request):
                             self._refine[client_id] = (time.monotonic() + self.refine_after_s, request)
@@ -236,14 +237,15 @@ class NeuralViews:
 
                 traceback.print_exc()
 
+    def _sharper_width(self, request: _Request) -> int:
+        """Pixels across the sharper view: the browser's own width, at most ``refined_width``."""
+        return min(request.camera.width, self.refined_width)
+
     def _render_sharper(self, client_id: int, request: _Request, mapset) -> None:
-        """The resting camera's view at its own width (at most ``refined_width``), in bands,
-        dropped when the client moves meanwhile."""
-        width = min(request.camera.width, self.refined_width)
-        shown = neural_image(mapset, request.camera, request.surface, width, request.crop, bands=REFINE_BANDS,
-                             stale=lambda: self._is_stale(client_id, request))
+        """The resting camera's sharper view, in bands, dropped when the client moves meanwhile."""
+        shown = neural_image(mapset, request.camera, request.surface, self._sharper_width(request), request.crop,
+                             bands=REFINE_BANDS, stale=lambda: self._is_stale(client_id, request))
         if shown is None or self._is_stale(client_id, request):
-            self.refines_dropped += 1
             return
         request.client.scene.set_background_image(shown[0], format="jpeg", depth=shown[1])
         self.views_refined += 1
