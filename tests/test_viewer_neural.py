@@ -12,6 +12,7 @@ import pytest
 from server.viewer_neural import SURFACES, VIEW_WIDTH, NeuralViews, Wanted, band_starts, neural_image
 from server.viewer_state import ViewerCamera
 from slam import matrix_to_quat_wxyz
+from slam.views import DEFAULT_COARSE_STRIDE
 from tests.test_server_api import (
     client,  # noqa: F401 - fixtures
     data_dir,  # noqa: F401
@@ -115,11 +116,18 @@ def test_a_view_in_bands_is_the_view_whole_and_stops_when_stale(session_map):
     assert banded.shape == whole.shape == (120, 160, 3)
     seen = (whole_depth < 20) & (banded_depth < 20)
     assert seen.mean() > 0.5 and (seen == (whole_depth < 20)).mean() > 0.99
-    # Each band is its own view of the same rays: equal up to where a band's coarse pass
-    # sees the surface otherwise than the whole image's does.
+    # Each band is its own view of the same rays. Its coarse pass ends on the band's last row,
+    # so the last coarse cell above a band's end is bracketed otherwise than in the whole image
+    # (CI once saw 1.7 mm mean depth difference, all of it there); elsewhere they are equal.
     close = np.abs(whole.astype(int) - banded.astype(int)).max(axis=-1) <= 2
     assert close.mean() > 0.98
-    assert np.abs(whole_depth[seen] - banded_depth[seen]).mean() < 1e-3
+    rows = np.broadcast_to(np.arange(120)[:, None], seen.shape)[seen]
+    last_cell = np.zeros_like(rows, dtype=bool)
+    for end in band_starts(120, 3)[1:]:
+        last_cell |= (rows >= end - DEFAULT_COARSE_STRIDE) & (rows < end)
+    same_depth = np.abs(whole_depth[seen] - banded_depth[seen]) < 1e-3
+    assert same_depth[~last_cell].mean() > 0.999
+    assert same_depth[last_cell].mean() > 0.7, "the last coarse cells see mostly the same depths"
     asked = []
     assert neural_image(mapset, camera, "neural colour", width=160, bands=3,
                         stale=lambda: asked.append(1) or len(asked) >= 2) is None
