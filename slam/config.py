@@ -150,6 +150,8 @@ def _cpu() -> SLAMConfig:
             iterations=12,                 # with num_rays (decisions.md#mapping.num_rays)
             window_size=4,                 # 6 no better on fr1/rpy and fr1/desk (decisions.md#preset.cpu)
             keyframe_max_interval=10,      # 450-722 2.90 -> 2.58 cm, its views +0.3 dB (decisions.md#mapping.keyframe_max_interval)
+            keyframe_interval_min_metres=0.01,  # a still camera adds no keyframes (decisions.md#mapping.keyframe_max_interval)
+            keyframe_interval_min_degrees=1.0,  # with keyframe_interval_min_metres
             first_frame_iterations=100,    # the field default, ours (decisions.md#preset.paper)
             final_iterations=500,          # what the window never gave (decisions.md#mapping.final_iterations)
             final_rays=512,                # iterations count more than rays (decisions.md#mapping.final_iterations)

@@ -234,6 +234,13 @@ class MappingConfig:
     """p_kf threshold: new-voxel / observed-voxel ratio that makes a keyframe."""
     keyframe_max_interval: int = 50
     """N: a keyframe is forced after this many frames without one."""
+    keyframe_interval_min_metres: float = 0.0
+    """The forced keyframe waits until the camera has moved this far (or turned
+    ``keyframe_interval_min_degrees``) since the agent's last keyframe: a camera held still would
+    otherwise keep adding keyframes, each holding its frame in RAM. 0 and 0: forced whatever
+    the motion."""
+    keyframe_interval_min_degrees: float = 0.0
+    """With ``keyframe_interval_min_metres``: the turn that also lets the forced keyframe in."""
     final_iterations: int = 0
     """Iterations of the global bundle adjustment over the current submap's keyframes at the end of
     a sequence (paper: intra-map optimisation), before the mesh and trajectory are written."""

@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import json
 
+import math
+
 import numpy as np
 import torch
 
@@ -171,6 +173,20 @@ def se3_inverse(T: torch.Tensor) -> torch.Tensor:
     """(..., 4, 4) -> (..., 4, 4) inverse of a rigid transform (no general matrix inverse)."""
     Rt = T[..., :3, :3].transpose(-1, -2)
     return make_pose(Rt, -(Rt @ T[..., :3, 3:4])[..., 0])
+
+
+def pose_moved(T: torch.Tensor, min_metres: float, min_degrees: float) -> bool:
+    """Whether the relative pose T (4, 4) translates at least ``min_metres`` or turns at least
+    ``min_degrees`` (a minimum <= 0 is not asked for; with neither, True).
+
+    Example: a 2 cm step with minimums (0.01, 1.0) -> True; a 0.5 degree turn -> False.
+    """
+    if min_metres <= 0 and min_degrees <= 0:
+        return True
+    cos = ((T[0, 0] + T[1, 1] + T[2, 2] - 1.0) / 2.0).clamp(-1.0, 1.0)
+    degrees = math.degrees(math.acos(float(cos)))
+    metres = float(torch.linalg.vector_norm(T[:3, 3]))
+    return (min_metres > 0 and metres >= min_metres) or (min_degrees > 0 and degrees >= min_degrees)
 
 
 def compose(*transforms: torch.Tensor) -> torch.Tensor:

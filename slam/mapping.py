@@ -46,7 +46,7 @@ from .frames import (
     sample_stacked_pixels,
     stack_frames,
 )
-from .geometry import se3_exp, se3_exp_compact, se3_inverse
+from .geometry import pose_moved, se3_exp, se3_exp_compact, se3_inverse
 from .losses import LossWeights, Losses, compute_losses
 from .maps import Keyframe, MapSet, SubMap
 from .padded import color_slots, grid_samples, grid_size, pack_samples, render_padded, round_up
@@ -292,6 +292,8 @@ class Mapper:
         self._seed = seed
         self._frames_since_keyframe: dict[int, int] = {}
         self._keyframe_pending: dict[int, bool] = {}
+        self._last_keyframe: dict[int, tuple[int, torch.Tensor]] = {}
+        """agent -> (map id, T_map_cam (4, 4)) of its latest keyframe, as tracked."""
         self._kf_codes: dict[int, torch.Tensor] = {}
         """Sorted Morton codes of the voxels observed by each submap's keyframes."""
 
@@ -310,6 +312,18 @@ class Mapper:
     def _loss_weights(self) -> LossWeights:
         c = self.config.loss
         return LossWeights(c.rgb_weight, c.depth_weight, c.sdf_weight, c.fs_weight)
+
+    def _moved_since_keyframe(self, agent: int, map_id: int, T_map_cam: torch.Tensor) -> bool:
+        """Whether the camera (T_map_cam (4, 4)) moved or turned at least
+        ``mapping.keyframe_interval_min_metres`` / ``_degrees`` since ``agent``'s latest keyframe
+        in map ``map_id`` (true without one there, or with no minimum)."""
+        m = self.config.mapping
+        min_metres, min_degrees = m.keyframe_interval_min_metres, m.keyframe_interval_min_degrees
+        last = self._last_keyframe.get(agent)
+        if (min_metres <= 0 and min_degrees <= 0) or last is None or last[0] != map_id:
+            return True  # no sync on the pose where nothing is asked
+        relative = se3_inverse(last[1]) @ T_map_cam
+        return pose_moved(relative, min_metres, min_degrees)
 
     def _T_map_cam(self, submap: SubMap, T_world_cam: torch.Tensor) -> torch.Tensor:
         return se3_inverse(submap.T_world_map) @ T_world_cam.to(self.device)
@@ -393,7 +407,8 @@ class Mapper:
         m = self.config.mapping
         # A frame whose tracking failed is not fused: its pose would corrupt the map.
         is_kf = first or (tracked.tracking_ok and (
-            ratio > m.keyframe_ratio or self.frames_since_keyframe + 1 >= m.keyframe_max_interval))
+            ratio > m.keyframe_ratio or (self.frames_since_keyframe + 1 >= m.keyframe_max_interval
+                                         and self._moved_since_keyframe(tracked.agent, submap.map_id, T_map_cam))))
         agent = tracked.agent
         new_voxels = 0
         if first or tracked.tracking_ok:
@@ -407,6 +422,7 @@ class Mapper:
                 tracked.frame.index, tracked.frame.timestamp, tracked.frame, tracked.frame.K,
                 T_map_cam.detach().clone()))
             self._frames_since_keyframe[agent] = 0
+            self._last_keyframe[agent] = (submap.map_id, T_map_cam.detach().clone())
         else:
             self._frames_since_keyframe[agent] = self.frames_since_keyframe + 1
         self.timer.add("voxel_allocation", time.perf_counter() - ta)

@@ -8,6 +8,7 @@ adjustment tests use fresh mappers and only a few iterations.
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import replace
 
 import numpy as np
@@ -18,7 +19,7 @@ from slam.config import preset
 from slam.data import open_sequence
 from slam.features import Correspondences
 from slam.frames import TensorFrame, pixels_at, prepare_frame, sample_pixels, sample_stacked_pixels, stack_frames
-from slam.geometry import se3_inverse, se3_log, so3_exp
+from slam.geometry import pose_moved, se3_inverse, se3_log, so3_exp
 from slam.losses import LossWeights, compute_losses
 from slam.mapping import Mapper, MapSnapshot, TrackedFrame
 from slam.maps import SubMap
@@ -162,6 +163,28 @@ def test_keyframe_max_interval_forces_a_keyframe(frames):
     flags = [mapper.process(TrackedFrame(frames[0], gt_pose(frames[0])), optimize=False).is_keyframe
              for _ in range(7)]
     assert flags == [True, False, False, True, False, False, True]
+
+
+def test_a_still_camera_gets_no_forced_keyframe_until_it_moves(frames):
+    mapping = replace(BASE.mapping, keyframe_max_interval=3, keyframe_interval_min_metres=0.01,
+                      keyframe_interval_min_degrees=1.0)
+    mapper = Mapper(replace(BASE, mapping=mapping), CPU)
+    T = gt_pose(frames[0])
+    flags = [mapper.process(TrackedFrame(frames[0], T), optimize=False).is_keyframe for _ in range(7)]
+    assert flags == [True] + [False] * 6, "the same pose over and over: only the first frame"
+    stepped = T.clone()
+    stepped[:3, 3] += torch.tensor([0.02, 0.0, 0.0])  # 2 cm: too little for a new-voxel keyframe
+    step = mapper.process(TrackedFrame(frames[0], stepped), optimize=False)
+    assert step.is_keyframe and step.new_voxel_ratio <= mapping.keyframe_ratio, "the interval's keyframe, once moved"
+
+
+def test_pose_moved_asks_for_either_minimum():
+    T = torch.eye(4)
+    T[0, 3] = 0.02
+    assert pose_moved(T, 0.01, 1.0) and not pose_moved(T, 0.05, 1.0) and pose_moved(T, 0.0, 0.0)
+    turn = torch.eye(4)
+    turn[:3, :3] = so3_exp(torch.tensor([0.0, math.radians(2.0), 0.0]))
+    assert pose_moved(turn, 0.01, 1.0) and not pose_moved(turn, 0.01, 3.0) and not pose_moved(turn, 0.01, 0.0)
 
 
 def test_window_holds_the_newest_keyframe_and_at_most_n_kf(frames):
