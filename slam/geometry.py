@@ -10,7 +10,6 @@ its pose update there).
 from __future__ import annotations
 
 import json
-
 import math
 
 import numpy as np

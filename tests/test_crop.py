@@ -73,7 +73,8 @@ def test_mesh_and_render_crops(client, synthetic_session):  # noqa: F811
     # To within one sampling step of the session's (test) preset: a surface is seen from the
     # samples within a step of its zero crossing, so its depth may lie up to a step past the cut
     # (CI once saw 1.0 % of pixels 2-3 cm past it against a 1 cm bound).
-    step = preset("test").render.step_ratio * preset("test").voxel.voxel_size
+    test_preset = preset("test")
+    step = test_preset.render.step_ratio * test_preset.voxel.voxel_size
     assert np.mean(inside <= cut + step) > 0.99, "what shows lies inside the box"
     reversed_box = client.post(f"{url}/render", json={**camera, "crop": {"min": [1, 1, 1], "max": [0, 2, 2]}})
     assert reversed_box.status_code == 422 and "below its max" in reversed_box.json()["detail"]
