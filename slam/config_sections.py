@@ -185,8 +185,20 @@ class TrackingConfig:
     """Kernel on the colour residual: ``none`` (the paper's L1), ``huber`` or ``cauchy``, at a scale from its MAD."""
     color_adaptive: float = 0.0
     """Scale the frame's colour weight by (this / its robust colour residual sigma)^2, at most 1 (0: off)."""
+    retrack_iterations: int = 0
+    """Levenberg-Marquardt steps of the final re-tracking: once the final bundle adjustment has
+    refined the maps, every tracked frame's pose is optimised again against its map, from its
+    corrected pose, on ``retrack_rays`` pixels kept from tracking (0: off)."""
+    retrack_rays: int = 512
+    """Pixels a frame keeps for the final re-tracking (about 28 bytes each, kept to the end)."""
+    retrack_ray_budget: int = 0
+    """When the run's length is known: pixels for the re-tracking over the whole run, shared
+    among its frames, each keeping 1-4x ``retrack_rays`` (0: ``retrack_rays`` each)."""
 
     def __post_init__(self) -> None:
+        if self.retrack_iterations < 0 or self.retrack_rays < 1 or self.retrack_ray_budget < 0:
+            raise ConfigError("tracking.retrack_iterations and retrack_ray_budget must be >= 0 and "
+                              "tracking.retrack_rays >= 1")
         _check_choice("tracking.exposure", self.exposure, EXPOSURE_MODES)
         _check_choice("tracking.color_robust", self.color_robust, COLOR_KERNELS)
         _check_non_negative("tracking.exposure_prior", self.exposure_prior)

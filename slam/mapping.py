@@ -486,13 +486,14 @@ class Mapper:
         return losses, (frame_poses[0] if free_frames else None)
 
     def global_bundle_adjustment(self, submap: SubMap, iterations: int, num_rays: int,
-                                 deadline: float | None = None) -> dict[str, float]:
+                                 deadline: float | None = None, fit_colour: bool = True) -> dict[str, float]:
         """The paper's intra-map optimisation: embeddings, decoder and the poses of *all*
         keyframes of ``submap`` (the first fixed), ``num_rays`` rays per iteration spread evenly
         over the keyframes (at least 4 each). The windowed mapper only ever sees N_kf keyframes
         at once; this pass makes every keyframe agree with one map. Stops early once
         ``time.perf_counter()`` passes ``deadline``; ``last_iterations`` says how many ran.
-        Returns the last iteration's losses."""
+        Then the final fit of the fine colour level (``fit_final_colour``), unless not
+        ``fit_colour``. Returns the last iteration's losses."""
         kfs = submap.keyframes
         self.last_iterations = 0
         if not kfs or iterations <= 0:
@@ -501,11 +502,18 @@ class Mapper:
         # rather than leaving keyframes out.
         per_frame = max(num_rays // len(kfs), 4)
         losses = self._joint_optimisation(submap, list(kfs), [], iterations, per_frame, deadline)[0]
+        if fit_colour:
+            self.fit_final_colour(submap)
+        return losses
+
+    def fit_final_colour(self, submap: SubMap) -> None:
+        """The fine colour level's fit after a global bundle adjustment (``fine_color.final_*``)."""
+        if not submap.keyframes:
+            return
         if self.config.fine_color.final_fit_surface == "rendered":
             self.fit_fine_rendered(submap, self.config.fine_color.final_fit_iterations)
         else:
             self.fit_fine(submap, self.config.fine_color.final_fit_iterations, FIT_KEYFRAMES_FINAL)
-        return losses
 
     def fit_fine(self, submap: SubMap, iterations: int, keyframes: int = 0) -> None:
         """``iterations`` Adam steps of the fine colour level alone (``slam.fine_color``) on

@@ -23,7 +23,7 @@ import time
 import traceback
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable
+from typing import TYPE_CHECKING, Callable, Iterator
 
 import numpy as np
 import torch
@@ -32,7 +32,7 @@ from .config import SLAMConfig, config_from_dict
 from .events import KeyframeEvent, MapUpdateEvent, PosesUpdatedEvent
 from .frames import prepare_frame
 from .mapping import Mapper, MappingStep, MapSnapshot, NewMap, TrackedFrame
-from .messages import (Done, EndOfInput, EventReply, Failed, FinalRefinement, FrameMessage, FramePose,
+from .messages import (Done, EndOfInput, EventReply, Failed, FinalMaps, FinalRefinement, FrameMessage, FramePose,
                        KeyframeRecord, MapPosesReply, MapperStats, Ready, Reply, Request, SnapshotReply)
 
 if TYPE_CHECKING:
@@ -253,13 +253,19 @@ def _close_loops(side: _MapperSide, closer: "LoopCloser", submap: "SubMap", msg:
     return out
 
 
-def _stats(side: _MapperSide) -> MapperStats:
-    mapper = side.mapper
+def _keyframe_records(mapper: Mapper) -> list[KeyframeRecord]:
+    """Every keyframe's map and world pose, map by map."""
     records: list[KeyframeRecord] = []
     for submap in mapper.maps.maps:
         poses = mapper.keyframe_poses_world(submap).numpy()
         for kf, T in zip(submap.keyframes, poses):
             records.append(KeyframeRecord(submap.agent, kf.frame_index, submap.map_id, T.reshape(-1).tolist()))
+    return records
+
+
+def _stats(side: _MapperSide) -> MapperStats:
+    mapper = side.mapper
+    records = _keyframe_records(mapper)
     maps = mapper.maps.maps
     closer = side.closer
     return MapperStats(
@@ -298,31 +304,45 @@ def final_iterations_per_map(keyframes: list[int], total: int) -> list[int]:
     return [0 if k == 0 else min(total, max(floor, round(total * k / n))) for k in keyframes]
 
 
-def _finish(side: _MapperSide, refine: bool) -> list[Reply]:
-    """Final outputs: the global bundle adjustment of every map (``refine``; a stopped run
-    skips it to stop promptly) and the keyframe pose graph, checkpoint and mesh, then the
+def _finish(side: _MapperSide, refine: bool) -> Iterator[Reply]:
+    """Final outputs, replies yielded as they are ready: the global bundle adjustment of every
+    map (``refine``; a stopped run skips it to stop promptly) and the keyframe pose graph; the
+    maps as they left them (``FinalMaps``, when the tracking side re-tracks its frames:
+    ``tracking.retrack_iterations``), then the fine colour fit, checkpoint and mesh, then the
     statistics (the last reply)."""
     mapper = side.mapper
-    out: list[Reply] = []
     if mapper.maps.maps:
-        side.refinement = _final_bundle_adjustment(side, refine)
+        side.refinement, refined = _final_bundle_adjustment(side, refine)
         if refine and side.closer is not None:
             # After the bundle adjustment: its keyframe poses are the odometry the graph keeps.
             solved = side.closer.optimise_keyframes(mapper)
             if solved is not None:
                 side.keyframe_graph = solved.summary()
                 mapper.version += 1
+        if refine and mapper.config.tracking.retrack_iterations > 0:
+            yield _final_maps(side)
+        for submap in refined:
+            t0 = time.perf_counter()
+            mapper.fit_final_colour(submap)
+            side.busy += time.perf_counter() - t0
         _write_final_map(side)
-        out.append(EventReply(poses_event(mapper, "refinement")))
+        yield EventReply(poses_event(mapper, "refinement"))
         if side.emit_meshes:
-            out += [EventReply(map_update_event(mapper, submap, with_mesh=True)) for submap in mapper.maps.maps]
-    out.append(Done(_stats(side)))
-    return out
+            for submap in mapper.maps.maps:
+                yield EventReply(map_update_event(mapper, submap, with_mesh=True))
+    yield Done(_stats(side))
 
 
-def _final_bundle_adjustment(side: _MapperSide, refine: bool) -> FinalRefinement:
+def _final_maps(side: _MapperSide) -> FinalMaps:
+    """Every map's snapshot, pose and keyframe poses after the final refinement."""
+    mapper = side.mapper
+    return FinalMaps([side.snapshot(m) for m in mapper.maps.maps], map_poses(mapper), _keyframe_records(mapper))
+
+
+def _final_bundle_adjustment(side: _MapperSide, refine: bool) -> tuple[FinalRefinement, list["SubMap"]]:
     """The global bundle adjustment of every map within ``final_budget`` (no iterations
-    unless ``refine``), its iterations shared among the maps by keyframes."""
+    unless ``refine``), its iterations shared among the maps by keyframes; with the maps it
+    refined (their fine colour level is fitted next, ``Mapper.fit_final_colour``)."""
     mapper = side.mapper
     m = mapper.config.mapping
     t0 = time.perf_counter()
@@ -338,13 +358,14 @@ def _final_bundle_adjustment(side: _MapperSide, refine: bool) -> FinalRefinement
         # Each map gets the share of the time that it gets of the iterations.
         deadline = (None if budget.seconds is None or not sum(shares)
                     else time.perf_counter() + budget.seconds * iterations / sum(shares))
-        mapper.global_bundle_adjustment(submap, iterations, m.final_rays, deadline=deadline)
+        mapper.global_bundle_adjustment(submap, iterations, m.final_rays, deadline=deadline, fit_colour=False)
         ran += mapper.last_iterations  # 0 when it had nothing to do
     mapper.version += 1
     seconds = time.perf_counter() - t0
     side.busy += seconds
     mapper.timer.add("final_bundle_adjustment", seconds)
-    return FinalRefinement(sum(shares), ran, seconds, budget.seconds, ran < sum(shares))
+    refined = [submap for submap, iterations in zip(maps, shares) if iterations > 0 and submap.keyframes]
+    return FinalRefinement(sum(shares), ran, seconds, budget.seconds, ran < sum(shares)), refined
 
 
 def _write_final_map(side: _MapperSide) -> None:
@@ -446,6 +467,10 @@ def _mapping_process(config_dict: dict, device_name: str, out_dir: str, emit_mes
                 process_threads(device, processes=False)
                 for reply in _finish(side, refine=end.refine):
                     replies.put(reply)
+                    if isinstance(reply, FinalMaps):
+                        # The tracker re-tracks its frames meanwhile: share the cores again
+                        # (2 cores, both sides on both: the colour fit 6 -> 13 s).
+                        process_threads(device, processes=True)
                 return
     except BaseException:  # noqa: BLE001 - reported to the tracking side, which fails the run
         replies.put(Failed(traceback.format_exc()))
@@ -466,8 +491,10 @@ class InlineMapper:
         out, self.pending = self.pending, []
         return out
 
-    def finish(self, refine: bool = True) -> list[Reply]:
-        return self.poll() + _finish(self.side, refine)
+    def finish(self, refine: bool = True) -> Iterator[Reply]:
+        """The replies still pending, then the end of run's as they come (``_finish``)."""
+        yield from self.poll()
+        yield from _finish(self.side, refine)
 
     def close(self) -> None:
         pass
@@ -553,17 +580,19 @@ class ProcessMapper:
             except queue.Empty:
                 return out
 
-    def finish(self, refine: bool = True) -> list[Reply]:
+    def finish(self, refine: bool = True) -> Iterator[Reply]:
+        """Ends the input; yields the replies as they arrive, up to ``Done`` or ``Failed`` (so
+        the caller can act on ``FinalMaps`` while the mapping process writes its outputs)."""
         self.submit(EndOfInput(refine))
-        out: list[Reply] = list(self._early)
-        self._early = []
+        early, self._early = self._early, []
+        yield from early
         while True:
             reply = self._get(_POLL_SECONDS)
             if reply is None:
                 continue
-            out.append(reply)
+            yield reply
             if isinstance(reply, (Done, Failed)):
-                return out
+                return
 
     def close(self) -> None:
         if self.process.is_alive():

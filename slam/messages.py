@@ -4,8 +4,8 @@
 Frozen dataclasses of plain values and numpy arrays, so that they pickle by value across the
 mapping process's queues; the tracking side dispatches replies by their type. Requests:
 ``FrameMessage`` (a tracked frame) and ``EndOfInput`` (the last one). Replies: ``Ready``,
-``SnapshotReply``, ``MapPosesReply``, ``FramePose``, ``EventReply``, ``Done`` and
-``Failed`` (``Reply`` is their union).
+``SnapshotReply``, ``MapPosesReply``, ``FramePose``, ``EventReply``, ``FinalMaps``, ``Done``
+and ``Failed`` (``Reply`` is their union).
 """
 
 from __future__ import annotations
@@ -125,6 +125,18 @@ class KeyframeRecord:
 
 
 @dataclass(frozen=True)
+class FinalMaps:
+    """The maps as the final bundle adjustment and pose graph left them, sent before the
+    mapping side's last outputs (colour fit, checkpoint, mesh) so that the tracking side can
+    re-track every frame against them meanwhile (``tracking.retrack_iterations``): a
+    snapshot of every map, map id -> T_world_map (4, 4) float64, and the keyframes' poses."""
+
+    snapshots: list["MapSnapshot"]
+    map_poses: dict[int, np.ndarray]
+    keyframes: list[KeyframeRecord]
+
+
+@dataclass(frozen=True)
 class FinalRefinement:
     """What the final bundle adjustment did: iterations asked and run, seconds, and whether
     its time cap stopped it."""
@@ -178,4 +190,4 @@ class Failed:
     traceback: str
 
 
-Reply = Union[Ready, SnapshotReply, MapPosesReply, FramePose, EventReply, Done, Failed]
+Reply = Union[Ready, SnapshotReply, MapPosesReply, FramePose, EventReply, FinalMaps, Done, Failed]

@@ -5,7 +5,9 @@ composed at the end with that map's final ``T_world_map`` (so loop closure moves
 map), then moved by bundle adjustment's correction of its latest keyframe (or, with
 ``mapping.frame_correction`` "interpolated", the corrections of the keyframes either side
 blended), and frames whose
-tracking failed are interpolated between their well-tracked neighbours.
+tracking failed are interpolated between their well-tracked neighbours. With the final
+re-tracking (``tracking.retrack_iterations``) a tracked frame then takes the pose found by
+tracking it again against the final maps from that corrected pose.
 
 While the run goes on, ``write_progress`` rewrites the trajectories so far (the poses as
 tracked, each placed by its map's newest pose) and a ``run.json`` whose ``status`` is
@@ -156,19 +158,32 @@ class AgentTrajectory:
     interpolated: int
 
 
+def corrected_poses(records: list[FrameRecord], map_poses: dict[int, np.ndarray],
+                    keyframe_poses: dict[int, list[float]], interpolate_corrections: bool) -> np.ndarray:
+    """(N, 4, 4) world poses of an agent's ``records``: placed by ``map_poses``, moved by the
+    keyframes' corrections (``refine_with_keyframes``; ``keyframe_poses``: frame index -> 16
+    numbers), untracked frames interpolated in time between tracked ones."""
+    poses = world_poses(records, map_poses)
+    poses = refine_with_keyframes(poses, [r.index for r in records], keyframe_poses, interpolate_corrections)
+    return interpolate_untracked(poses, np.array([r.timestamp for r in records]), np.array([r.tracked for r in records]))
+
+
 def agent_trajectory(track: "AgentTrack", stats: "MapperStats | None", fallback_poses: dict[int, np.ndarray],
                      use_gt_poses: bool, interpolate_corrections: bool = False) -> AgentTrajectory:
-    """An agent's final world trajectory (see the module doc)."""
+    """An agent's final world trajectory (see the module doc): the poses the final re-tracking
+    found (``AgentTrack.retracked``) where it found one."""
     records = track.records
     map_poses = stats.map_poses if stats is not None else fallback_poses
-    poses = world_poses(records, map_poses)
-    indices = [r.index for r in records]
     ts = np.array([r.timestamp for r in records])
     tracked = np.array([r.tracked for r in records])
     if not use_gt_poses and stats is not None:
         kf = {k.frame_index: k.T_world_cam for k in stats.keyframe_records if k.agent == track.agent}
-        poses = refine_with_keyframes(poses, indices, kf, interpolate_corrections)
-        poses = interpolate_untracked(poses, ts, tracked)
+        poses = corrected_poses(records, map_poses, kf, interpolate_corrections)
+        for i, r in enumerate(records):
+            if r.index in track.retracked:
+                poses[i] = track.retracked[r.index]
+    else:
+        poses = world_poses(records, map_poses)
     return AgentTrajectory(track.agent, ts, poses, [r.gt for r in records], int((~tracked).sum()))
 
 
@@ -299,7 +314,8 @@ def write_outputs(out: Path, config: SLAMConfig, tracks: list["AgentTrack"], sta
                   status: str, error: str | None, elapsed: float, total: int | None, tracking_busy: float,
                   use_gt_poses: bool, map_poses: dict[int, np.ndarray] | None = None,
                   map_waits: tuple[int, float] = (0, 0.0), frames_skipped: list[dict] | None = None,
-                  progress: list[ProgressSample] | None = None) -> RunResult:
+                  progress: list[ProgressSample] | None = None,
+                  retracking: tuple[int, float] = (0, 0.0)) -> RunResult:
     interpolate = config.mapping.frame_correction == "interpolated"
     trajectories = [agent_trajectory(t, stats, map_poses or {}, use_gt_poses, interpolate) for t in tracks if t.records]
     _write_trajectories(out, trajectories, len(tracks) > 1)
@@ -349,11 +365,13 @@ def write_outputs(out: Path, config: SLAMConfig, tracks: list["AgentTrack"], sta
         "skipped_frames": (frames_skipped or [])[:MAX_LISTED_SKIPPED],
         "map_waits": map_waits[0],
         "frames_interpolated": sum(t.interpolated for t in trajectories),
+        "frames_retracked": retracking[0],
         "timings_s": {
             "wall": elapsed,
             "tracking_busy": tracking_busy,
             "mapping_busy": mapping_busy,
             "tracking_waited_for_map": map_waits[1],
+            "tracking_retracking": retracking[1],
             **({f"mapping_{k}": v for k, v in stats.timings.items()} if stats else {}),
         },
         "busy_share": {

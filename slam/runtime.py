@@ -55,14 +55,14 @@ from .data.frame import Frame
 from .data.io import resize_rgbd
 from .events import Event, FinishedEvent, KeyframeEvent, LoopEvent, PhaseEvent, PoseEvent, StatsEvent, SubmapEvent
 from .features import FeatureOdometry, tracking_features_serve_loops
-from .frames import prepare_frame
+from .frames import PixelBatch, prepare_frame
 from .mapping import MapSnapshot
 from .mapping_process import InlineMapper, MapperFailed, ProcessMapper
 from .mapping_process import process_threads
-from .messages import (Done, EventReply, Failed, FrameMessage, FramePose, MapPosesReply, MapperStats, MapStart,
-                       Reply, SnapshotReply)
-from .outputs import (PROGRESS_EVERY, FrameRecord, ProgressSample, RunResult, refine_with_keyframes, running_ate,
-                      write_outputs, write_progress)
+from .messages import (Done, EventReply, Failed, FinalMaps, FrameMessage, FramePose, MapPosesReply, MapperStats,
+                       MapStart, Reply, SnapshotReply)
+from .outputs import (PROGRESS_EVERY, FrameRecord, ProgressSample, RunResult, corrected_poses, refine_with_keyframes,
+                      running_ate, write_outputs, write_progress)
 from .loop.keyframe_graph import frame_covariance
 from .tracking import FrozenMap, Tracker, constant_velocity_guess
 
@@ -121,6 +121,11 @@ class AgentTrack:
     active_map: int = -1
     features: FeatureOdometry | None = None
     tracking_failures: int = 0
+    kept_rays: dict[int, PixelBatch] = field(default_factory=dict)
+    """Frame index -> pixels kept for the final re-tracking (``tracking.retrack_iterations``)."""
+    retracked: dict[int, np.ndarray] = field(default_factory=dict)
+    """Frame index -> T_world_cam (4, 4) float64 the final re-tracking found (replaces the
+    corrected tracked pose in the outputs)."""
 
 
 @dataclass
@@ -157,6 +162,14 @@ class _TrackingSide:
     held: deque[FrameMessage] = field(default_factory=deque)
     """Deterministic mode (``runtime.deterministic_lag``): tracked frames not yet handed to the
     mapper, newest last."""
+    retracker: Tracker | None = None
+    """The final re-tracking's tracker (``tracking.retrack_iterations`` > 0), else None."""
+    rays_generator: torch.Generator | None = None
+    """Draws the pixels each tracked frame keeps for it (apart from the tracker's own draws)."""
+    retrack_rays: int = 0
+    """Pixels each tracked frame keeps for it (``retrack_rays_per_frame``)."""
+    retracking: tuple[int, float] = (0, 0.0)
+    """Frames the final re-tracking moved, and its seconds."""
 
     def frozen_map(self, map_id: int) -> FrozenMap:
         """The tracker's copy of a map, rebuilt only when a newer snapshot arrived, placed
@@ -206,6 +219,69 @@ class _TrackingSide:
             track.features.transform(after @ np.linalg.inv(before))
 
 
+RETRACK_RAYS_MAX_FACTOR = 4
+"""A frame keeps at most this many times ``tracking.retrack_rays`` pixels for the re-tracking."""
+
+
+def retrack_rays_per_frame(tracking, total_frames: int | None) -> int:
+    """Pixels a frame keeps for the final re-tracking: ``tracking.retrack_rays``, or, when the
+    run's length is known and ``tracking.retrack_ray_budget`` set, the budget shared among
+    its frames within 1-4x that (a short run is re-tracked on more pixels at the same cost)."""
+    rays = tracking.retrack_rays
+    if total_frames and tracking.retrack_ray_budget > 0:
+        rays = min(max(rays, tracking.retrack_ray_budget // total_frames), RETRACK_RAYS_MAX_FACTOR * rays)
+    return rays
+
+
+def _prepare_retracking(side: _TrackingSide, total_frames: int | None) -> None:
+    """The final re-tracking's tracker and pixel draws, when ``tracking.retrack_iterations`` > 0:
+    Levenberg-Marquardt for that many steps (the pixels are drawn once per frame)."""
+    c = side.config.tracking
+    if c.retrack_iterations <= 0:
+        return
+    config = replace(side.config, tracking=replace(c, optimizer="gauss_newton", iterations=c.retrack_iterations))
+    side.retracker = Tracker(config, side.device, seed=side.config.runtime.seed)
+    side.rays_generator = torch.Generator(device="cpu").manual_seed(side.config.runtime.seed + 7919)
+    side.retrack_rays = retrack_rays_per_frame(c, total_frames)
+
+
+def _retrack(side: _TrackingSide, final: FinalMaps) -> None:
+    """The final re-tracking: every frame that kept pixels is tracked again against its map as
+    the final refinement left it, from its corrected pose (``slam.outputs.corrected_poses``).
+    The maps then hold every keyframe jointly optimised, which the map a frame was tracked
+    against in the run did not; a pose the tracker's checks reject keeps its corrected one.
+    Runs while the mapping side fits colour and writes its outputs."""
+    if side.retracker is None:
+        return
+    t0 = time.perf_counter()
+    fmaps = {}
+    for snap in final.snapshots:
+        fmap = FrozenMap(snap, side.config, side.device)
+        T_wm = np.asarray(final.map_poses[snap.map_id], np.float64)
+        both = torch.from_numpy(np.stack([T_wm, np.linalg.inv(T_wm)])).float().to(side.device)
+        fmap.T_world_map, fmap.T_map_world = both[0], both[1]
+        fmaps[snap.map_id] = fmap
+    interpolate = side.config.mapping.frame_correction == "interpolated"
+    moved = 0
+    for track in side.agents.values():
+        if not track.kept_rays:
+            continue
+        keyframes = {k.frame_index: k.T_world_cam for k in final.keyframes if k.agent == track.agent}
+        start = corrected_poses(track.records, final.map_poses, keyframes, interpolate)
+        for rec, T in zip(track.records, start):
+            rays, fmap = track.kept_rays.get(rec.index), fmaps.get(rec.map_id)
+            if rays is None or fmap is None:
+                continue
+            result = side.retracker.retrack(rays, fmap, torch.from_numpy(T).float())
+            if result.ok:
+                track.retracked[rec.index] = result.T_world_cam.cpu().numpy().astype(np.float64)
+                moved += 1
+        track.kept_rays.clear()
+    seconds = time.perf_counter() - t0
+    side.busy += seconds
+    side.retracking = (moved, seconds)
+
+
 def _pipeline_frame(frame: Frame, width: int | None) -> Frame:
     """Resize a reader frame to the pipeline width once (tracker and mapper share it)."""
     if width is None or width >= frame.width:
@@ -237,6 +313,8 @@ def _handle_replies(replies: list[Reply], side: _TrackingSide, emit: Callable[[E
         elif isinstance(reply, EventReply):
             _count_event(side, reply.event)
             emit(reply.event)
+        elif isinstance(reply, FinalMaps):
+            _retrack(side, reply)
         elif isinstance(reply, Done):
             side.mapper_stats = reply.stats
 
@@ -471,6 +549,8 @@ def _track_frame(side: _TrackingSide, track: AgentTrack, frame: Frame, raw: Fram
     map_id, T_mc, new_map = _place_tracked(side, track, frame.index, map_id, T, result.ok)
     rec = FrameRecord(frame.index, float(frame.timestamp), map_id, T_mc, result.ok, gt)
     covariance = frame_covariance(result.information) if result.ok and result.information is not None else None
+    if side.retracker is not None and result.ok and new_map is None:
+        track.kept_rays[frame.index] = side.tracker.keep_rays(tf, side.retrack_rays, side.rays_generator)
     return FrameMessage(track.agent, frame, map_id, T_mc.astype(np.float32), result.ok, new_map, covariance,
                         prepared=tf, features=features), rec
 
@@ -610,6 +690,7 @@ def _track_all(run: _Run, sources: list[Iterable[Frame]], use_gt_poses: bool) ->
         mapper_cls = ProcessMapper if config.runtime.processes else InlineMapper
         run.channel = mapper_cls(config, run.device, run.out, run.thumbnails, config.runtime.seed)
         side = run.side = _TrackingSide(config, run.device, Tracker(config, run.device, seed=config.runtime.seed))
+        _prepare_retracking(side, run.total)
         side.on_keyframe = lambda: _write_progress(run.out, side, run.total, run.started)
         run.emit(PhaseEvent("tracking"))
         for agent, raw in _interleave(sources):
@@ -706,6 +787,9 @@ def _final_refinement(run: _Run, side: _TrackingSide, channel, progress: bool) -
     _handle_replies(channel.finish(refine=refine), side, run.emit)
     if progress and side.mapper_stats is not None and side.mapper_stats.refinement is not None:
         print(f"refining: {describe_refinement(side.mapper_stats.refinement)}", file=sys.stderr, flush=True)
+    if progress and side.retracking[0]:
+        print(f"refining: {side.retracking[0]} frames tracked again against the final maps in "
+              f"{side.retracking[1]:.1f} s", file=sys.stderr, flush=True)
 
 
 def _write_results(run: _Run, sources: list[Iterable[Frame]], use_gt_poses: bool) -> RunResult:
@@ -719,7 +803,8 @@ def _write_results(run: _Run, sources: list[Iterable[Frame]], use_gt_poses: bool
                            side.map_poses if side else None,
                            (side.map_waits, side.map_wait_seconds) if side else (0, 0.0),
                            frames_skipped=_skipped_frames(sources),
-                           progress=side.progress if side else None)
+                           progress=side.progress if side else None,
+                           retracking=side.retracking if side else (0, 0.0))
     if side is not None:
         run.emit(_stats_event(side, run.total, result.fps, run.started, run.done, ate=result.ate_rmse))
     run.emit(FinishedEvent(run.status, run.error))

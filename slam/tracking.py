@@ -264,7 +264,8 @@ class Tracker:
             # the jump test and a diverged estimate's fallback use the start it took.
             lm = self._levenberg_marquardt_static if self.static else self._levenberg_marquardt
             it, loss, T_best_map, hit_ratio, residual_med, T0_map, information = lm(
-                frame, fmap, T0_map, sparse, T_guess_map if sparse is not None else None)
+                self._tracking_batch(frame), frame.depth_max, fmap, T0_map, sparse,
+                T_guess_map if sparse is not None else None)
         else:
             adam = self._adam_static if self.static else self._adam
             it, loss, T_best_map, hit_ratio, residual_med = adam(frame, fmap, T0_map, sparse)
@@ -281,10 +282,33 @@ class Tracker:
         jump = se3_log(se3_inverse(T_init) @ T_pnp)
         return float(jump[:3].norm()) <= c.max_jump_m and float(jump[3:].norm()) <= c.max_jump_rad
 
-    def _levenberg_marquardt(self, frame: TensorFrame, fmap: FrozenMap, T0_map: torch.Tensor,
+    def retrack(self, rays: PixelBatch, fmap: FrozenMap, T_init: torch.Tensor) -> TrackingResult:
+        """Optimise a pose again on pixels kept from its frame (``keep_rays``): the final
+        re-tracking against a refined map (``tracking.retrack_iterations``), by Levenberg-Marquardt
+        whatever ``tracking.optimizer`` says, from ``T_init`` (4, 4) world."""
+        r = self.config.render
+        depth_max = float(rays.depth.max())  # on the host, where the kept pixels are
+        rays = PixelBatch(*(t.to(self.device) for t in (rays.dirs_cam, rays.rgb, rays.depth)))
+        near, far = tracking_bounds(rays.depth, r.truncation, self.config.tracking.sample_band, r.max_distance)
+        T0_map = fmap.T_map_world @ T_init.to(self.device)
+        lm = self._levenberg_marquardt_static if self.static else self._levenberg_marquardt
+        it, loss, T_best_map, hit_ratio, residual_med, T0_map, information = lm(
+            (rays, near, far), depth_max, fmap, T0_map, None)
+        result = self._result(fmap, T0_map, T_best_map, it, loss, hit_ratio, residual_med)
+        return replace(result, information=information)
+
+    def keep_rays(self, frame: TensorFrame, num: int, generator: torch.Generator) -> PixelBatch:
+        """``num`` pixels of ``frame`` for ``retrack``, on the host (28 bytes a pixel)."""
+        batch = sample_pixels(frame, num, generator)
+        return PixelBatch(*(t.detach().cpu() for t in (batch.dirs_cam, batch.rgb, batch.depth)))
+
+    def _levenberg_marquardt(self, rays: tuple[PixelBatch, torch.Tensor, torch.Tensor], depth_max: float | None,
+                             fmap: FrozenMap, T0_map: torch.Tensor,
                              sparse: _SparseTerm | None, T_guess_map: torch.Tensor | None = None):
-        """Damped Gauss-Newton on the paper's loss (``slam.gauss_newton``): one set of rays,
-        outliers fixed at the initial pose, a step accepted only if it lowers the loss. Returns
+        """Damped Gauss-Newton on the paper's loss (``slam.gauss_newton``): one set of rays
+        (``rays``: the pixels and their near, far bounds; ``depth_max`` their frame's largest
+        depth, None: unknown), outliers fixed at the initial pose, a step accepted only if it
+        lowers the loss. Returns
         (iterations, loss, pose, hit ratio, median depth residual, the pose it started from,
         the data terms' (6, 6) curvature at the pose or None)).
 
@@ -293,7 +317,7 @@ class Tracker:
         the dense loss is lower at the guess than at their pose: repeated texture can make
         RANSAC agree on a pose one period off, which the depth does not support."""
         c, r = self.config.tracking, self.config.render
-        batch, near, far = self._tracking_batch(frame)
+        batch, near, far = rays
 
         def render_at(T: torch.Tensor, jacobians: bool = True) -> RenderedJacobians:
             return render_with_jacobians(T, batch.dirs_cam, fmap.view, fmap.decoder, near=near, far=far,
@@ -455,7 +479,7 @@ class Tracker:
         return it, loss, T_best_map, hit_ratio, residual_med
 
     # ------------------------------------------------------------- static shapes
-    def _sample_shape(self, frame: TensorFrame, fmap: FrozenMap, dirs_cam: torch.Tensor, near: torch.Tensor,
+    def _sample_shape(self, depth_max: float | None, fmap: FrozenMap, dirs_cam: torch.Tensor, near: torch.Tensor,
                       far: torch.Tensor, T_map: torch.Tensor) -> tuple[int, int, int]:
         """(grid points G, slots N, colour slots C) of this frame's padded samples
         (``slam.padded``). Tracking's band needs no more slots than its grid; the whole ray
@@ -468,7 +492,8 @@ class Tracker:
             G = band_grid_size(c.sample_band, r.truncation, step)
             N = G
         else:
-            depth_max = frame.depth_max if frame.depth_max is not None else float(frame.depth.max())
+            if depth_max is None:
+                depth_max = float(far.max())  # unknown: the rays' far bound, a little past their depth
             G = grid_size(0.05, min(depth_max + 2.0 * r.truncation, r.max_distance), step)
             with torch.no_grad():
                 dirs = dirs_cam @ T_map[:3, :3].T
@@ -477,7 +502,8 @@ class Tracker:
                 N = min(G, round_up(1.25 * int(grid.counts().max())))
         return G, N, color_slots(r.truncation, step, N, r.mask_in_front)
 
-    def _levenberg_marquardt_static(self, frame: TensorFrame, fmap: FrozenMap, T0_map: torch.Tensor,
+    def _levenberg_marquardt_static(self, rays: tuple[PixelBatch, torch.Tensor, torch.Tensor],
+                                    depth_max: float | None, fmap: FrozenMap, T0_map: torch.Tensor,
                                     sparse: _SparseTerm | None, T_guess_map: torch.Tensor | None = None):
         """``_levenberg_marquardt`` on padded samples with its control on the device: the
         step, its acceptance, the damping and the stop conditions are tensors, so an
@@ -485,8 +511,8 @@ class Tracker:
         ``tracking.check_every`` iterations (an iteration after a stop changes nothing).
         The reads before and after the loop are a few per frame."""
         c, r = self.config.tracking, self.config.render
-        batch, near, far = self._tracking_batch(frame)
-        G, N, C = self._sample_shape(frame, fmap, batch.dirs_cam, near, far, T0_map)
+        batch, near, far = rays
+        G, N, C = self._sample_shape(depth_max, fmap, batch.dirs_cam, near, far, T0_map)
 
         def render_at(T: torch.Tensor, jacobians: bool = True) -> RenderedJacobians:
             return render_with_jacobians_padded(T, batch.dirs_cam, fmap.view, fmap.decoder, near=near, far=far,
@@ -557,7 +583,7 @@ class Tracker:
         gamma = c.lr_decay ** (1.0 / max(c.iterations - 1, 1))
         sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma)
         batch, near, far = self._tracking_batch(frame)
-        shape = self._sample_shape(frame, fmap, batch.dirs_cam, near, far, T0_map)
+        shape = self._sample_shape(frame.depth_max, fmap, batch.dirs_cam, near, far, T0_map)
         colour = self.colour
         # (loss, hit ratio, median residual) of the lowest-loss and of the last live iterate
         inf = float("inf")

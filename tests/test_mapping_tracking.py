@@ -380,6 +380,27 @@ def assert_recovers_2cm(config, trained, frames) -> None:
     assert result.ok and pose_error(result.T_world_cam, T_gt)[0] < 0.7 * 0.02
 
 
+@pytest.mark.parametrize("static", ["off", "on"])
+def test_retracking_kept_pixels_is_tracking_the_frame_on_them(trained, frames, static):
+    # The final re-tracking (tracking.retrack_iterations) keeps a frame's pixels and tracks
+    # them again later: with the pixels the tracker itself would draw, it is the same
+    # Levenberg-Marquardt run, pose for pose.
+    config = replace(CONFIG, tracking=replace(CONFIG.tracking, optimizer="gauss_newton"),
+                     render=replace(CONFIG.render, static_shapes=static))
+    fmap = FrozenMap(trained.mapper.snapshot(), config, CPU)
+    T_gt = gt_pose(frames[0])
+    delta = torch.eye(4)
+    delta[:3, 3] = torch.tensor([0.02, 0.0, 0.0])
+    tracked = Tracker(config, CPU, seed=3).track(frames[0], fmap, T_gt @ delta)
+    tracker = Tracker(config, CPU, seed=3)
+    rays = tracker.keep_rays(frames[0], config.tracking.num_rays, torch.Generator().manual_seed(4))
+    assert rays.dirs_cam.shape == (config.tracking.num_rays, 3) and rays.depth.device.type == "cpu"
+    again = tracker.retrack(rays, fmap, T_gt @ delta)
+    assert again.ok and again.iterations == tracked.iterations
+    assert torch.allclose(again.T_world_cam, tracked.T_world_cam, atol=1e-5)
+    assert pose_error(again.T_world_cam, T_gt)[0] < 0.7 * 0.02
+
+
 def test_gauss_newton_renders_no_step_below_the_convergence_tolerance(trained, frames, monkeypatch):
     """Once the next step is below ``convergence_tol`` the tracker stops without rendering it,
     and the first pose is rendered once for both of its weightings."""

@@ -319,6 +319,61 @@ def test_the_tracker_waits_for_a_map_with_every_frame_sent(frames, tmp_path, mon
     assert done.info["map_waits"] <= NUM_FRAMES - 1 and "tracking_waited_for_map" in done.info["timings_s"]
 
 
+@pytest.mark.parametrize("processes", [True, False], ids=["processes", "single-process"])
+def test_the_final_retracking_moves_every_tracked_frame_against_the_refined_map(frames, tmp_path, monkeypatch,
+                                                                               processes):
+    # tracking.retrack_iterations: after the final bundle adjustment every tracked frame (all
+    # but the first, which starts the map) is tracked again against the refined map, from its
+    # corrected pose; that pose is what the trajectory holds. The mapping side sends the maps
+    # before its colour fit and outputs, so the re-tracking happens before Done arrives.
+    cfg = replace(FAST, mapping=replace(FAST.mapping, final_iterations=3),
+                  tracking=replace(FAST.tracking, retrack_iterations=2))
+    order: list[str] = []
+    handle = runtime._handle_replies
+
+    def spy(replies, side, emit):
+        def seen():
+            for reply in replies:
+                order.append(type(reply).__name__)
+                yield reply
+        handle(seen(), side, emit)
+
+    monkeypatch.setattr(runtime, "_handle_replies", spy)
+    calls: list[np.ndarray] = []
+    retrack = runtime.Tracker.retrack
+
+    def counting(self, rays, fmap, T_init):
+        calls.append(T_init.numpy().astype(np.float64))
+        return retrack(self, rays, fmap, T_init)
+
+    monkeypatch.setattr(runtime.Tracker, "retrack", counting)
+    done = do_run([frames], config(processes, cfg), tmp_path / "on")
+    assert done.result.status == "finished", done.result.error
+    assert len(calls) == NUM_FRAMES - 1 and done.info["frames_retracked"] == NUM_FRAMES - 1
+    assert order.index("FinalMaps") < order.index("Done")
+    assert done.info["timings_s"]["tracking_retracking"] > 0
+    poses = read_tum(tmp_path / "on" / "trajectory.txt").poses
+    # Each re-tracked pose starts from the frame's corrected pose and moves (a little) from it.
+    moved = [np.linalg.norm(p[:3, 3] - c[:3, 3]) for p, c in zip(poses[1:], calls)]
+    assert all(m < 0.05 for m in moved) and any(m > 0 for m in moved), moved
+    ate_on = done.info["ate_rmse_m"]
+    off = do_run([frames], config(processes, replace(cfg, tracking=FAST.tracking)), tmp_path / "off")
+    assert off.info["frames_retracked"] == 0 and "FinalMaps" not in order[order.index("Done") + 1:]
+    assert ate_on < 0.05 and off.info["ate_rmse_m"] < 0.05
+
+
+def test_a_short_run_keeps_more_pixels_a_frame_for_the_retracking():
+    tracking = replace(FAST.tracking, retrack_rays=512, retrack_ray_budget=76_800)
+    assert runtime.retrack_rays_per_frame(tracking, None) == 512  # a stream: its length is unknown
+    assert runtime.retrack_rays_per_frame(tracking, 150) == 512
+    assert runtime.retrack_rays_per_frame(tracking, 300) == 512  # never fewer than retrack_rays
+    assert runtime.retrack_rays_per_frame(tracking, 75) == 1024
+    assert runtime.retrack_rays_per_frame(tracking, 9) == 2048  # at most 4x
+    assert runtime.retrack_rays_per_frame(replace(tracking, retrack_ray_budget=0), 9) == 512
+    with pytest.raises(ValueError):
+        replace(tracking, retrack_ray_budget=-1)
+
+
 @pytest.mark.parametrize("lag", [0, 1])
 def test_deterministic_mode_gives_one_trajectory_whatever_the_timing(tmp_path, monkeypatch, lag):
     """runtime.deterministic_lag (issue 41 item 3): a tracker slowed at random (as a loaded
@@ -382,7 +437,7 @@ def test_the_window_refined_pose_replaces_the_tracked_one(frames, tmp_path, monk
         return out
 
     def spy_finish(self, refine=True):
-        out = finish(self, refine)
+        out = list(finish(self, refine))
         replies.extend(out)
         return out
 
@@ -524,7 +579,8 @@ def test_every_message_between_the_two_sides_pickles_by_value(frames):
                           m.FinalRefinement(5, 5, 0.1, None, False))
     sent = [m.FrameMessage(0, frame, 0, np.eye(4, dtype=np.float32), True, m.MapStart("start", 0, np.eye(4))),
             m.EndOfInput(refine=False), m.Ready(), m.MapPosesReply({0: np.eye(4)}), m.FramePose(0, 1, 0, np.eye(4)),
-            m.EventReply(KeyframeEvent(0, 1, 0, np.eye(4))), m.Done(stats), m.Failed("Traceback ...")]
+            m.EventReply(KeyframeEvent(0, 1, 0, np.eye(4))), m.Done(stats), m.Failed("Traceback ..."),
+            m.FinalMaps([], {0: np.eye(4)}, [m.KeyframeRecord(0, 0, 0, [0.0] * 16)])]
     for message in sent:
         back = pickle.loads(pickle.dumps(message))
         assert type(back) is type(message)
