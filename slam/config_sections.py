@@ -190,7 +190,7 @@ class TrackingConfig:
     refined the maps, every tracked frame's pose is optimised again against its map, from its
     corrected pose, on ``retrack_rays`` pixels kept from tracking (0: off)."""
     retrack_rays: int = 512
-    """Pixels a frame keeps for the final re-tracking (about 28 bytes each, kept to the end)."""
+    """Pixels a frame keeps for the final re-tracking (28 bytes each, on the device, to the end of the run)."""
     retrack_ray_budget: int = 0
     """When the run's length is known: pixels for the re-tracking over the whole run, shared
     among its frames, each keeping 1-4x ``retrack_rays`` (0: ``retrack_rays`` each)."""

@@ -241,7 +241,8 @@ def _prepare_retracking(side: _TrackingSide, total_frames: int | None) -> None:
         return
     config = replace(side.config, tracking=replace(c, optimizer="gauss_newton", iterations=c.retrack_iterations))
     side.retracker = Tracker(config, side.device, seed=side.config.runtime.seed)
-    side.rays_generator = torch.Generator(device="cpu").manual_seed(side.config.runtime.seed + 7919)
+    # On the device, as the tracker's own: a CUDA generator draws there without an upload.
+    side.rays_generator = torch.Generator(device=side.device).manual_seed(side.config.runtime.seed + 7919)
     side.retrack_rays = retrack_rays_per_frame(c, total_frames)
 
 

@@ -287,8 +287,8 @@ class Tracker:
         re-tracking against a refined map (``tracking.retrack_iterations``), by Levenberg-Marquardt
         whatever ``tracking.optimizer`` says, from ``T_init`` (4, 4) world."""
         r = self.config.render
-        depth_max = float(rays.depth.max())  # on the host, where the kept pixels are
         rays = PixelBatch(*(t.to(self.device) for t in (rays.dirs_cam, rays.rgb, rays.depth)))
+        depth_max = float(rays.depth.max())  # one read a frame, at the end of the run
         near, far = tracking_bounds(rays.depth, r.truncation, self.config.tracking.sample_band, r.max_distance)
         T0_map = fmap.T_map_world @ T_init.to(self.device)
         lm = self._levenberg_marquardt_static if self.static else self._levenberg_marquardt
@@ -298,9 +298,10 @@ class Tracker:
         return replace(result, information=information)
 
     def keep_rays(self, frame: TensorFrame, num: int, generator: torch.Generator) -> PixelBatch:
-        """``num`` pixels of ``frame`` for ``retrack``, on the host (28 bytes a pixel)."""
+        """``num`` pixels of ``frame`` for ``retrack`` (28 bytes a pixel), on the frame's device:
+        a copy to the host would wait for the device every frame."""
         batch = sample_pixels(frame, num, generator)
-        return PixelBatch(*(t.detach().cpu() for t in (batch.dirs_cam, batch.rgb, batch.depth)))
+        return PixelBatch(*(t.detach() for t in (batch.dirs_cam, batch.rgb, batch.depth)))
 
     def _levenberg_marquardt(self, rays: tuple[PixelBatch, torch.Tensor, torch.Tensor], depth_max: float | None,
                              fmap: FrozenMap, T0_map: torch.Tensor,

@@ -13,6 +13,8 @@ Tests marked ``cuda`` run the real pipeline on a GPU when one is present (skippe
 
 from __future__ import annotations
 
+import json
+
 from dataclasses import replace
 
 import numpy as np
@@ -165,10 +167,11 @@ def test_a_single_process_run_keeps_to_the_device(tmp_path):
 
     config = preset("test")
     config = replace(config, runtime=replace(config.runtime, processes=False, device=str(PIPELINE_DEVICE)),
-                     tracking=replace(config.tracking, motion_prior=0.01, border_margin=0.1))
+                     tracking=replace(config.tracking, motion_prior=0.01, border_margin=0.1, retrack_iterations=1))
     with DeviceMixChecker() as checker:
         result = run_slam([open_sequence(SPEC)], config, tmp_path)
     assert result.status == "finished", result.error
+    assert json.loads((tmp_path / "run.json").read_text())["frames_retracked"] > 0  # the final re-tracking too
     checker.check()
 
 
