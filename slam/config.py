@@ -144,7 +144,7 @@ def _cpu() -> SLAMConfig:
             motion_prior=0.01,             # holds what the view does not see (decisions.md#tracking.motion_prior)
             feature_dense_check=True,      # no PnP pose a period off (decisions.md#tracking.feature_dense_check)
             border_margin=0.1,             # no pull back into a lagging map (decisions.md#tracking.border_margin)
-            retrack_iterations=2,          # every frame again on the final map: 4 of 5 real sequences better (decisions.md#tracking.retrack_iterations)
+            retrack_iterations=2,          # every frame again on the final map: 5 real sequences better (decisions.md#tracking.retrack_iterations)
             retrack_ray_budget=76_800,     # 150 frames' 512 pixels: short runs get up to 2048 (decisions.md#tracking.retrack_iterations)
         ),
         mapping=MappingConfig(
