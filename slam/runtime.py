@@ -179,12 +179,7 @@ class _TrackingSide:
         if fmap is None or fmap.version != snap.version:
             fmap = FrozenMap(snap, self.config, self.device)
             self.frozen[map_id] = fmap
-        # Inverted on the host, where the pose is (torch.linalg.inv on the device reads its
-        # error flag back twice), and uploaded with it in one copy.
-        T_wm = np.asarray(self.map_poses[map_id], np.float64)
-        both = torch.from_numpy(np.stack([T_wm, np.linalg.inv(T_wm)])).float().to(self.device)
-        fmap.T_world_map, fmap.T_map_world = both[0], both[1]
-        return fmap
+        return fmap.place(self.map_poses[map_id])
 
     def move_maps(self, poses: dict[int, np.ndarray]) -> None:
         """Loop optimisation moved maps: the agents' motion history moves with its map."""
@@ -255,13 +250,8 @@ def _retrack(side: _TrackingSide, final: FinalMaps) -> None:
     if side.retracker is None:
         return
     t0 = time.perf_counter()
-    fmaps = {}
-    for snap in final.snapshots:
-        fmap = FrozenMap(snap, side.config, side.device)
-        T_wm = np.asarray(final.map_poses[snap.map_id], np.float64)
-        both = torch.from_numpy(np.stack([T_wm, np.linalg.inv(T_wm)])).float().to(side.device)
-        fmap.T_world_map, fmap.T_map_world = both[0], both[1]
-        fmaps[snap.map_id] = fmap
+    fmaps = {snap.map_id: FrozenMap(snap, side.config, side.device).place(final.map_poses[snap.map_id])
+             for snap in final.snapshots}
     interpolate = side.config.mapping.frame_correction == "interpolated"
     moved = 0
     for track in side.agents.values():

@@ -72,6 +72,7 @@ class FrozenMap:
     def __init__(self, snapshot: MapSnapshot, config: SLAMConfig, device: torch.device):
         self.version = snapshot.version
         self.map_id = snapshot.map_id
+        self.device = device
         codes, corners = snapshot.voxel_codes, snapshot.voxel_corners
         if snapshot.corner_updates is not None:
             # Only voxels whose eight corners the mapper has optimised: a freshly allocated
@@ -90,6 +91,15 @@ class FrozenMap:
         self.decoder = Decoder(config.decoder, config.voxel.embed_dim).to(device)
         self.decoder.load_state_dict({k[len("decoder."):]: v for k, v in on_device.items() if k.startswith("decoder.")})
         self.decoder.requires_grad_(False)
+
+    def place(self, T_world_map: np.ndarray) -> "FrozenMap":
+        """Put the map at ``T_world_map`` (4, 4) (a map pose newer than its snapshot's): inverted
+        on the host, where the pose is (``torch.linalg.inv`` on a device reads its error flag
+        back twice), and uploaded with its inverse in one copy. Returns the map itself."""
+        T_wm = np.asarray(T_world_map, np.float64)
+        both = torch.from_numpy(np.stack([T_wm, np.linalg.inv(T_wm)])).float().to(self.device)
+        self.T_world_map, self.T_map_world = both[0], both[1]
+        return self
 
 
 @dataclass(frozen=True)
@@ -270,8 +280,7 @@ class Tracker:
             adam = self._adam_static if self.static else self._adam
             it, loss, T_best_map, hit_ratio, residual_med = adam(frame, fmap, T0_map, sparse)
             information = None
-        result = self._result(fmap, T0_map, T_best_map, it, loss, hit_ratio, residual_med)
-        return replace(result, information=information)
+        return self._result(fmap, T0_map, T_best_map, it, loss, hit_ratio, residual_med, information)
 
     def _plausible(self, matches: Correspondences, T_init: torch.Tensor) -> bool:
         """Whether the matches' PnP pose lies within the tracker's jump limits of the guess:
@@ -294,8 +303,7 @@ class Tracker:
         lm = self._levenberg_marquardt_static if self.static else self._levenberg_marquardt
         it, loss, T_best_map, hit_ratio, residual_med, T0_map, information = lm(
             (rays, near, far), depth_max, fmap, T0_map, None)
-        result = self._result(fmap, T0_map, T_best_map, it, loss, hit_ratio, residual_med)
-        return replace(result, information=information)
+        return self._result(fmap, T0_map, T_best_map, it, loss, hit_ratio, residual_med, information)
 
     def keep_rays(self, frame: TensorFrame, num: int, generator: torch.Generator) -> PixelBatch:
         """``num`` pixels of ``frame`` for ``retrack`` (28 bytes a pixel), on the frame's device:
@@ -658,7 +666,10 @@ class Tracker:
         return total, now, live, colour
 
     def _result(self, fmap: FrozenMap, T0_map: torch.Tensor, T_best_map: torch.Tensor, it: int,
-                loss: float, hit_ratio: float, residual_med: float) -> TrackingResult:
+                loss: float, hit_ratio: float, residual_med: float,
+                information: np.ndarray | None = None) -> TrackingResult:
+        """The checked result of an optimisation that started at ``T0_map`` and ended at
+        ``T_best_map`` (4, 4, map frame), with its data terms' (6, 6) curvature or None."""
         c = self.config.tracking
         T_world = fmap.T_world_map @ T_best_map
         reason = ""
@@ -676,4 +687,5 @@ class Tracker:
             reason = f"median depth residual {residual_med:.3f} m"
         if reason.startswith(("the pose estimate", "the estimate jumped")):
             T_world = fmap.T_world_map @ T0_map  # a diverged estimate is worse than the guess
-        return TrackingResult(T_world.detach(), not reason, it, loss, hit_ratio, residual_med, reason)
+        return TrackingResult(T_world.detach(), not reason, it, loss, hit_ratio, residual_med, reason,
+                              information=information)
