@@ -111,16 +111,14 @@ def observed_mask(sequence, frame) -> np.ndarray:
     image, a pixel in from its edge (bilinear sampling mixes in the black border there),
     shrunk to the frame's size as the pipeline shrinks colour (area mean; a pixel counts
     when all of it was seen). Everything without distortion."""
-    from slam.data.io import UndistortMaps, resize_color
+    from slam.data.io import UndistortMaps, resize_mask
 
     intrinsics = getattr(getattr(sequence, "layout", None), "intrinsics", None)
     if intrinsics is None or not intrinsics.distortion:
         return np.ones((frame.height, frame.width), bool)
     width, height = intrinsics.image_size or (sequence[0].width, sequence[0].height)
     maps = UndistortMaps.build(intrinsics.matrix, intrinsics.distortion, width, height)
-    inside = ((maps.map_x >= 1) & (maps.map_x <= width - 2) & (maps.map_y >= 1) & (maps.map_y <= height - 2))
-    seen = resize_color(np.repeat(inside.astype(np.float32)[..., None], 3, axis=2), frame.width, frame.height)
-    return seen[..., 0] >= 1.0 - 1e-6
+    return resize_mask(maps.observed(), frame.width, frame.height)
 
 
 def score_views(pairs: list[tuple[object, object]], mask: np.ndarray | None = None) -> ViewScores:

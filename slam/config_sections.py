@@ -371,6 +371,9 @@ FINE_FIT_SURFACES = ("observed", "rendered")
 FINE_LEVEL_TABLES = ("equal", "surface")
 """How ``fine_color``'s levels share rows (``FineColorConfig.level_tables``)."""
 
+FINE_FIT_PIXELS = ("measured", "observed")
+"""Which keyframe pixels ``fine_color``'s rendered-surface fit learns from (``FineColorConfig.fit_pixels``)."""
+
 
 @dataclass(frozen=True)
 class FineColorConfig:
@@ -411,6 +414,11 @@ class FineColorConfig:
     pixel of that image is a block of that many squared keyframe pixels, its colour their mean
     (1: every keyframe pixel, at 4x the render time of 2)."""
 
+    fit_pixels: str = "measured"
+    """The keyframe pixels the rendered-surface fit learns from: ``measured``, those with
+    measured depth; ``observed``, every pixel whose colour the camera saw (``Frame.color_valid``),
+    depth or not (``slam.mapping.fit_pixels``)."""
+
     def __post_init__(self) -> None:
         if isinstance(self.fit_render_block, bool) or not isinstance(self.fit_render_block, int) \
                 or self.fit_render_block < 1:
@@ -425,6 +433,7 @@ class FineColorConfig:
             raise ConfigError(f"fine_color needs 0 < finest <= coarsest, got {self.finest} and {self.coarsest}")
         _check_non_negative("fine_color.lr", self.lr)
         _check_choice("fine_color.level_tables", self.level_tables, FINE_LEVEL_TABLES)
+        _check_choice("fine_color.fit_pixels", self.fit_pixels, FINE_FIT_PIXELS)
         if self.final_fit_surface not in FINE_FIT_SURFACES:
             raise ConfigError(f"fine_color.final_fit_surface must be one of {FINE_FIT_SURFACES}, "
                               f"got {self.final_fit_surface!r}")

@@ -8,7 +8,7 @@ import numpy as np
 import torch
 
 from .data.frame import Frame
-from .data.io import resize_rgbd
+from .data.io import resize_mask, resize_rgbd
 from .render import camera_rays
 
 
@@ -31,6 +31,9 @@ class TensorFrame:
     depth_max: float | None = None
     """The largest valid depth (metres), known on the host when the frame was prepared (the
     static-shape renderers size their sample grid with it); None: unknown."""
+    color_valid: torch.Tensor | None = None
+    """(H, W) bool: the pixels whose colour the camera observed (``Frame.color_valid``); None:
+    all of them."""
 
     @property
     def height(self) -> int:
@@ -43,9 +46,10 @@ class TensorFrame:
 
 def prepare_frame(frame: Frame, width: int | None, device: torch.device, max_depth: float) -> TensorFrame:
     """Resize a reader's Frame to ``width`` (None keeps it) and move it to ``device``."""
-    rgb, depth, K = frame.rgb, frame.depth, frame.K
+    rgb, depth, K, seen = frame.rgb, frame.depth, frame.K, frame.color_valid
     if width is not None and width < frame.width:
         rgb, depth, K = resize_rgbd(rgb, depth, K, width)
+        seen = None if seen is None else resize_mask(seen, depth.shape[1], depth.shape[0])
     depth = np.where((depth > 0) & (depth < max_depth), depth, 0).astype(np.float32)
     d = torch.from_numpy(np.ascontiguousarray(depth)).to(device)
     # Found on the host, which has the depth: a nonzero on the device would read it back.
@@ -59,6 +63,7 @@ def prepare_frame(frame: Frame, width: int | None, device: torch.device, max_dep
         valid=valid,
         T_world_cam_gt=None if frame.T_world_cam is None else np.asarray(frame.T_world_cam, np.float64),
         depth_max=float(depth.max()) if depth.size else 0.0,
+        color_valid=None if seen is None else torch.from_numpy(np.ascontiguousarray(seen, dtype=bool)).to(device),
     )
 
 

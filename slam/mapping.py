@@ -216,6 +216,20 @@ class _WindowExposure:
                 keyframes[i].exposure = E[i].clone()
 
 
+def fit_pixels(frame: TensorFrame, which: str) -> torch.Tensor:
+    """(H, W) bool: the pixels of ``frame`` the fine colour level's rendered-surface fit learns
+    from (``fine_color.fit_pixels``): ``observed``, every pixel whose colour the camera saw
+    (``TensorFrame.color_valid``; all without it); ``measured``, those with measured depth.
+    The fit reads the surface the coarse map renders, not the depth, so a pixel without depth
+    (Kinect's shadow and border, far or dark surfaces: a fifth of a fr1/rpy frame) still
+    tells the colour a view shows there."""
+    if which == "measured":
+        return frame.depth > 0
+    if frame.color_valid is None:
+        return torch.ones_like(frame.depth, dtype=torch.bool)
+    return frame.color_valid
+
+
 def training_far(depth: torch.Tensor, truncation: float, max_distance: float) -> torch.Tensor:
     """Far bound of training rays (R,): just past the truncation band behind the observed
     depth. Samples farther back are masked by the renderer anyway, so not generating them
@@ -572,8 +586,8 @@ class Mapper:
         """Map-frame surface points (N, 3) and colour residuals (N, 3) of ``keyframes`` rendered
         at 1/b of their size (b = ``fine_color.fit_render_block``): each pixel of the small image is a
         b x b block of the keyframe, its colour the block's mean, used where all of the block
-        has measured depth (TUM's undistortion border has none) and the coarse map renders a
-        surface."""
+        counts (``fine_color.fit_pixels``: observed colour, or measured depth) and the coarse
+        map renders a surface."""
         from .views import coarse_surface, rendered_voxels, view_decoder
 
         b = self.config.fine_color.fit_render_block
@@ -589,8 +603,9 @@ class Mapper:
             color, point, surface = coarse_surface(submap, kf.T_map_cam.detach(), K, w, h, self.config,
                                                    decoder=decoder, view=view)
             rgb = frame.rgb[:b * h, :b * w].reshape(h, b, w, b, 3).mean((1, 3)).reshape(-1, 3)
-            measured = frame.depth[:b * h, :b * w].reshape(h, b, w, b).amin((1, 3)).reshape(-1) > 0
-            use = torch.nonzero(surface & measured, as_tuple=True)[0]
+            counts = fit_pixels(frame, self.config.fine_color.fit_pixels)[:b * h, :b * w]
+            counted = counts.reshape(h, b, w, b).all(3).all(1).reshape(-1)
+            use = torch.nonzero(surface & counted, as_tuple=True)[0]
             points.append(point[use])
             residuals.append(rgb[use] - color[use])
         if not points:

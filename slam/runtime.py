@@ -52,7 +52,7 @@ import torch
 
 from .config import SLAMConfig
 from .data.frame import Frame
-from .data.io import resize_rgbd
+from .data.io import resize_mask, resize_rgbd
 from .events import Event, FinishedEvent, KeyframeEvent, LoopEvent, PhaseEvent, PoseEvent, StatsEvent, SubmapEvent
 from .features import FeatureOdometry, tracking_features_serve_loops
 from .frames import PixelBatch, prepare_frame
@@ -278,7 +278,8 @@ def _pipeline_frame(frame: Frame, width: int | None) -> Frame:
     if width is None or width >= frame.width:
         return frame
     rgb, depth, K = resize_rgbd(frame.rgb, frame.depth, frame.K, width)
-    return Frame(frame.index, frame.timestamp, rgb, depth, K, frame.T_world_cam)
+    seen = None if frame.color_valid is None else resize_mask(frame.color_valid, depth.shape[1], depth.shape[0])
+    return Frame(frame.index, frame.timestamp, rgb, depth, K, frame.T_world_cam, seen)
 
 
 def _thumbnail(rgb: np.ndarray, width: int = 96) -> np.ndarray:

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from slam.data import DataError, FileSequence, Frame, RGBDSequence, detect_format, open_sequence
-from slam.data.io import read_depth, sanitize_depth
+from slam.data.io import read_depth, resize_mask, sanitize_depth
 from slam.data.tum import FREIBURG_CALIBRATION, associate
 from slam.geometry import pose_from_tum
 
@@ -282,6 +282,26 @@ def test_distortion_from_intrinsics_txt_undistorts_without_mixing_depths(tum_dir
     assert frame.depth.shape == plain.depth.shape and not np.array_equal(frame.depth, plain.depth)
     # Nearest-neighbour remap: every depth is one of the input depths (or 0 off the image).
     assert set(np.unique(frame.depth)) <= set(np.unique(plain.depth)) | {0.0}
+
+
+def test_undistorted_frames_say_which_pixels_hold_observed_colour(tum_dir):
+    """``Frame.color_valid``: False where the undistortion's source lies off the raw image (the
+    black border), at the frame's size after resizing too; None without distortion."""
+    assert open_sequence(tum_dir)[2].color_valid is None
+    (tum_dir / "intrinsics.txt").write_text("6.0 6.5 3.5 2.5 0.9 0.2 0.01 0.02 0.3\n")
+    frame = open_sequence(tum_dir)[2]
+    seen = frame.color_valid
+    assert seen.shape == frame.depth.shape and seen.dtype == bool and 0 < seen.sum() < seen.size
+    small = open_sequence(tum_dir, width=4)[2]
+    assert small.color_valid.shape == small.depth.shape
+    np.testing.assert_array_equal(small.color_valid, resize_mask(seen, small.width, small.height))
+
+
+def test_resize_mask_keeps_a_pixel_only_when_all_it_covers_was_true():
+    mask = np.ones((4, 4), bool)
+    mask[0, 0] = False
+    np.testing.assert_array_equal(resize_mask(mask, 2, 2), [[False, True], [True, True]])
+    assert resize_mask(mask, 4, 4) is mask
 
 
 @pytest.mark.parametrize("values", [(1, 2, 3), (1, 2, 3, 4, 5), ("a", 1, 2, 3), (0, 1, 2, 3)])

@@ -253,3 +253,30 @@ def test_the_rendered_surface_fit_learns_from_blocks_of_the_keyframe(block):
     assert points.shape == residual.shape and points.shape[1] == 3
     blocks = (frame.height // block) * (frame.width // block)
     assert 0.5 * blocks < points.shape[0] <= blocks
+
+
+def test_the_rendered_surface_fit_learns_from_observed_pixels_without_depth_too():
+    """``fit_pixels`` "observed": every keyframe pixel whose colour was observed counts (the fit
+    reads the rendered surface, not the depth); "measured": only those with depth. Pixels
+    off the raw image (``color_valid`` False) count in neither."""
+    from slam.mapping import fit_pixels
+
+    mapper = _mapped(2, surface="rendered", fine=replace(FINE, fit_pixels="measured"))
+    submap = mapper.maps.maps[0]
+    keyframe = submap.keyframes[0]
+    frame = keyframe.frame
+    no_depth = torch.zeros_like(frame.depth, dtype=torch.bool)
+    no_depth[:, : frame.width // 2] = True  # the left half lost its depth, as Kinect's shadows do
+    seen = torch.ones_like(no_depth)
+    seen[: frame.height // 4] = False  # the top quarter lay off the raw image
+    keyframe.frame = replace(frame, depth=torch.where(no_depth, 0.0, frame.depth), color_valid=seen)
+    counted = {}
+    for which in ("measured", "observed"):
+        mapper.config = replace(mapper.config, fine_color=replace(mapper.config.fine_color, fit_pixels=which))
+        pixels = fit_pixels(keyframe.frame, which)
+        counted[which] = mapper._rendered_residuals(submap, [keyframe])[0].shape[0]
+        assert counted[which] <= int(pixels.sum())
+    assert not fit_pixels(keyframe.frame, "measured")[:, : frame.width // 2].any()
+    assert torch.equal(fit_pixels(keyframe.frame, "observed"), seen)
+    assert counted["observed"] > 1.3 * counted["measured"], counted  # 3/4 of the rows against 1/2 of the columns
+    assert torch.equal(fit_pixels(frame, "observed"), torch.ones_like(no_depth))  # no mask: every pixel

@@ -23,6 +23,9 @@ class Frame:
         depth: (H, W) float32 metres, 0 = invalid.
         K: (3, 3) float64 pinhole intrinsics of rgb and depth (already undistorted/resized).
         T_world_cam: (4, 4) float64 camera-to-world ground truth, OpenCV axes, or None.
+        color_valid: (H, W) bool, the pixels whose colour the camera observed, or None: all of
+            them. Undistortion leaves black the pixels whose source lies outside the raw image
+            (6-7 % of a TUM fr1 frame); they are no observation, though their depth is 0 too.
     """
 
     index: int
@@ -31,6 +34,7 @@ class Frame:
     depth: np.ndarray
     K: np.ndarray
     T_world_cam: np.ndarray | None = None
+    color_valid: np.ndarray | None = None
 
     @property
     def height(self) -> int:

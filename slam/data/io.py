@@ -218,6 +218,14 @@ def resize_depth(depth: np.ndarray, width: int, height: int) -> np.ndarray:
     return cv2.resize(depth, (width, height), interpolation=cv2.INTER_NEAREST_EXACT)
 
 
+def resize_mask(mask: np.ndarray, width: int, height: int) -> np.ndarray:
+    """(H, W) bool -> (height, width) bool, as colour is resized (area mean when shrinking):
+    a pixel is True when all of what it averages was."""
+    if mask.shape[1] == width and mask.shape[0] == height:
+        return mask
+    return resize_color(mask.astype(np.float32), width, height) >= 1.0 - 1e-6
+
+
 def resize_rgbd(
     rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, width: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -246,6 +254,12 @@ class UndistortMaps:
             K, np.asarray(distortion, dtype=np.float64), None, K, (width, height), cv2.CV_32FC1
         )
         return UndistortMaps(map_x, map_y)
+
+    def observed(self) -> np.ndarray:
+        """(H, W) bool: the pixels whose source lies inside the raw image, a pixel in from its
+        edge (bilinear sampling mixes the black border into the outermost one)."""
+        height, width = self.map_x.shape
+        return (self.map_x >= 1) & (self.map_x <= width - 2) & (self.map_y >= 1) & (self.map_y <= height - 2)
 
     def apply(self, rgb: np.ndarray, depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Undistort (H, W, 3) rgb bilinearly and (H, W) depth by nearest neighbour.
@@ -449,12 +463,18 @@ class FileSequence:
         files = self.frames[index]
         rgb, depth = self._decode(files)
         K = self.layout.intrinsics.matrix
+        color_valid = None
         if self.layout.intrinsics.distortion:
-            rgb, depth = self._undistort_maps(K, depth.shape).apply(rgb, depth)
+            maps = self._undistort_maps(K, depth.shape)
+            rgb, depth = maps.apply(rgb, depth)
+            color_valid = maps.observed()
         if self.width is not None and self.width != depth.shape[1]:
             rgb, depth, K = resize_rgbd(rgb, depth, K, self.width)
+            if color_valid is not None:
+                color_valid = resize_mask(color_valid, depth.shape[1], depth.shape[0])
         pose = None if files.T_world_cam is None else files.T_world_cam.copy()
-        return Frame(index=index, timestamp=files.timestamp, rgb=rgb, depth=depth, K=K, T_world_cam=pose)
+        return Frame(index=index, timestamp=files.timestamp, rgb=rgb, depth=depth, K=K, T_world_cam=pose,
+                     color_valid=color_valid)
 
     def _decode(self, files: FrameFiles) -> tuple[np.ndarray, np.ndarray]:
         """Read one frame's images and check their sizes -> (H, W, 3) rgb, (H, W) depth."""
