@@ -183,6 +183,7 @@ def _cpu() -> SLAMConfig:
             final_fit_iterations=600,      # room0 held-out +1.8 dB, fr1/desk +0.23 over 200, 0.98x frames/s (decisions.md#fine_color)
             final_fit_surface="rendered",  # where views query it: +0.2-2.1 dB (decisions.md#fine_color)
             fit_render_block=1,            # keyframes rendered whole: room0 held-out +1.0 dB at 0.98x frames/s (decisions.md#fine_color)
+            fit_pixels="observed",         # pixels without depth too: fr1/desk +1.0 dB, fr1/rpy +0.6 (decisions.md#fine_color)
         ),
         loop=LoopConfig(
             intra_map_iterations=0,        # a rigid move changes nothing inside (decisions.md#loop.intra_map_iterations)
