@@ -219,14 +219,16 @@ class _WindowExposure:
 def fit_pixels(frame: TensorFrame, which: str) -> torch.Tensor:
     """(H, W) bool: the pixels of ``frame`` the fine colour level's rendered-surface fit learns
     from (``fine_color.fit_pixels``): ``observed``, every pixel whose colour the camera saw
-    (``TensorFrame.color_valid``; all without it); ``measured``, those with measured depth.
-    The fit reads the surface the coarse map renders, not the depth, so a pixel without depth
-    (Kinect's shadow and border, far or dark surfaces: a fifth of a fr1/rpy frame) still
-    tells the colour a view shows there."""
+    (``TensorFrame.color_valid``); ``measured``, those with measured depth. The fit reads the
+    surface the coarse map renders, not the depth, so a pixel without depth (Kinect's shadow
+    and border, far or dark surfaces: a fifth of a fr1/rpy frame) still tells the colour a
+    view shows there. A frame without ``color_valid`` (a stream's: the wire carries no mask)
+    leaves out the pixels that are pure black without depth, what undistortion's border
+    looks like; a real black surface without depth loses little by it."""
     if which == "measured":
         return frame.depth > 0
     if frame.color_valid is None:
-        return torch.ones_like(frame.depth, dtype=torch.bool)
+        return (frame.rgb > 0).any(-1) | (frame.depth > 0)
     return frame.color_valid
 
 

@@ -279,4 +279,8 @@ def test_the_rendered_surface_fit_learns_from_observed_pixels_without_depth_too(
     assert not fit_pixels(keyframe.frame, "measured")[:, : frame.width // 2].any()
     assert torch.equal(fit_pixels(keyframe.frame, "observed"), seen)
     assert counted["observed"] > 1.3 * counted["measured"], counted  # 3/4 of the rows against 1/2 of the columns
-    assert torch.equal(fit_pixels(frame, "observed"), torch.ones_like(no_depth))  # no mask: every pixel
+    # Without a mask (a stream's frames): every pixel but those black without depth.
+    black = replace(frame, rgb=torch.where(no_depth[..., None] & seen[..., None].logical_not(), 0.0, frame.rgb),
+                    depth=torch.where(no_depth, 0.0, frame.depth), color_valid=None)
+    assert torch.equal(fit_pixels(black, "observed"), ~(no_depth & ~seen))
+    assert torch.equal(fit_pixels(replace(frame, color_valid=None), "observed"), torch.ones_like(no_depth))
