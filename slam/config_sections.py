@@ -414,6 +414,9 @@ class FineColorConfig:
     pixel of that image is a block of that many squared keyframe pixels, its colour their mean
     (1: every keyframe pixel, at 4x the render time of 2)."""
 
+    fit_extra_block: int = 0
+    """The rendered-surface fit's keyframes beyond the ``FIT_KEYFRAMES_RENDERED`` it renders at
+    1/``fit_render_block`` of their size: rendered at 1/``fit_extra_block`` (0: left out)."""
     fit_pixels: str = "measured"
     """The keyframe pixels the rendered-surface fit learns from: ``measured``, those with
     measured depth; ``observed``, every pixel whose colour the camera saw (``Frame.color_valid``),
@@ -423,7 +426,8 @@ class FineColorConfig:
         if isinstance(self.fit_render_block, bool) or not isinstance(self.fit_render_block, int) \
                 or self.fit_render_block < 1:
             raise ConfigError(f"fine_color.fit_render_block must be an integer >= 1, got {self.fit_render_block!r}")
-        for name in ("levels", "features", "table_log2", "fit_iterations", "fit_rays", "final_fit_iterations"):
+        for name in ("levels", "features", "table_log2", "fit_iterations", "fit_rays", "final_fit_iterations",
+                     "fit_extra_block"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 0:
                 raise ConfigError(f"fine_color.{name} must be an integer >= 0, got {value!r}")
