@@ -298,13 +298,9 @@ def frames_with_gt(path: str, max_frames: int | None, script: str) -> list:
 
 def pipeline_frame(frame, width: int | None):
     """A reader frame at the pipeline width, as ``slam.runtime`` resizes it."""
-    from slam.data.frame import Frame
-    from slam.data.io import resize_rgbd
+    from slam.data.io import resize_frame
 
-    if width is None or width >= frame.width:
-        return frame
-    rgb, depth, K = resize_rgbd(frame.rgb, frame.depth, frame.K, width)
-    return Frame(frame.index, frame.timestamp, rgb, depth, K, frame.T_world_cam)
+    return resize_frame(frame, width)
 
 
 def map_with_gt_poses(frames: Sequence, config, *, extra_iterations: int = 0,

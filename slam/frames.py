@@ -8,7 +8,7 @@ import numpy as np
 import torch
 
 from .data.frame import Frame
-from .data.io import resize_mask, resize_rgbd
+from .data.io import resize_frame
 from .render import camera_rays
 
 
@@ -46,10 +46,8 @@ class TensorFrame:
 
 def prepare_frame(frame: Frame, width: int | None, device: torch.device, max_depth: float) -> TensorFrame:
     """Resize a reader's Frame to ``width`` (None keeps it) and move it to ``device``."""
+    frame = resize_frame(frame, width)
     rgb, depth, K, seen = frame.rgb, frame.depth, frame.K, frame.color_valid
-    if width is not None and width < frame.width:
-        rgb, depth, K = resize_rgbd(rgb, depth, K, width)
-        seen = None if seen is None else resize_mask(seen, depth.shape[1], depth.shape[0])
     depth = np.where((depth > 0) & (depth < max_depth), depth, 0).astype(np.float32)
     d = torch.from_numpy(np.ascontiguousarray(depth)).to(device)
     # Found on the host, which has the depth: a nonzero on the device would read it back.

@@ -52,7 +52,7 @@ import torch
 
 from .config import SLAMConfig
 from .data.frame import Frame
-from .data.io import resize_mask, resize_rgbd
+from .data.io import resize_frame
 from .events import Event, FinishedEvent, KeyframeEvent, LoopEvent, PhaseEvent, PoseEvent, StatsEvent, SubmapEvent
 from .features import FeatureOdometry, tracking_features_serve_loops
 from .frames import PixelBatch, prepare_frame
@@ -271,15 +271,6 @@ def _retrack(side: _TrackingSide, final: FinalMaps) -> None:
     seconds = time.perf_counter() - t0
     side.busy += seconds
     side.retracking = (moved, seconds)
-
-
-def _pipeline_frame(frame: Frame, width: int | None) -> Frame:
-    """Resize a reader frame to the pipeline width once (tracker and mapper share it)."""
-    if width is None or width >= frame.width:
-        return frame
-    rgb, depth, K = resize_rgbd(frame.rgb, frame.depth, frame.K, width)
-    seen = None if frame.color_valid is None else resize_mask(frame.color_valid, depth.shape[1], depth.shape[0])
-    return Frame(frame.index, frame.timestamp, rgb, depth, K, frame.T_world_cam, seen)
 
 
 def _thumbnail(rgb: np.ndarray, width: int = 96) -> np.ndarray:
@@ -708,7 +699,7 @@ def _process_frame(run: _Run, agent: int, raw: Frame, use_gt_poses: bool) -> Non
     side, channel = run.side, run.channel
     assert side is not None and channel is not None
     track = side.agents.setdefault(agent, AgentTrack(agent))
-    frame = _pipeline_frame(raw, run.config.runtime.input_width)
+    frame = resize_frame(raw, run.config.runtime.input_width)  # once: tracker and mapper share it
     # Track it against the agent's active map; lost, or out of the map's region: a new map.
     msg, rec = _estimate_pose(side, track, frame, raw, channel, use_gt_poses, run.emit)
     track.records.append(rec)

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from slam.data import DataError, FileSequence, Frame, RGBDSequence, detect_format, open_sequence
-from slam.data.io import read_depth, resize_mask, sanitize_depth
+from slam.data.io import read_depth, resize_frame, resize_mask, sanitize_depth
 from slam.data.tum import FREIBURG_CALIBRATION, associate
 from slam.geometry import pose_from_tum
 
@@ -295,6 +295,12 @@ def test_undistorted_frames_say_which_pixels_hold_observed_colour(tum_dir):
     small = open_sequence(tum_dir, width=4)[2]
     assert small.color_valid.shape == small.depth.shape
     np.testing.assert_array_equal(small.color_valid, resize_mask(seen, small.width, small.height))
+    # The pipeline's resize of a reader frame carries the mask, pose and time too.
+    resized = resize_frame(frame, 4)
+    np.testing.assert_array_equal(resized.color_valid, small.color_valid)
+    np.testing.assert_array_equal(resized.depth, small.depth)
+    assert (resized.index, resized.timestamp) == (frame.index, frame.timestamp)
+    assert resize_frame(frame, None) is frame and resize_frame(frame, frame.width) is frame
 
 
 def test_resize_mask_keeps_a_pixel_only_when_all_it_covers_was_true():

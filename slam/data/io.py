@@ -15,7 +15,7 @@ from __future__ import annotations
 import math
 import re
 import sys
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Iterator, Sequence
 
@@ -238,6 +238,16 @@ def resize_rgbd(
     height = max(1, int(round(H * width / W)))
     K_out = scale_intrinsics_matrix(K, width / W, height / H)
     return resize_color(rgb, width, height), resize_depth(depth, width, height), K_out
+
+
+def resize_frame(frame: Frame, width: int | None) -> Frame:
+    """``frame`` shrunk to ``width`` (``resize_rgbd``, its ``color_valid`` with it); the frame
+    itself when ``width`` is None or not smaller."""
+    if width is None or width >= frame.width:
+        return frame
+    rgb, depth, K = resize_rgbd(frame.rgb, frame.depth, frame.K, width)
+    seen = None if frame.color_valid is None else resize_mask(frame.color_valid, depth.shape[1], depth.shape[0])
+    return replace(frame, rgb=rgb, depth=depth, K=K, color_valid=seen)
 
 
 @dataclass(frozen=True)
