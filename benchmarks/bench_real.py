@@ -1,4 +1,4 @@
-"""Presets and preset changes on every real sequence we have, N runs each (issue 41).
+"""Presets and preset changes on every real sequence we have, N runs each, accuracy and speed.
 
     python benchmarks/bench_real.py [--runs 3] [--variant NAME=PRESET[:JSON]]... [--peer]
                                     [--sequences rpy150,desk,...] [--max-frames N]
@@ -14,16 +14,19 @@ seed r: the spread is then that of the ray sampling alone. A variant is a preset
 adds the classical peer (Open3D's tensor SLAM at 1 cm voxels, ``benchmarks/peer_open3d.py``)
 as one more variant.
 
-Sequences: ``../shared/data`` (TUM fr1/rpy 150 frames, fr1/desk, Replica room0) and every
+Sequences: ``../shared/data`` (TUM fr1/rpy 150 frames, fr1/desk, Replica room0, SUN3D fragment 1) and every
 dataset folder in the cache ``$VOXFUSION_DATA_CACHE`` (default ``~/.cache/voxfusion/data``;
 how it was filled: ``benchmarks/README.md``, "Real data"). With the whole fr1/rpy there, its
 frames 150-449 and 450-722 (which no setting was tuned on) become two more sequences, made
 once as folders of hard links. Benchmarks may read the cache; tests never need it.
 
 Per sequence and variant: ATE RMSE (cm) mean, sample standard deviation, min-max; frames/s
-mean. Per sequence and variant other than the baseline, the verdict of ``benchmarks/README.md``'s
-decision rule: ``better`` / ``worse`` when the means differ by more than the larger of the two
-standard deviations (and by more than 0.05 cm), else ``within spread``.
+mean, and its ratio to the baseline's and (with ``--peer``) to Open3D's in the same sitting. Per
+sequence and variant other than the baseline, the verdict of ``benchmarks/README.md``'s decision
+rule: ``better`` / ``worse`` when the means differ by more than the larger of the two standard
+deviations (and by more than 0.05 cm), else ``within spread``; ``slower`` when its frames/s falls
+below 0.95x the baseline's. Then one line per variant: whether the rule, speed included, lets it
+land.
 """
 
 from __future__ import annotations
@@ -48,6 +51,9 @@ REPO = Path(__file__).resolve().parents[1]
 CACHE = Path(os.environ.get("VOXFUSION_DATA_CACHE", Path.home() / ".cache" / "voxfusion" / "data"))
 MIN_DIFFERENCE_CM = 0.05
 """Means closer than this are within spread whatever the spreads (a tenth of a millimetre is noise)."""
+SPEED_TOLERANCE = 0.95
+"""A variant whose mean frames/s falls below this ratio of the baseline's on a sequence is slower there
+(benchmarks/README.md, "The rule for speed")."""
 
 
 @dataclass(frozen=True)
@@ -104,7 +110,7 @@ def sequences(max_frames: int | None) -> list[RealSequence]:
     """The shared sequences, then every dataset folder of the cache (name order)."""
     found = []
     shared = [("rpy150", TUM_RPY, 150), ("desk", SHARED_DATA / "rgbd_dataset_freiburg1_desk", None),
-              ("room0", REPLICA / "room0", None)]
+              ("room0", REPLICA / "room0", None), ("sun3d", SHARED_DATA / "sun3d_fragment1", None)]
     for name, path, frames in shared:
         if path.is_dir():
             found.append(RealSequence(name, path, frames if max_frames is None else min(frames or max_frames,
@@ -229,11 +235,54 @@ def summary(runs: list[Run], variants: list[Variant]) -> list[dict]:
                 "ate_min": min(ates) if ates else None, "ate_max": max(ates) if ates else None,
                 "fps_mean": statistics.fmean(fps) if fps else None}
         base = stats[variants[0].name]
+        peer = next((stats[v.name] for v in variants if v.is_peer), None)
         for variant in variants:
             row = stats[variant.name]
             row["verdict"] = "baseline" if variant is variants[0] else verdict(base, row)
+            row["fps_ratio"] = fps_ratio(row, base)
+            row["fps_vs_peer"] = fps_ratio(row, peer) if peer is not None and not variant.is_peer else None
+            row["speed"] = "baseline" if variant is variants[0] else speed_verdict(row["fps_ratio"])
             rows.append(row)
     return rows
+
+
+def fps_ratio(row: dict, reference: dict | None) -> float | None:
+    """``row``'s mean frames/s over ``reference``'s (None when either has none)."""
+    if reference is None or not row["fps_mean"] or not reference["fps_mean"]:
+        return None
+    return row["fps_mean"] / reference["fps_mean"]
+
+
+def speed_verdict(ratio: float | None) -> str:
+    """``slower`` below SPEED_TOLERANCE of the baseline's frames/s, else ``as fast``."""
+    if ratio is None:
+        return "no data"
+    return "slower" if ratio < SPEED_TOLERANCE else "as fast"
+
+
+def lands(rows: list[dict], variant: str) -> tuple[bool, str]:
+    """benchmarks/README.md's rule for ``variant`` over every sequence: no sequence worse beyond
+    spread, one better; and no sequence slower (below SPEED_TOLERANCE) unless the accuracy it buys
+    pays for it: better beyond spread on that very sequence, by at least as many per cent of ATE
+    as the per cent of frames/s it costs there. Returns (lands, why)."""
+    mine = [r for r in rows if r["variant"] == variant]
+    if not mine or any(r["verdict"] == "no data" for r in mine):
+        return False, "not every sequence has data"
+    worse = [r["sequence"] for r in mine if r["verdict"] == "worse"]
+    if worse:
+        return False, f"worse beyond spread on {', '.join(worse)}"
+    if not any(r["verdict"] == "better" for r in mine):
+        return False, "better beyond spread on no sequence"
+    base = {r["sequence"]: r for r in rows if r["verdict"] == "baseline"}
+    for r in mine:
+        if r["speed"] != "slower":
+            continue
+        cost = 1.0 - r["fps_ratio"]
+        gain = 1.0 - r["ate_mean"] / base[r["sequence"]]["ate_mean"]
+        if r["verdict"] != "better" or gain < cost:
+            return False, (f"{r['sequence']}: {100 * cost:.0f} % slower for {100 * gain:.0f} % of ATE "
+                           f"({r['verdict']})")
+    return True, "no sequence worse or slower beyond what it gains, one better"
 
 
 def verdict(base: dict, other: dict) -> str:
@@ -253,11 +302,26 @@ def table(rows: list[dict]) -> str:
     def number(value, digits=2):
         return "-" if value is None else f"{value:.{digits}f}"
 
+    def ratio(value):
+        return "-" if value is None else f"{value:.2f}x"
+
     return markdown_table(
-        ["sequence", "variant", "runs", "ATE cm mean", "std", "min-max", "frames/s", "verdict"],
+        ["sequence", "variant", "runs", "ATE cm mean", "std", "min-max", "frames/s", "vs baseline", "vs Open3D",
+         "verdict", "speed"],
         [[r["sequence"], r["variant"], f"{r['runs']}" + (f" ({r['failed']} failed)" if r["failed"] else ""),
           number(r["ate_mean"]), number(r["ate_std"]), f"{number(r['ate_min'])}-{number(r['ate_max'])}",
-          number(r["fps_mean"]), r["verdict"]] for r in rows])
+          number(r["fps_mean"]), ratio(r.get("fps_ratio")), ratio(r.get("fps_vs_peer")), r["verdict"],
+          r.get("speed", "-")] for r in rows])
+
+
+def rule_lines(rows: list[dict], variants: list[Variant]) -> list[str]:
+    """One line per variant but the baseline and the peer: whether the rule lets it land."""
+    lines = []
+    for variant in variants[1:]:
+        if not variant.is_peer:
+            ok, why = lands(rows, variant.name)
+            lines.append(f"{variant.name}: {'lands' if ok else 'does not land'} ({why})")
+    return lines
 
 
 def main() -> int:
@@ -325,6 +389,8 @@ def main() -> int:
     runs = list({(r.sequence, r.variant, r.round): r for r in runs}.values())
     rows = summary(runs, variants)
     print("\n" + table(rows))
+    for line in rule_lines(rows, variants):
+        print(line)
     if args.json:
         args.json.write_text(json.dumps({"runs": [asdict(r) for r in runs], "summary": rows,
                                          "variants": [asdict(v) for v in variants]}, indent=1))
