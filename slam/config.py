@@ -298,9 +298,16 @@ def _check_type(name: str, hint: Any, value: Any) -> Any:
     raise ConfigError(f"{name} must be {names}, got {type(value).__name__} {value!r}")
 
 
+def _rejected(entry: str, commit: str) -> str:
+    """Why a setting the decision rule rejected is gone, and where its figures and code are."""
+    return (f"off in every preset, it did not beat the presets on the real sequences "
+            f"(decisions.md#{entry}; its code is in commit {commit} and before)")
+
+
 RETIRED_FIELDS = {
     ("mapping", "map_every"): "it never changed anything: every tracked frame is mapped, and the "
                               "mapper optimises once over the frames that queued up",
+    ("runtime", "max_map_lag"): _rejected("runtime.max_map_lag", "a86dcd1"),
 }
 """Fields that configs written by earlier versions (checkpoints, run.json) may still hold."""
 

@@ -461,8 +461,6 @@ class RuntimeConfig:
     """Bounded queue (frames) between tracking and mapping."""
     input_width: int | None = None
     """Resize input frames to this width inside the pipeline (intrinsics scaled)."""
-    max_map_lag: int = -1
-    """Process mode: track a frame only once the map holds all but this many frames sent (-1: no wait)."""
     deterministic_lag: int = -1
     """Deterministic evaluation: track against the map of all frames sent but the newest K (-1: off)."""
     deterministic_every: int = 3
@@ -474,8 +472,6 @@ class RuntimeConfig:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        if self.max_map_lag < -1:
-            raise ConfigError(f"runtime.max_map_lag must be -1 (no wait) or >= 0, got {self.max_map_lag}")
         if self.deterministic_lag < -1:
             raise ConfigError(f"runtime.deterministic_lag must be -1 (off) or >= 0, got {self.deterministic_lag}")
         if self.deterministic_every < 1:

@@ -402,18 +402,6 @@ def _send_until_map(side: _TrackingSide, channel, map_id: int, emit) -> None:
     _wait_integrated(side, channel, emit)
 
 
-def _wait_for_map(side: _TrackingSide, lag: int, channel, emit) -> None:
-    """Block until the mapper has integrated all but ``lag`` of the frames sent to it (its
-    snapshots say how many they hold); -1: no wait. Counts the waits that blocked."""
-    if lag < 0 or side.frames_integrated >= side.frames_sent - lag:
-        return
-    t0 = time.perf_counter()
-    side.map_waits += 1
-    while side.frames_integrated < side.frames_sent - lag:
-        _handle_replies(channel.poll(block=True), side, emit)
-    side.map_wait_seconds += time.perf_counter() - t0
-
-
 _MIN_TRACKABLE_DEPTH = 0.01
 """Share of pixels with valid depth below which a frame is not tracked at all."""
 
@@ -511,8 +499,6 @@ def _track_frame(side: _TrackingSide, track: AgentTrack, frame: Frame, raw: Fram
     config = side.config
     if config.runtime.deterministic:
         _deterministic_map(side, channel, emit)
-    else:
-        _wait_for_map(side, config.runtime.max_map_lag, channel, emit)
     t0 = time.perf_counter()
     map_id = _track_map(side, track, channel, emit)
     fmap = side.frozen_map(map_id)

@@ -10,6 +10,7 @@ import pytest
 
 from slam.config import (
     PRESETS,
+    RETIRED_FIELDS,
     ConfigError,
     SLAMConfig,
     apply_overrides,
@@ -87,6 +88,22 @@ def test_saved_configs_with_a_retired_field_still_load_but_config_files_are_told
         apply_overrides(preset("cpu"), {"mapping": {"map_every": 2}})
 
 
+REJECTED = [  # (section, field, its decisions.md entry): off in every preset, they lost the rule's A/B
+    ("runtime", "max_map_lag", "runtime.max_map_lag"),
+]
+
+
+@pytest.mark.parametrize("section, key, entry", REJECTED, ids=[f"{s}.{k}" for s, k, _ in REJECTED])
+def test_a_setting_the_decision_rule_retired_is_refused_naming_its_decision(tmp_path, section, key, entry):
+    assert (section, key) in RETIRED_FIELDS
+    with pytest.raises(ConfigError, match=rf"{section}\.{key} was removed: off in every preset.*"
+                                          rf"decisions\.md#{entry}; its code is in commit [0-9a-f]{{7}}"):
+        load_config("cpu", write(tmp_path, {section: {key: 0}}))
+    saved = preset("cpu").to_dict()
+    saved[section][key] = 0  # a checkpoint or run.json of an earlier version
+    assert config_from_dict(saved) == preset("cpu")
+
+
 def test_json_file_overrides_field_by_field(tmp_path):
     path = write(tmp_path, {"preset": "ignored", "mapping": {"iterations": 3, "lr_embed": 1},
                             "runtime": {"processes": False}})
@@ -108,7 +125,7 @@ def test_json_file_overrides_field_by_field(tmp_path):
     ({"runtime": {"processes": 1}}, "runtime.processes must be bool"),
     ({"render": {"truncation": "0.1"}}, "render.truncation must be float"),
     ({"runtime": {"device": 0}}, "runtime.device must be str"),
-    ({"runtime": {"max_map_lag": -2}}, "runtime.max_map_lag must be -1"),
+    ({"runtime": {"deterministic_lag": -2}}, "runtime.deterministic_lag must be -1"),
     ({"mapping": {"free_space_stride": 0}}, "mapping.free_space_stride must be an integer >= 1"),
 ])
 def test_bad_overrides_raise_config_error_naming_them(tmp_path, payload, message):

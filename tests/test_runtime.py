@@ -300,25 +300,6 @@ def test_a_finished_run_refines_globally_in_the_mapping_process(frames, tmp_path
     assert done.info["timings_s"]["mapping_final_bundle_adjustment"] > 0
 
 
-def test_the_tracker_waits_for_a_map_with_every_frame_sent(frames, tmp_path, monkeypatch):
-    # max_map_lag 0: each frame is tracked against a snapshot that holds every frame sent
-    # before it, although the mapper runs in its own process.
-    seen: list[tuple[int, int]] = []
-    frozen_map = runtime._TrackingSide.frozen_map
-
-    def spy(self, map_id):
-        seen.append((self.frames_sent, self.frames_integrated))
-        return frozen_map(self, map_id)
-
-    monkeypatch.setattr(runtime._TrackingSide, "frozen_map", spy)
-    cfg = replace(FAST, runtime=replace(FAST.runtime, processes=True, max_map_lag=0))
-    done = do_run([frames], cfg, tmp_path)
-    assert done.result.status == "finished", done.result.error
-    assert len(seen) == NUM_FRAMES - 1 and all(sent == integrated for sent, integrated in seen), seen
-    # Waits are counted only where the mapper was behind (how often depends on the machine).
-    assert done.info["map_waits"] <= NUM_FRAMES - 1 and "tracking_waited_for_map" in done.info["timings_s"]
-
-
 @pytest.mark.parametrize("processes", [True, False], ids=["processes", "single-process"])
 def test_the_final_retracking_moves_every_tracked_frame_against_the_refined_map(frames, tmp_path, monkeypatch,
                                                                                processes):
