@@ -5,8 +5,7 @@ the map, and no lag: the tracker sees every frame before the one it tracks). Eac
 then tracks frame i+1 from frame i's GT pose, with the ORB correspondences the runtime would
 give it (the features of frame i remembered at its GT pose). The variants run on the same
 frames in turn, so their error against GT (translation, rotation) and their thread CPU time
-per frame compare within one run. A variant is a set of config overrides, plus ``"cv": true``
-for a constant-velocity guess from the GT history.
+per frame compare within one run. A variant is a set of config overrides.
 
     python benchmarks/bench_tracking.py [--sequence fr1_rpy|laps|PATH|SPEC] [--start 20]
         [--frames 40] [--variants JSON] [--map-config JSON] [--json FILE] [--per-frame]
@@ -47,8 +46,7 @@ def config_of(base, overrides: dict):
 
     merged = base.to_dict()
     for section, fields in overrides.items():
-        if section != "cv":
-            merged[section].update(fields)
+        merged[section].update(fields)
     return config_from_dict(merged)
 
 
@@ -72,14 +70,14 @@ def run(sequence: str, start: int, count: int, variants: dict, map_overrides: di
     from slam.frames import prepare_frame
     from slam.geometry import se3_inverse, se3_log
     from slam.mapping import Mapper
-    from slam.tracking import FrozenMap, Tracker, constant_velocity_guess
+    from slam.tracking import FrozenMap, Tracker
 
     torch.set_num_threads(1)
     slam.kernels.warm_up()
     base = preset("cpu")
     base = replace(base, mapping=replace(base.mapping, final_iterations=0))
     map_config = config_of(base, map_overrides or {})
-    configs = {name: (config_of(base, o), bool(o.get("cv"))) for name, o in variants.items()}
+    configs = {name: config_of(base, o) for name, o in variants.items()}
     raw = read_frames(sequence, start + count + 1)
     if len(raw) < start + 2:
         raise SystemExit(f"bench_tracking.py: {sequence} has {len(raw)} frames, fewer than --start + 2")
@@ -100,9 +98,9 @@ def run(sequence: str, start: int, count: int, variants: dict, map_overrides: di
         features.correspondences(raw[i])
         features.remember(np.asarray(raw[i].T_world_cam, np.float64))
         matches = features.correspondences(raw[j])
-        for name, (config, velocity) in configs.items():
+        for name, config in configs.items():
             tracker = Tracker(config, device, seed=j)
-            guess = constant_velocity_guess([pose(i - 1), pose(i)] if i > 0 else [pose(i)], velocity)
+            guess = pose(i)
             t0 = time.thread_time()
             result = tracker.track(frame, fmap, guess, matches if config.tracking.feature_count else None)
             seconds = time.thread_time() - t0

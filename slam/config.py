@@ -308,6 +308,7 @@ RETIRED_FIELDS = {
     ("mapping", "map_every"): "it never changed anything: every tracked frame is mapped, and the "
                               "mapper optimises once over the frames that queued up",
     ("runtime", "max_map_lag"): _rejected("runtime.max_map_lag", "a86dcd1"),
+    ("tracking", "constant_velocity"): _rejected("tracking.constant_velocity", "a86dcd1"),
 }
 """Fields that configs written by earlier versions (checkpoints, run.json) may still hold."""
 

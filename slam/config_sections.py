@@ -128,8 +128,6 @@ class TrackingConfig:
     lr_trans: float = 1e-2
     lr_decay: float = 0.1
     """The learning rate falls geometrically to lr * lr_decay by the last iteration."""
-    constant_velocity: bool = False
-    """Initialise from a constant-velocity guess instead of the last pose (the paper's zero motion)."""
     motion_prior: float = 0.0
     """Gauss-Newton only: weight of a prior holding the pose at its guess, relative to the data
     term's mean curvature per translation and rotation block (0: off)."""

@@ -64,7 +64,7 @@ from .messages import (Done, EventReply, Failed, FinalMaps, FrameMessage, FrameP
 from .outputs import (PROGRESS_EVERY, FrameRecord, ProgressSample, RunResult, corrected_poses, refine_with_keyframes,
                       running_ate, write_outputs, write_progress)
 from .loop.keyframe_graph import frame_covariance
-from .tracking import FrozenMap, Tracker, constant_velocity_guess
+from .tracking import FrozenMap, Tracker
 
 if TYPE_CHECKING:
     from tqdm import tqdm
@@ -436,7 +436,7 @@ def _estimate_pose(side: _TrackingSide, track: AgentTrack, frame: Frame, raw: Fr
     if _valid_depth_share(frame) < _MIN_TRACKABLE_DEPTH:
         # Nothing to track with (a blank or dropped-out frame): a failure at the guess, not
         # sent to the mapper.
-        T = constant_velocity_guess([torch.from_numpy(p) for p in track.good_poses[-1:]], False).numpy()
+        T = track.good_poses[-1]
         _count_failure(track, side.config)
         T_mc = np.linalg.inv(side.map_poses[track.active_map]) @ T
         return None, FrameRecord(frame.index, float(frame.timestamp), track.active_map, T_mc, False, gt)
@@ -493,8 +493,8 @@ def _given_pose_frame(side: _TrackingSide, track: AgentTrack, frame: Frame,
 
 def _track_frame(side: _TrackingSide, track: AgentTrack, frame: Frame, raw: Frame, gt: np.ndarray | None,
                  channel, emit) -> tuple[FrameMessage, FrameRecord]:
-    """Track a frame against the newest map the agent may use, from the constant-velocity
-    guess (or the PnP pose of its ORB matches with the previous frame); a good pose that
+    """Track a frame against the newest map the agent may use, from the last good pose (the
+    paper's zero motion model; or the PnP pose of its ORB matches with the previous frame); a good pose that
     left the active map's region starts the next map."""
     config = side.config
     if config.runtime.deterministic:
@@ -503,13 +503,10 @@ def _track_frame(side: _TrackingSide, track: AgentTrack, frame: Frame, raw: Fram
     map_id = _track_map(side, track, channel, emit)
     fmap = side.frozen_map(map_id)
     tf = prepare_frame(frame, None, side.device, config.voxel.max_depth)
-    # Velocity only from two consecutive good poses: extrapolating from a failed estimate
-    # would compound the error frame after frame.
-    good = track.good_poses[-2:] if track.last_ok else track.good_poses[-1:]
-    history = [torch.from_numpy(p).float().to(side.device) for p in good]
+    T_init = torch.from_numpy(track.good_poses[-1]).float().to(side.device)
     matches = track.features.correspondences(raw) if track.features is not None else None
     features = _features_for_loops(config, track, frame, raw)
-    result = side.tracker.track(tf, fmap, constant_velocity_guess(history, config.tracking.constant_velocity), matches)
+    result = side.tracker.track(tf, fmap, T_init, matches)
     T = result.T_world_cam.detach().cpu().numpy().astype(np.float64)
     if track.features is not None:
         track.features.remember(T if result.ok else None)

@@ -173,13 +173,6 @@ def interior_rays(T_map_cam: torch.Tensor, dirs_cam: torch.Tensor, depth: torch.
     return (lookup_sorted(view.voxel_codes, codes) >= 0).reshape(-1, shifts.shape[0]).all(1)
 
 
-def constant_velocity_guess(previous: list[torch.Tensor], enabled: bool) -> torch.Tensor:
-    """Initial pose (4, 4) from the last two poses (constant velocity) or the last one."""
-    if len(previous) >= 2 and enabled:
-        return previous[-1] @ (se3_inverse(previous[-2]) @ previous[-1])
-    return previous[-1].clone()
-
-
 def _select(take: torch.Tensor, a: Linearisation, b: Linearisation) -> Linearisation:
     """``a`` where the 0-dim bool ``take`` holds, else ``b``, field by field, on the device."""
     def pick(x, y):

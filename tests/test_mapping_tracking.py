@@ -27,7 +27,7 @@ from slam.render import render_rays
 from slam.gauss_newton import limit_step, linearise, linearise_rendered, render_with_jacobians
 from slam.geometry import se3_exp
 from slam.render import MapView
-from slam.tracking import FrozenMap, Tracker, constant_velocity_guess, interior_rays, tracking_bounds
+from slam.tracking import FrozenMap, Tracker, interior_rays, tracking_bounds
 from slam.voxels import morton_encode
 
 CPU = torch.device("cpu")
@@ -480,17 +480,6 @@ def test_tracking_fails_when_the_depth_residual_stays_high(trained, frames):
     fmap = FrozenMap(trained.mapper.snapshot(), config, CPU)
     result = Tracker(config, CPU).track(frames[0], fmap, gt_pose(frames[0]))
     assert not result.ok and "median depth residual" in result.reason
-
-
-def test_constant_velocity_guess():
-    T1 = torch.eye(4)
-    T2 = torch.eye(4)
-    T2[:3, :3] = so3_exp(torch.tensor([0.0, 0.0, 0.1]))
-    T2[:3, 3] = torch.tensor([0.1, 0.0, 0.0])
-    guess = constant_velocity_guess([T1, T2], enabled=True)
-    assert torch.allclose(guess, T2 @ T2, atol=1e-6)
-    assert torch.equal(constant_velocity_guess([T1, T2], enabled=False), T2)
-    assert torch.equal(constant_velocity_guess([T2], enabled=True), T2)
 
 
 # ------------------------------------------------------ Gauss-Newton tracking
