@@ -28,10 +28,12 @@ from server.upload import (
     UploadError,
     ZipLimits,
     dataset_root,
+    disk_full_error,
     extract_zip,
     inspect_dataset,
     parse_depth_scale,
     parse_intrinsics,
+    is_disk_full,
     remove_tree,
     save_upload,
 )
@@ -245,7 +247,7 @@ def _json_spec(body: SessionCreateJSON) -> tuple[list[SourceSpec], str]:
 @router.post("", status_code=status.HTTP_201_CREATED, response_model=SessionCreated,
              openapi_extra=_CREATE_OPENAPI,
              responses={400: {"model": ErrorOut}, 413: {"model": ErrorOut}, 415: {"model": ErrorOut},
-                        422: {"model": ErrorOut},
+                        422: {"model": ErrorOut}, 507: {"model": ErrorOut, "description": "the server's disk is full"},
                         429: {"model": ErrorOut, "description": "the queue of sessions waiting to start is full "
                                                                 "(VOXFUSION_MAX_QUEUED); retry after Retry-After seconds",
                               "headers": {"Retry-After": {"schema": {"type": "integer"},
@@ -268,6 +270,10 @@ async def create_session(request: Request, manager: SessionManager = Depends(get
         except StarletteHTTPException as error:  # Starlette's "Too many files" and friends
             raise UploadError(f"the form cannot be read: {error.detail} (at most {MAX_AGENTS} 'file' parts)",
                               status=error.status_code) from None
+        except OSError as error:  # the parts spool to temporary files, which a full disk refuses
+            if is_disk_full(error):
+                raise disk_full_error("the upload") from None
+            raise
         parts = form.getlist("file")
         uploads = [part for part in parts if isinstance(part, UploadFile)]
         if not parts:

@@ -32,17 +32,37 @@ WORKER_PID_FILE = "worker.pid"
 """In a session folder while its worker runs: the worker's pid, which is its process group."""
 
 
-def write_json_atomic(path: Path, data: dict) -> None:
-    tmp = path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(data, indent=1))
-    os.replace(tmp, path)
-
-
-def _write_logged(path: Path, data: dict, write=write_json_atomic) -> None:
+def log_line(message: str) -> None:
+    """One line on the server's log; a log the disk has no room for loses it (never raises)."""
     try:
-        write(path, data)
+        print(message, flush=True)
+    except OSError:
+        pass
+
+
+DISK_ROOM_BYTES = 1 << 20
+"""Free space under which a session's folder counts as on a full disk (``disk_is_full``)."""
+
+
+def disk_is_full(directory: Path) -> bool:
+    """Whether the file system holding ``directory`` has less than ``DISK_ROOM_BYTES`` left
+    for this process (False when it cannot tell)."""
+    try:
+        stats = os.statvfs(directory)
+    except OSError:
+        return False
+    return stats.f_bavail * stats.f_frsize < DISK_ROOM_BYTES
+
+
+def _write_logged(path: Path, data: dict) -> None:
+    """``path`` replaced by ``data`` atomically (``slam.outputs.write_json_atomic``: a write that
+    fails, on a full disk say, leaves the old file and no temporary one); a failure is logged."""
+    from slam import write_json_atomic
+
+    try:
+        write_json_atomic(path, data)
     except OSError as error:
-        print(f"voxfusion: cannot write {path}: {error}")
+        log_line(f"voxfusion: cannot write {path}: {error}")
 
 
 def write_status(directory: Path, status: SessionStatus) -> None:
@@ -72,7 +92,7 @@ def settle_outputs(directory: Path, state: SessionStatus, frames_refused: int | 
     ``status`` and ``error`` become the session's (a minimal ``run.json`` is written when
     there is none). ``frames_refused``: a stream's refused frames (else ``run.json``'s
     ``frames_skipped``). Returns the settled status (``state`` without a folder)."""
-    from slam import read_run_json, trajectory_frames, write_json_atomic as write_run_json
+    from slam import read_run_json, trajectory_frames
 
     if not directory.is_dir():
         return state
@@ -95,7 +115,7 @@ def settle_outputs(directory: Path, state: SessionStatus, frames_refused: int | 
     elif run.get("status") not in (state.status, "running"):
         run["run_status"] = run.get("status")  # what the runtime said (a stop reads "cancelled")
     run.update(wanted)
-    _write_logged(directory / "run.json", run, write_run_json)
+    _write_logged(directory / "run.json", run)
     return settled
 
 
@@ -103,7 +123,7 @@ def write_pid(path: Path, pid: int | None) -> None:
     try:
         path.write_text(f"{pid}\n")
     except OSError as error:
-        print(f"voxfusion: cannot write {path}: {error}")
+        log_line(f"voxfusion: cannot write {path}: {error}")
 
 
 def _stdout_target(pid: int) -> str | None:
@@ -141,5 +161,5 @@ def end_orphaned_worker(directory: Path) -> bool:
         except OSError:
             pass
     if ours:
-        print(f"voxfusion: ended {len(ours)} leftover process(es) of session {directory.name}", flush=True)
+        log_line(f"voxfusion: ended {len(ours)} leftover process(es) of session {directory.name}")
     return bool(ours)

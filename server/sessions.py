@@ -52,7 +52,9 @@ from server.executors import make_executor
 from server.session_status import ENDED, SessionStatus, StatusFold, now_iso, run_end, with_worker_totals
 from server.session_store import (
     WORKER_PID_FILE,
+    disk_is_full,
     end_orphaned_worker,
+    log_line,
     read_progress,
     settle_outputs,
     write_pid,
@@ -62,7 +64,7 @@ from server.session_store import (
 from server.settings import Settings, render_threads_now, usable_cores
 from server.stream import StreamInput
 from server.tracks import FrameCamera, TrackedPose
-from server.worker import SourceSpec, WorkerDone, WorkerJob, WorkerStarted, describe_sources
+from server.worker import DISK_FULL, SourceSpec, WorkerDone, WorkerJob, WorkerStarted, describe_sources
 from slam import FinishedEvent
 INTERRUPTED_RUNNING = "interrupted: the server stopped while the session was running"
 INTERRUPTED_QUEUED = "interrupted: the server stopped before the session started"
@@ -242,7 +244,7 @@ class SessionManager:
             try:
                 status = SessionStatus.from_json(json.loads(meta.read_text()))
             except (OSError, ValueError, TypeError, KeyError) as error:
-                print(f"voxfusion: skipping unreadable {meta}: {error}")
+                log_line(f"voxfusion: skipping unreadable {meta}: {error}")
                 continue
             interrupted = status.status not in ENDED
             if interrupted:
@@ -388,7 +390,12 @@ class SessionManager:
 
     def running_count(self) -> int:
         with self._lock:
-            return sum(1 for s in self._sessions.values() if s.active)
+            return self._workers_alive()
+
+    def _workers_alive(self) -> int:
+        """Sessions whose worker has not exited yet, deleted ones still stopping included: a
+        stopping worker holds its slot (memory, cores) until its process is gone (under the lock)."""
+        return sum(1 for s in self._sessions.values() if s.active) + sum(1 for s in self._stopping_sessions if s.active)
 
     def render_threads(self) -> int:
         """torch threads for the API process's next render, mesh or pick
@@ -464,8 +471,7 @@ class SessionManager:
             except Exception as error:  # noqa: BLE001 - the supervisor must outlive one bad event
                 import traceback
 
-                traceback.print_exc()
-                print(f"voxfusion: supervisor error: {error}")
+                log_line(f"voxfusion: supervisor error: {traceback.format_exc()}")
             time.sleep(_SUPERVISOR_TICK_S)
 
     def _tick(self) -> None:
@@ -506,8 +512,8 @@ class SessionManager:
             session.end_reason = ("failed", error)
             self._request_stop(session, f"the session failed: {error}")
         elif stream.finish_if_idle(f"the stream was finished after no frame for {setting}"):
-            print(f"voxfusion: session {session.status.id}: no frame for {setting}; finishing with "
-                  f"{stream.frames_received} frames", flush=True)
+            log_line(f"voxfusion: session {session.status.id}: no frame for {setting}; finishing with "
+                     f"{stream.frames_received} frames")
 
     def _drain(self, session: _Session) -> None:
         if session.execution is None:
@@ -565,7 +571,7 @@ class SessionManager:
         """The worker has exited (or was killed): settle the final status and free resources."""
         execution = session.execution
         status, error = run_end(session.done, session.end_reason, session.cancel_requested_at is not None,
-                                forced_reason, execution.exit_error)
+                                forced_reason, lambda: self._exit_error(session))
         session.status = with_worker_totals(session.status, session.done)
         if error is not None:
             error = strip_paths(error, session.directory / "input", "the input")
@@ -586,8 +592,14 @@ class SessionManager:
         for sink in self._event_sinks:
             sink(session.status.id, FinishedEvent(status=status, error=error))
 
+    def _exit_error(self, session: _Session) -> str:
+        """Why a worker ended without a result; a worker that could no longer write to its
+        folder's full disk (its log included) says so."""
+        error = session.execution.exit_error()
+        return f"{DISK_FULL} ({error})" if disk_is_full(session.directory) else error
+
     def _start_queued(self) -> None:
-        running = sum(1 for s in self._sessions.values() if s.active)
+        running = self._workers_alive()
         while (self._queue and running < self.settings.max_sessions and not self._stopping.is_set()
                and not self._shutdown.is_set()):
             session = self._sessions[self._queue.popleft()]

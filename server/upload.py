@@ -5,14 +5,18 @@ Everything here is checked before any work starts, and every failure is an
 
 * zips: no absolute paths, no ``..``, no links or devices, at most ``max_entries`` entries and
   ``max_unzipped_bytes`` uncompressed in total (checked from the directory, then enforced again
-  while writing, so a lying header cannot fill the disk); extraction writes only regular files
-  under the destination, with names rebuilt from validated parts.
+  while writing, so a lying header cannot fill the disk); no entry that the disk cannot hold
+  (a name part over 255 bytes, a path over 1024 bytes or 32 folders deep, a file that another
+  entry needs as a folder); extraction writes only regular files under the destination, with
+  names rebuilt from validated parts. A write the disk refuses anyway is a 422 naming the
+  entry, or 507 when the disk is full.
 * frames: the colour image decodes, the depth is a single-channel 16-bit PNG of the same size,
   intrinsics are four positive numbers.
 """
 
 from __future__ import annotations
 
+import errno
 import shutil
 import stat
 import zipfile
@@ -35,11 +39,26 @@ MAX_AGENTS = 16
 
 
 class UploadError(ValueError):
-    """Bad upload; ``status`` is the HTTP status to answer with (400, 413 or 422)."""
+    """Bad upload; ``status`` is the HTTP status to answer with (400, 413, 422, or 507 when
+    the server's disk is full)."""
 
     def __init__(self, message: str, status: int = 422) -> None:
         super().__init__(message)
         self.status = status
+
+
+DISK_FULL_ERRNOS = (errno.ENOSPC, errno.EDQUOT)
+"""What a write gets from a full disk (or a full quota)."""
+
+
+def is_disk_full(error: BaseException) -> bool:
+    return isinstance(error, OSError) and error.errno in DISK_FULL_ERRNOS
+
+
+def disk_full_error(what: str) -> UploadError:
+    """507: the server had no room for ``what`` (the request may be sent again once it has)."""
+    return UploadError(f"the server's disk is full: no room to store {what}; nothing was kept, "
+                       "try again once space is freed", status=507)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -50,6 +69,44 @@ class UploadError(ValueError):
 class ZipLimits:
     max_entries: int
     max_unzipped_bytes: int
+
+
+MAX_ENTRY_PART_BYTES = 255
+"""Longest file or folder name in an entry (UTF-8): NAME_MAX of every common file system."""
+MAX_ENTRY_PATH_BYTES = 1024
+"""Longest entry path (UTF-8), well inside PATH_MAX (4096) once the session folder is in front."""
+MAX_ENTRY_DEPTH = 32
+"""Most folders an entry lies in (a dataset needs three or four)."""
+
+
+def shown_entry(name: str, limit: int = 80) -> str:
+    """An entry name for an error message, its middle cut out when it is long."""
+    return name if len(name) <= limit else f"{name[:limit - 25]}...{name[-20:]}"
+
+
+def _check_entry_size(name: str, path: PurePosixPath) -> None:
+    """UploadError (422) for an entry whose name no file system here can hold."""
+    where = f"zip entry {shown_entry(name)!r}"
+    longest = max(path.parts, key=lambda part: len(part.encode()))
+    if len(longest.encode()) > MAX_ENTRY_PART_BYTES:
+        raise UploadError(f"{where}: the name {shown_entry(longest, 40)!r} is {len(longest.encode())} bytes "
+                          f"long; at most {MAX_ENTRY_PART_BYTES} are allowed")
+    if len(path.parts) - 1 > MAX_ENTRY_DEPTH:
+        raise UploadError(f"{where}: lies {len(path.parts) - 1} folders deep; at most {MAX_ENTRY_DEPTH} are allowed")
+    if len(str(path).encode()) > MAX_ENTRY_PATH_BYTES:
+        raise UploadError(f"{where}: the path is {len(str(path).encode())} bytes long; at most "
+                          f"{MAX_ENTRY_PATH_BYTES} are allowed")
+
+
+def _check_clashes(files: list[tuple[zipfile.ZipInfo, PurePosixPath]]) -> None:
+    """UploadError (422) when one entry is a file that another needs as a folder (``d/x``
+    and ``d/x/y``), which no extraction could write."""
+    names = {path: info.filename for info, path in files}
+    for info, path in files:
+        for folder in path.parents:
+            if folder in names:
+                raise UploadError(f"zip entry {shown_entry(info.filename)!r}: {shown_entry(names[folder])!r} "
+                                  f"is a file in the zip, so it cannot also be a folder")
 
 
 def member_path(name: str) -> PurePosixPath | None:
@@ -102,6 +159,7 @@ def check_zip(zip_path: Path, limits: ZipLimits) -> list[tuple[zipfile.ZipInfo, 
             continue
         if info.flag_bits & 0x1:
             raise UploadError(f"zip entry {info.filename!r}: encrypted entries are not supported")
+        _check_entry_size(info.filename, path)
         total += info.file_size
         if total > limits.max_unzipped_bytes:
             raise UploadError(
@@ -110,6 +168,7 @@ def check_zip(zip_path: Path, limits: ZipLimits) -> list[tuple[zipfile.ZipInfo, 
         files.append((info, path))
     if not files:
         raise UploadError("the zip holds no files")
+    _check_clashes(files)
     return files
 
 
@@ -128,13 +187,24 @@ def extract_zip(zip_path: Path, dest: Path, limits: ZipLimits) -> Path:
             target = root.joinpath(*relative.parts)
             if root not in target.parents:
                 raise UploadError(f"zip entry {info.filename!r} would be written outside the archive root")
-            target.parent.mkdir(parents=True, exist_ok=True)
             try:
+                target.parent.mkdir(parents=True, exist_ok=True)
                 with archive.open(info) as source, open(target, "wb") as sink:
                     written += _copy_limited(source, sink, limits.max_unzipped_bytes - written, info.filename)
             except (zipfile.BadZipFile, zipfile.LargeZipFile, EOFError, NotImplementedError) as error:
                 raise UploadError(f"zip entry {info.filename!r} cannot be read ({error})", status=400) from None
+            except OSError as error:
+                raise _unwritable_entry(info.filename, error) from None
     return dest
+
+
+def _unwritable_entry(name: str, error: OSError) -> UploadError:
+    """A write of entry ``name`` that the disk refused: 507 when it is full, else 422 with the
+    reason (never the server's path)."""
+    if is_disk_full(error):
+        return disk_full_error("the unpacked dataset")
+    reason = error.strerror or type(error).__name__
+    return UploadError(f"zip entry {shown_entry(name)!r} cannot be unpacked here ({reason})")
 
 
 def _copy_limited(source, sink, budget: int, name: str, chunk: int = 1 << 20) -> int:
@@ -172,12 +242,17 @@ def _entries(folder: Path) -> list[Path]:
 
 def save_upload(source, target: Path, max_bytes: int) -> int:
     """Copy a file-like upload to ``target``; 413 past ``max_bytes``. Returns the size."""
-    target.parent.mkdir(parents=True, exist_ok=True)
-    with open(target, "wb") as sink:
-        try:
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        with open(target, "wb") as sink:
             return _copy_limited(source, sink, max_bytes, target.name)
-        except UploadError:
-            raise UploadError(f"the upload is larger than {max_bytes // (1024 * 1024)} MiB", status=413) from None
+    except UploadError:
+        raise UploadError(f"the upload is larger than {max_bytes // (1024 * 1024)} MiB", status=413) from None
+    except OSError as error:
+        if is_disk_full(error):
+            target.unlink(missing_ok=True)
+            raise disk_full_error("the upload") from None
+        raise
 
 
 def inspect_dataset(root: str, spec) -> str:

@@ -9,13 +9,17 @@ group first, so that a cancel that runs out of patience can kill it together wit
 process it started, and it watches its server: when the API process is gone (killed, crashed)
 the whole group ends at once, since nobody is left to read its events (a worker that went on
 finished its run and then blocked on its event pipe forever). Its stdout and stderr (and the
-mapping process's) go to ``worker.log`` in the session folder.
+mapping process's) go to ``worker.log`` in the session folder; a log the disk has no room
+for loses its lines, never the run. A run that ends because the disk is full (an ENOSPC
+anywhere in its error) fails with :data:`DISK_FULL`.
 
 Everything crossing the process boundary is a small frozen dataclass of plain values.
 """
 
 from __future__ import annotations
 
+import errno
+import io
 import os
 import queue
 import signal
@@ -205,13 +209,44 @@ def short_error(text: str | None) -> str | None:
     return f"{kind.rsplit('.', 1)[-1]}{sep}{message}" + " (traceback in worker.log)"
 
 
+DISK_FULL = "the disk is full: no space left to write the session's outputs (what was written before is kept)"
+"""A session's error when its worker could not write for want of space."""
+_DISK_FULL_MARKS = tuple(f"[Errno {code}]" for code in (errno.ENOSPC, errno.EDQUOT)) + (os.strerror(errno.ENOSPC),)
+
+
+def disk_full_error(error: BaseException | str | None) -> str | None:
+    """:data:`DISK_FULL` when ``error`` (an exception, or a run's error with its traceback) came
+    from a full disk, else None."""
+    if isinstance(error, OSError):
+        return DISK_FULL if error.errno in (errno.ENOSPC, errno.EDQUOT) else None
+    text = error if isinstance(error, str) else ""
+    return DISK_FULL if any(mark in text for mark in _DISK_FULL_MARKS) else None
+
+
+class _LossyLog(io.TextIOWrapper):
+    """A text stream whose writes a full disk drops instead of raising: a print may not end
+    the run, nor the interpreter's last flush turn the exit code into 120."""
+
+    def write(self, text: str) -> int:
+        try:
+            return super().write(text)
+        except OSError:
+            return len(text)
+
+    def flush(self) -> None:
+        try:
+            super().flush()
+        except OSError:
+            pass
+
+
 def _redirect_output(log_path: Path) -> None:
     """Send this process's (and its children's) stdout/stderr to the session's log file."""
     log = open(log_path, "ab", buffering=0)
     os.dup2(log.fileno(), 1)
     os.dup2(log.fileno(), 2)
-    sys.stdout = open(1, "w", buffering=1, closefd=False)
-    sys.stderr = open(2, "w", buffering=1, closefd=False)
+    sys.stdout = _LossyLog(open(1, "wb", buffering=0, closefd=False), write_through=True)
+    sys.stderr = _LossyLog(open(2, "wb", buffering=0, closefd=False), write_through=True)
 
 
 PARENT_POLL_S = 0.5
@@ -270,7 +305,8 @@ def run_worker(job: WorkerJob, stop_event, event_queue, frame_queue) -> None:
                               on_event=event_queue.put, stop=stop_event)
             if result.error:
                 print(result.error, flush=True)  # the whole traceback, for worker.log
-            done = WorkerDone(status=result.status, error=short_error(result.error), frames=result.frames,
+            error = disk_full_error(result.error) or short_error(result.error)
+            done = WorkerDone(status=result.status, error=error, frames=result.frames,
                               keyframes=result.keyframes, maps=result.maps, loops=result.loops,
                               fps=float(result.fps),
                               agents=int(getattr(result, "agents", 0) or 0) or _run_agents(out_dir),
@@ -279,7 +315,8 @@ def run_worker(job: WorkerJob, stop_event, event_queue, frame_queue) -> None:
         done = WorkerDone(status="failed", error=f"bad input data: {error}")
     except Exception as error:  # noqa: BLE001 - any crash fails only this session; traceback goes to the log
         traceback.print_exc()
-        done = WorkerDone(status="failed", error=f"{type(error).__name__}: {error}")
+        reason = disk_full_error(error) or disk_full_error(traceback.format_exc())
+        done = WorkerDone(status="failed", error=reason or f"{type(error).__name__}: {error}")
     print(f"worker done: {done.status} {done.error or ''}", flush=True)
     event_queue.put(done)
     # Flush the queue's feeder thread before exiting, so the last messages are not lost.

@@ -39,6 +39,7 @@ keyframes.
 
 from __future__ import annotations
 
+import errno
 import sys
 import time
 import traceback
@@ -61,7 +62,6 @@ from .mapping_process import InlineMapper, MapperFailed, ProcessMapper
 from .mapping_process import process_threads
 from .messages import (Done, EventReply, Failed, FinalMaps, FrameMessage, FramePose, MapPosesReply, MapperStats,
                        MapStart, Reply, SnapshotReply)
-from .profiling import StageClock
 from .outputs import (PROGRESS_EVERY, FrameRecord, ProgressSample, RunResult, corrected_poses, refine_with_keyframes,
                       running_ate, write_outputs, write_progress)
 from .loop.keyframe_graph import frame_covariance
@@ -171,8 +171,8 @@ class _TrackingSide:
     """Pixels each tracked frame keeps for it (``retrack_rays_per_frame``)."""
     retracking: tuple[int, float] = (0, 0.0)
     """Frames the final re-tracking moved, and its seconds."""
-    stages: StageClock = field(default_factory=StageClock)
-    """Where the tracking side's wall time goes, stage by stage (``run.json``'s ``timings_s``)."""
+    stopped: Callable[[], bool] = lambda: False
+    """Whether the run was asked to stop: ends any wait for the mapper (``_poll_mapper``)."""
 
     def frozen_map(self, map_id: int) -> FrozenMap:
         """The tracker's copy of a map, rebuilt only when a newer snapshot arrived, placed
@@ -305,6 +305,19 @@ def _handle_replies(replies: list[Reply], side: _TrackingSide, emit: Callable[[E
             side.mapper_stats = reply.stats
 
 
+class RunStopped(Exception):
+    """The run was asked to stop while the tracker waited for the mapper."""
+
+
+def _poll_mapper(side: _TrackingSide, channel, emit: Callable[[Event], None]) -> None:
+    """Wait a poll interval for the mapper's replies and apply them. A stop request ends the
+    wait (``RunStopped``): a stopped run writes the frames tracked so far at once instead of
+    after the mapper's work in hand (a first frame's mapping takes seconds)."""
+    if side.stopped():
+        raise RunStopped
+    _handle_replies(channel.poll(block=True), side, emit)
+
+
 def _count_event(side: _TrackingSide, event: Event) -> None:
     """Loops and keyframes as the mapping side announces them; a keyframe's progress is
     written before its event goes out (module doc)."""
@@ -348,7 +361,7 @@ def _track_map(side: _TrackingSide, track: AgentTrack, channel, emit) -> int:
             _send_until_map(side, channel, track.active_map, emit)
             if track.active_map in side.snapshots:
                 break
-        _handle_replies(channel.poll(block=True), side, emit)
+        _poll_mapper(side, channel, emit)
     return track.active_map
 
 
@@ -380,7 +393,7 @@ def _wait_integrated(side: _TrackingSide, channel, emit) -> None:
     t0 = time.perf_counter()
     side.map_waits += 1
     while side.frames_integrated < side.frames_sent:
-        _handle_replies(channel.poll(block=True), side, emit)
+        _poll_mapper(side, channel, emit)
     side.map_wait_seconds += time.perf_counter() - t0
 
 
@@ -503,16 +516,13 @@ def _track_frame(side: _TrackingSide, track: AgentTrack, frame: Frame, raw: Fram
     if config.runtime.deterministic:
         _deterministic_map(side, channel, emit)
     t0 = time.perf_counter()
-    with side.stages.stage("map_update"):
-        map_id = _track_map(side, track, channel, emit)
-        fmap = side.frozen_map(map_id)
+    map_id = _track_map(side, track, channel, emit)
+    fmap = side.frozen_map(map_id)
     tf = prepare_frame(frame, None, side.device, config.voxel.max_depth)
     T_init = torch.from_numpy(track.good_poses[-1]).float().to(side.device)
-    with side.stages.stage("features"):
-        matches = track.features.correspondences(raw) if track.features is not None else None
-        features = _features_for_loops(config, track, frame, raw)
-    with side.stages.stage("track"):
-        result = side.tracker.track(tf, fmap, T_init, matches)
+    matches = track.features.correspondences(raw) if track.features is not None else None
+    features = _features_for_loops(config, track, frame, raw)
+    result = side.tracker.track(tf, fmap, T_init, matches)
     T = result.T_world_cam.detach().cpu().numpy().astype(np.float64)
     if track.features is not None:
         track.features.remember(T if result.ok else None)
@@ -522,8 +532,7 @@ def _track_frame(side: _TrackingSide, track: AgentTrack, frame: Frame, raw: Fram
     rec = FrameRecord(frame.index, float(frame.timestamp), map_id, T_mc, result.ok, gt)
     covariance = frame_covariance(result.information) if result.ok and result.information is not None else None
     if side.retracker is not None and result.ok and new_map is None:
-        with side.stages.stage("keep_rays"):
-            track.kept_rays[frame.index] = side.tracker.keep_rays(tf, side.retrack_rays, side.rays_generator)
+        track.kept_rays[frame.index] = side.tracker.keep_rays(tf, side.retrack_rays, side.rays_generator)
     return FrameMessage(track.agent, frame, map_id, T_mc.astype(np.float32), result.ok, new_map, covariance,
                         prepared=tf, features=features), rec
 
@@ -573,19 +582,6 @@ def _interleave(sources: list[Iterable[Frame]]) -> Iterator[tuple[int, Frame]]:
                 alive.remove(k)
 
 
-def _timed(items: Iterable, clock: StageClock, name: str) -> Iterator:
-    """``items`` as they come, the time each takes to come (reading and decoding a frame)
-    added to ``clock``'s ``name``."""
-    iterator = iter(items)
-    while True:
-        with clock.stage(name):
-            try:
-                item = next(iterator)
-            except StopIteration:
-                return
-        yield item
-
-
 def _skipped_frames(sources: list[Iterable[Frame]]) -> list[dict]:
     """Frames the sources left out because they could not be read (``FileSequence.skipped``):
     agent, index and why, for ``run.json``."""
@@ -616,12 +612,14 @@ def run_slam(sources: list[Iterable[Frame]], config: SLAMConfig, out_dir: str | 
         config = with_given_poses(config)
     run = _open_run(sources, config, Path(out_dir), on_event, stop, progress)
     _track_all(run, sources, use_gt_poses)
-    run.tracking_ended = time.perf_counter()
     if run.side is not None:
         # Tracking is over (the input ended, a stop, a failure): every pose on disk first, in
         # milliseconds, before the final refinement (minutes) or a stop's checkpoint and mesh,
         # which a kill may cut short.
-        _write_progress(run.out, run.side, run.total, run.started)
+        try:
+            _write_progress(run.out, run.side, run.total, run.started)
+        except OSError:
+            run.status, run.error = "failed", run.error or traceback.format_exc()
     _finish_mapping(run, progress)
     return _write_results(run, sources, use_gt_poses)
 
@@ -647,8 +645,6 @@ class _Run:
     error: str | None = None
     side: _TrackingSide | None = None
     channel: InlineMapper | ProcessMapper | None = None
-    tracking_ended: float | None = None
-    """When the last frame was tracked (perf_counter): the end-of-run phases start."""
 
     def stopped(self) -> bool:
         return self.stop is not None and self.stop.is_set()
@@ -658,6 +654,8 @@ def _open_run(sources: list[Iterable[Frame]], config: SLAMConfig, out: Path,
               on_event: Callable[[Event], None] | None, stop: StopFlag | None, progress: bool) -> _Run:
     """The output folder, the device and its threads, the seed, the progress bar."""
     out.mkdir(parents=True, exist_ok=True)
+    # The trajectory writer's modules (seconds to import) now: a stop must not wait for them.
+    from .eval import trajectory  # noqa: F401
     device = resolve_device(config.runtime.device)
     process_threads(device, config.runtime.processes)
     torch.manual_seed(config.runtime.seed)
@@ -681,13 +679,14 @@ def _track_all(run: _Run, sources: list[Iterable[Frame]], use_gt_poses: bool) ->
         side = run.side = _TrackingSide(config, run.device, Tracker(config, run.device, seed=config.runtime.seed))
         _prepare_retracking(side, run.total)
         side.on_keyframe = lambda: _write_progress(run.out, side, run.total, run.started)
+        side.stopped = run.stopped
         run.emit(PhaseEvent("tracking"))
-        for agent, raw in _timed(_interleave(sources), side.stages, "read"):
+        for agent, raw in _interleave(sources):
             if run.stopped():
                 run.status = "cancelled"
                 break
             _process_frame(run, agent, raw, use_gt_poses)
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, RunStopped):
         run.status = "cancelled"
     except Exception:  # noqa: BLE001 - any failure ends this run only, with its traceback
         run.status, run.error = "failed", traceback.format_exc()
@@ -705,21 +704,17 @@ def _process_frame(run: _Run, agent: int, raw: Frame, use_gt_poses: bool) -> Non
     side, channel = run.side, run.channel
     assert side is not None and channel is not None
     track = side.agents.setdefault(agent, AgentTrack(agent))
-    with side.stages.stage("prepare"):
-        frame = resize_frame(raw, run.config.runtime.input_width)  # once: tracker and mapper share it
+    frame = resize_frame(raw, run.config.runtime.input_width)  # once: tracker and mapper share it
     # Track it against the agent's active map; lost, or out of the map's region: a new map.
     msg, rec = _estimate_pose(side, track, frame, raw, channel, use_gt_poses, run.emit)
     track.records.append(rec)
-    with side.stages.stage("publish"):
-        _publish_pose(run, track.agent, frame, msg, rec)
+    _publish_pose(run, track.agent, frame, msg, rec)
     # Hand it to the mapping side: it decides keyframes, maps the frame, and looks for loops
     # at every new keyframe.
     if msg is not None:
-        with side.stages.stage("hand_over"):
-            _hand_over(side, msg, channel)
+        _hand_over(side, msg, channel)
     # What the mapping side sent back meanwhile: keyframes, loops, moved maps, snapshots.
-    with side.stages.stage("replies"):
-        _handle_replies(channel.poll(), side, run.emit)
+    _handle_replies(channel.poll(), side, run.emit)
     _count_frame(run)
 
 
@@ -790,8 +785,6 @@ def _write_results(run: _Run, sources: list[Iterable[Frame]], use_gt_poses: bool
     elapsed = time.perf_counter() - run.started
     run.emit(PhaseEvent("writing"))
     side = run.side
-    if side is not None and run.tracking_ended is not None:
-        side.stages.add("end_of_run", elapsed - (run.tracking_ended - run.started))
     tracks = sorted(side.agents.values(), key=lambda t: t.agent) if side is not None else []
     result = write_outputs(run.out, run.config, tracks, side.mapper_stats if side else None, run.status, run.error,
                            elapsed, run.total, side.busy if side else 0.0, use_gt_poses,
@@ -799,8 +792,7 @@ def _write_results(run: _Run, sources: list[Iterable[Frame]], use_gt_poses: bool
                            (side.map_waits, side.map_wait_seconds) if side else (0, 0.0),
                            frames_skipped=_skipped_frames(sources),
                            progress=side.progress if side else None,
-                           retracking=side.retracking if side else (0, 0.0),
-                           tracking_stages=side.stages.totals if side else None)
+                           retracking=side.retracking if side else (0, 0.0))
     if side is not None:
         run.emit(_stats_event(side, run.total, result.fps, run.started, run.done, ate=result.ate_rmse))
     run.emit(FinishedEvent(run.status, run.error))
@@ -809,13 +801,16 @@ def _write_results(run: _Run, sources: list[Iterable[Frame]], use_gt_poses: bool
 
 def _write_progress(out: Path, side: _TrackingSide, total: int | None, started: float) -> None:
     """The trajectories so far and a ``running`` run.json (``slam.outputs.write_progress``);
-    a write that fails is said on stderr and the run goes on."""
+    a write that fails is said on stderr and the run goes on, unless the disk is full: a run
+    that can keep nothing it does fails (the OSError is raised)."""
     tracks = sorted(side.agents.values(), key=lambda t: t.agent)
     try:
         write_progress(out, side.config, tracks, side.map_poses, keyframes=side.keyframes_seen,
                        maps=max(side.next_map_id, 1), loops=side.loops, total=total,
                        elapsed=time.perf_counter() - started, last_keyframe=side.last_keyframe)
     except OSError as error:
+        if error.errno in (errno.ENOSPC, errno.EDQUOT):
+            raise
         print(f"voxfusion: cannot write the progress to {out}: {error}", file=sys.stderr, flush=True)
 
 
