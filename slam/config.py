@@ -300,8 +300,7 @@ def _check_type(name: str, hint: Any, value: Any) -> Any:
 
 def _rejected(entry: str, commit: str) -> str:
     """Why a setting the decision rule rejected is gone, and where its figures and code are."""
-    return (f"off in every preset, it did not beat the presets on the real sequences "
-            f"(decisions.md#{entry}; its code is in commit {commit} and before)")
+    return f"off in every preset, it lost its A/B (decisions.md#{entry}; its code is in commit {commit} and before)"
 
 
 RETIRED_FIELDS = {
@@ -309,6 +308,8 @@ RETIRED_FIELDS = {
                               "mapper optimises once over the frames that queued up",
     ("runtime", "max_map_lag"): _rejected("runtime.max_map_lag", "a86dcd1"),
     ("tracking", "constant_velocity"): _rejected("tracking.constant_velocity", "a86dcd1"),
+    ("mapping", "keyframe_iterations"): _rejected("mapping.keyframe_iterations", "a86dcd1"),
+    ("fine_color", "fit_extra_block"): _rejected("fine_color.fit_extra_block", "a86dcd1"),
 }
 """Fields that configs written by earlier versions (checkpoints, run.json) may still hold."""
 

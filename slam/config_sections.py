@@ -221,8 +221,6 @@ class MappingConfig:
     """N_m: rays sampled per keyframe in the window, per iteration."""
     iterations: int = 10
     """Optimisation iterations per mapped frame."""
-    keyframe_iterations: int = 0
-    """Iterations when the frames optimised together hold a new keyframe (0: ``iterations``)."""
     first_frame_iterations: int = 100
     """Iterations on the first frame (map initialisation)."""
     window_size: int = 5
@@ -411,10 +409,6 @@ class FineColorConfig:
     """The rendered-surface fit renders each keyframe at 1/``fit_render_block`` of its size: a
     pixel of that image is a block of that many squared keyframe pixels, its colour their mean
     (1: every keyframe pixel, at 4x the render time of 2)."""
-
-    fit_extra_block: int = 0
-    """The rendered-surface fit's keyframes beyond the ``FIT_KEYFRAMES_RENDERED`` it renders at
-    1/``fit_render_block`` of their size: rendered at 1/``fit_extra_block`` (0: left out)."""
     fit_pixels: str = "measured"
     """The keyframe pixels the rendered-surface fit learns from: ``measured``, those with
     measured depth; ``observed``, every pixel whose colour the camera saw (``Frame.color_valid``),
@@ -424,8 +418,7 @@ class FineColorConfig:
         if isinstance(self.fit_render_block, bool) or not isinstance(self.fit_render_block, int) \
                 or self.fit_render_block < 1:
             raise ConfigError(f"fine_color.fit_render_block must be an integer >= 1, got {self.fit_render_block!r}")
-        for name in ("levels", "features", "table_log2", "fit_iterations", "fit_rays", "final_fit_iterations",
-                     "fit_extra_block"):
+        for name in ("levels", "features", "table_log2", "fit_iterations", "fit_rays", "final_fit_iterations"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 0:
                 raise ConfigError(f"fine_color.{name} must be an integer >= 0, got {value!r}")

@@ -307,7 +307,6 @@ class Mapper:
         """map id -> Adam over its embeddings and decoder (active maps only)."""
         self._seed = seed
         self._frames_since_keyframe: dict[int, int] = {}
-        self._keyframe_pending: dict[int, bool] = {}
         self._last_keyframe: dict[int, tuple[int, torch.Tensor]] = {}
         """agent -> (map id, T_map_cam (4, 4)) of its latest keyframe, as tracked."""
         self._kf_codes: dict[int, torch.Tensor] = {}
@@ -443,13 +442,8 @@ class Mapper:
             self._frames_since_keyframe[agent] = self.frames_since_keyframe + 1
         self.timer.add("voxel_allocation", time.perf_counter() - ta)
         losses: dict[str, float] = {}
-        pending = self._keyframe_pending.get(agent, False) or is_kf
-        self._keyframe_pending[agent] = pending
         if optimize:
             iters = m.first_frame_iterations if first else m.iterations
-            if not first and pending and m.keyframe_iterations > 0:
-                iters = m.keyframe_iterations
-            self._keyframe_pending[agent] = False
             current = None if is_kf or not tracked.tracking_ok else (tracked.frame, T_map_cam)
             losses, T_current = self._optimize_window(submap, iters, current)
             self.fit_fine(submap, self.config.fine_color.fit_iterations)
@@ -560,22 +554,18 @@ class Mapper:
         rendered surface point, the very point a view adds it at. Where the coarse surface lies
         centimetres off the measured one (0.2 m voxels on real data), a fit at the measured
         depth puts the colour where no view looks (fr1/desk training views 17.9 -> 20.1 dB,
-        3 seeds; decisions.md#fine_color). With ``fine_color.fit_extra_block`` b > 0 the other
-        keyframes join too, rendered at 1/b of their size (a quarter of the pixels at b = 2).
+        3 seeds; decisions.md#fine_color).
         Its own Adam, cosine-decayed to zero: a decaying step leaves less sampling noise."""
         kfs = [kf for kf in submap.keyframes if kf.frame is not None]
         if submap.fine is None or iterations <= 0 or not kfs:
             return
         t0 = time.perf_counter()
-        cfg = self.config.fine_color
-        chosen = set(np.linspace(0, len(kfs) - 1, min(len(kfs), FIT_KEYFRAMES_RENDERED)).round().astype(int).tolist())
-        points, residual = self._rendered_residuals(submap, [kfs[i] for i in sorted(chosen)], cfg.fit_render_block)
-        others = [kf for i, kf in enumerate(kfs) if i not in chosen]
-        if others and cfg.fit_extra_block > 0:
-            more_points, more_residual = self._rendered_residuals(submap, others, cfg.fit_extra_block)
-            points, residual = torch.cat([points, more_points]), torch.cat([residual, more_residual])
+        if len(kfs) > FIT_KEYFRAMES_RENDERED:
+            kfs = [kfs[i] for i in np.linspace(0, len(kfs) - 1, FIT_KEYFRAMES_RENDERED).round().astype(int)]
+        points, residual = self._rendered_residuals(submap, kfs)
         if points.shape[0] == 0:
             return
+        cfg = self.config.fine_color
         optimizer = torch.optim.Adam(submap.fine.parameters(), lr=cfg.lr)
         decay = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda k: 0.5 * (1.0 + math.cos(math.pi * k / iterations)))
         draw = draw_device(self._fine_gen, self.device)
@@ -588,16 +578,15 @@ class Mapper:
             decay.step()
         self.timer.add("fine_fit", time.perf_counter() - t0)
 
-    def _rendered_residuals(self, submap: SubMap, keyframes: list[Keyframe],
-                            block: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    def _rendered_residuals(self, submap: SubMap, keyframes: list[Keyframe]) -> tuple[torch.Tensor, torch.Tensor]:
         """Map-frame surface points (N, 3) and colour residuals (N, 3) of ``keyframes`` rendered
-        at 1/b of their size (b = ``block``, default ``fine_color.fit_render_block``): each
-        pixel of the small image is a b x b block of the keyframe, its colour the block's mean,
-        used where all of the block counts (``fine_color.fit_pixels``: observed colour, or
-        measured depth) and the coarse map renders a surface."""
+        at 1/b of their size (b = ``fine_color.fit_render_block``): each pixel of the small image is a
+        b x b block of the keyframe, its colour the block's mean, used where all of the block
+        counts (``fine_color.fit_pixels``: observed colour, or measured depth) and the coarse
+        map renders a surface."""
         from .views import coarse_surface, rendered_voxels, view_decoder
 
-        b = self.config.fine_color.fit_render_block if block is None else block
+        b = self.config.fine_color.fit_render_block
         decoder, view = view_decoder(submap.decoder, self.device, "auto"), rendered_voxels(submap)
         points, residuals = [], []
         for kf in keyframes:

@@ -91,6 +91,8 @@ def test_saved_configs_with_a_retired_field_still_load_but_config_files_are_told
 REJECTED = [  # (section, field, its decisions.md entry): off in every preset, they lost the rule's A/B
     ("runtime", "max_map_lag", "runtime.max_map_lag"),
     ("tracking", "constant_velocity", "tracking.constant_velocity"),
+    ("mapping", "keyframe_iterations", "mapping.keyframe_iterations"),
+    ("fine_color", "fit_extra_block", "fine_color.fit_extra_block"),
 ]
 
 

@@ -284,39 +284,3 @@ def test_the_rendered_surface_fit_learns_from_observed_pixels_without_depth_too(
                     depth=torch.where(no_depth, 0.0, frame.depth), color_valid=None)
     assert torch.equal(fit_pixels(black, "observed"), ~(no_depth & ~seen))
     assert torch.equal(fit_pixels(replace(frame, color_valid=None), "observed"), torch.ones_like(no_depth))
-
-
-@pytest.mark.parametrize("extra", [0, 2])
-def test_the_rendered_surface_fit_adds_the_other_keyframes_at_fit_extra_block(monkeypatch, extra):
-    """``fit_extra_block`` b: the keyframes beyond ``FIT_KEYFRAMES_RENDERED`` join the fit,
-    rendered at 1/b of their size; 0 leaves them out (the fit as it was)."""
-    import slam.mapping as mapping
-
-    mapper = _mapped(2, surface="rendered", fine=replace(FINE, fit_extra_block=extra))
-    submap = mapper.maps.maps[0]
-    second = _frames()[1]  # a second keyframe, at its GT pose
-    T_map_cam = torch.linalg.inv(submap.T_world_map) @ torch.from_numpy(second.T_world_cam_gt).float()
-    submap.keyframes.append(replace(submap.keyframes[0], frame_index=1, timestamp=second.timestamp,
-                                    frame=second, T_map_cam=T_map_cam))
-    monkeypatch.setattr(mapping, "FIT_KEYFRAMES_RENDERED", 1)
-    calls = []
-    real = mapper._rendered_residuals
-
-    def spy(submap, keyframes, block=None):
-        out = real(submap, keyframes, block)
-        calls.append(([kf.frame_index for kf in keyframes], block, out[0].shape[0]))
-        return out
-
-    monkeypatch.setattr(mapper, "_rendered_residuals", spy)
-    before = [p.detach().clone() for p in submap.fine.parameters()]
-    mapper.fit_fine_rendered(submap, 3)
-    first = submap.keyframes[0].frame_index
-    assert calls[0][:2] == ([first], FINE.fit_render_block)
-    if extra:
-        others = [kf.frame_index for kf in submap.keyframes[1:]]
-        assert calls[1][:2] == (others, extra) and len(calls) == 2
-        frame = submap.keyframes[1].frame
-        assert 0 < calls[1][2] <= len(others) * (frame.height // extra) * (frame.width // extra)
-    else:
-        assert len(calls) == 1
-    assert any(not torch.equal(a, b) for a, b in zip(before, submap.fine.parameters()))

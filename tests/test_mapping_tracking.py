@@ -670,26 +670,6 @@ def test_feature_matches_with_an_implausible_pnp_pose_are_ignored(trained, frame
     assert result.ok and torch.allclose(result.T_world_cam, without.T_world_cam)
 
 
-def test_keyframes_get_keyframe_iterations_also_when_batched(frames, monkeypatch):
-    """A batch of frames optimised once (the process-mode mapper) gets ``keyframe_iterations``
-    when any frame of it became a keyframe, not only when the last one did."""
-    config = replace(BASE, mapping=replace(BASE.mapping, iterations=2, keyframe_iterations=7,
-                                           first_frame_iterations=3, keyframe_max_interval=1000))
-    mapper = Mapper(config, CPU)
-    calls: list[int] = []
-    monkeypatch.setattr(mapper, "_optimize_window",
-                        lambda submap, iterations, current=None: (calls.append(iterations) or {}, None))
-    f, T = frames[0], gt_pose(frames[0])
-    moved = T.clone()
-    moved[:3, 3] += torch.tensor([1.5, 0.0, 0.0])
-    mapper.process(TrackedFrame(f, T))                       # first frame
-    mapper.process(TrackedFrame(f, T))                       # nothing new: not a keyframe
-    assert mapper.process(TrackedFrame(f, moved), optimize=False).is_keyframe
-    assert not mapper.process(TrackedFrame(f, moved)).is_keyframe   # batch of two, one keyframe
-    mapper.process(TrackedFrame(f, moved))
-    assert calls == [3, 2, 7, 2]
-
-
 def test_motion_prior_holds_directions_the_data_does_not_observe():
     """A plain wall: the data term fixes depth (z) and the two tilts, not x, y and roll. With
     a (noisy) gradient in every direction, the undamped step follows the noise along the
