@@ -24,6 +24,10 @@ its constant.
 | assets stored by the server | 256 files, 1 GiB in all; at most 16 parsed meshes and 256 MiB in memory | ``server.assets`` |
 | AR objects in one request | 64 | ``server.schemas`` |
 | rendered views | 2048 a side | ``server.schemas`` |
+| renders, picks, AR composites, mesh exports at once | 2 helper processes, 4 more wait up to 10 s, then 503 + ``Retry-After`` | ``server.render_pools`` |
+| memory / time of one render, pick, AR composite or mesh export | 3 GiB address space / 120 s (then 504), in a helper process | ``server.helper_pool`` |
+| camera-path video | 200 million rendered pixels (frames x width x height; else 422); 30 min | ``server.routes_paths`` |
+| camera-path videos queued and rendering (all sessions) | 4 (then 429 + ``Retry-After``); one renders at a time, in a helper | ``server.path_jobs`` |
 """
 
 from __future__ import annotations
@@ -64,6 +68,32 @@ MAX_ASSET_STORE_BYTES = 1024 * MIB
 ASSET_CACHE_ENTRIES = 16
 ASSET_CACHE_BYTES = 256 * MIB
 """Parsed asset meshes kept in memory (one is at most ~60 MB: ``ar.assets.MAX_ASSET_VERTICES``)."""
+
+RENDER_HELPERS = 2
+"""Render helper processes: renders, picks, AR composites and mesh exports that run at once."""
+RENDER_QUEUE = 4
+"""Requests that may wait for a render helper; one more gets 503 at once."""
+RENDER_WAIT_S = 10.0
+"""Longest a request waits for a render helper before 503."""
+RENDER_RETRY_AFTER_S = 5
+"""``Retry-After`` of a 503 from a full render pool."""
+RENDER_HELPER_MEMORY_BYTES = 3 * 1024 * MIB
+"""Address space of a render or video helper above its start-up footprint: a 2048x2048 view
+and two loaded maps."""
+RENDER_TIMEOUT_S = 120.0
+"""Longest one render, pick, AR composite or mesh export runs: the largest view (2048x2048)
+takes minutes only on a CPU shared with running sessions, and a longer call is a hang."""
+VIDEO_HELPERS = 1
+"""Camera-path videos rendered at once (each in a helper process)."""
+MAX_VIDEO_JOBS = 4
+"""Camera-path videos queued and rendering, all sessions together; one more gets 429."""
+MAX_VIDEO_PIXELS = 200_000_000
+"""Rendered pixels of one video, frames x width x height (651 frames of 640x480, 27 s at 24 fps)."""
+VIDEO_TIMEOUT_S = 1800.0
+"""Longest one video renders: a video at MAX_VIDEO_PIXELS needs 110,000 pixels a second, a
+slow CPU's rate."""
+VIDEO_RETRY_AFTER_S = 60
+"""``Retry-After`` of a 429 when MAX_VIDEO_JOBS are queued or rendering."""
 
 
 @dataclass(frozen=True)

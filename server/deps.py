@@ -9,6 +9,7 @@ from starlette.requests import HTTPConnection
 
 from server.assets import AssetStore
 from server.path_jobs import PathJobs
+from server.render_pools import RenderPools
 from server.rendering import MapCache, MeshFiles
 from server.sessions import SessionManager
 from server.settings import Settings
@@ -43,6 +44,10 @@ def get_path_jobs(conn: HTTPConnection) -> PathJobs:
 
 def get_assets(conn: HTTPConnection) -> AssetStore:
     return conn.app.state.assets
+
+
+def get_render_pools(conn: HTTPConnection) -> RenderPools:
+    return conn.app.state.render_pools
 
 
 def presented_token(conn: HTTPConnection) -> str | None:

@@ -23,6 +23,7 @@ from server.budget import RequestBudget
 from server.decoding import shared_helper
 from server.errors import error_text, validation_message
 from server.path_jobs import PathJobs
+from server.render_pools import render_pools
 from server.rendering import MapCache, MeshFiles, NoMapYet, with_threads
 from server.routes_pages import STATIC_DIR
 from server.sessions import SessionConflict, SessionManager, SessionNotFound, register_error_handlers
@@ -188,7 +189,8 @@ def create_app(settings: Settings | None = None, demo: DemoSession | None = None
         app.state.map_cache = map_cache
         app.state.mesh_files = MeshFiles()
         app.state.assets = AssetStore(settings.assets_dir)
-        app.state.path_jobs = PathJobs()
+        app.state.render_pools = render_pools()  # renders, AR, meshes, videos: in helper processes
+        app.state.path_jobs = PathJobs(app.state.render_pools.video)
         if demo is not None:
             from server.sessions import new_session_id
 
@@ -200,6 +202,7 @@ def create_app(settings: Settings | None = None, demo: DemoSession | None = None
             yield
         finally:
             app.state.path_jobs.close()
+            app.state.render_pools.close()
             manager.stop(grace_s=min(settings.cancel_grace_s, 5.0))
             if viewer is not None:
                 viewer.stop()

@@ -1,8 +1,11 @@
 """Camera-path videos rendered in the background: ``POST .../render/path`` starts a job, its
 status counts the frames, and the MP4 is served once it is written.
 
-One video renders at a time (a thread of the API process, with the other renders' torch
-threads); jobs wait in order. Each session keeps its newest ``KEPT_PER_SESSION`` videos in its
+A video renders in the video helper (``server.render_pools``, a process with a memory cap
+and a time limit), which loads the map itself and reports each frame done back to the API
+process; the API process only waits on its pipe, in one thread. One video renders at a time;
+jobs wait in order, at most ``budget.MAX_VIDEO_JOBS`` queued and rendering together (more:
+:class:`TooManyJobs`, 429). Each session keeps its newest ``KEPT_PER_SESSION`` videos in its
 folder (``paths/``); a job's record lives as long as the server.
 """
 
@@ -10,15 +13,22 @@ from __future__ import annotations
 
 import secrets
 import threading
-import traceback
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
-import numpy as np
+from server.budget import MAX_VIDEO_JOBS, VIDEO_RETRY_AFTER_S
+from server.helper_pool import HelperPool
+from server.render_calls import VideoCall, render_video
 
 KEPT_PER_SESSION = 4
 """Videos kept per session: an older one is deleted when a new job starts."""
+
+
+class TooManyJobs(RuntimeError):
+    """MAX_VIDEO_JOBS videos are queued or rendering: 429 with Retry-After."""
+
+    retry_after_s = VIDEO_RETRY_AFTER_S
 
 
 @dataclass(frozen=True)
@@ -34,38 +44,30 @@ class PathJob:
     error: str | None = None
 
 
-@dataclass(frozen=True)
-class PathRender:
-    """What to render: the map, the path, the camera and the panels."""
-
-    mapset: object
-    path: object
-    K: np.ndarray
-    width: int
-    height: int
-    outputs: tuple[str, ...]
-    depth_range: tuple[float, float] | None = None
-    crop: tuple | None = None
-
-
-@dataclass
 class PathJobs:
-    """The server's video jobs, by id."""
+    """The server's video jobs, by id, rendered one at a time in ``pool``."""
 
-    jobs: dict[str, PathJob] = field(default_factory=dict)
-    _lock: threading.Lock = field(default_factory=threading.Lock)
-    _pool: ThreadPoolExecutor = field(default_factory=lambda: ThreadPoolExecutor(1, thread_name_prefix="path-video"))
+    def __init__(self, pool: HelperPool, max_jobs: int = MAX_VIDEO_JOBS) -> None:
+        self.pool, self.max_jobs = pool, max_jobs
+        self.jobs: dict[str, PathJob] = {}
+        self._lock = threading.Lock()
+        self._runner = ThreadPoolExecutor(1, thread_name_prefix="path-video")
 
-    def start(self, session_id: str, directory: Path, render: PathRender) -> PathJob:
-        """Queue a video of ``render`` into ``directory / 'paths'``; returns the job."""
+    def start(self, session_id: str, directory: Path, call: VideoCall) -> PathJob:
+        """Queue a video of ``call`` (its ``out_file`` is set here, in ``directory / 'paths'``);
+        TooManyJobs when MAX_VIDEO_JOBS are queued or rendering."""
         folder = directory / "paths"
-        folder.mkdir(parents=True, exist_ok=True)
         job_id = secrets.token_hex(6)
-        job = PathJob(job_id, session_id, folder / f"{job_id}.mp4", render.path.frame_count)
+        job = PathJob(job_id, session_id, folder / f"{job_id}.mp4", call.path.frame_count)
         with self._lock:
+            waiting = sum(j.state in ("queued", "rendering") for j in self.jobs.values())
+            if waiting >= self.max_jobs:
+                raise TooManyJobs(f"{waiting} videos are queued or rendering, the most the server takes at once "
+                                  f"({self.max_jobs}); retry after {VIDEO_RETRY_AFTER_S} s")
+            folder.mkdir(parents=True, exist_ok=True)
             self.jobs[job_id] = job
             self._forget_old(session_id)
-        self._pool.submit(self._run, job_id, render)
+        self._runner.submit(self._run, job_id, replace(call, out_file=str(job.file)))
         return job
 
     def get(self, session_id: str, job_id: str) -> PathJob | None:
@@ -74,7 +76,7 @@ class PathJobs:
         return job if job is not None and job.session_id == session_id else None
 
     def close(self) -> None:
-        self._pool.shutdown(wait=False, cancel_futures=True)
+        self._runner.shutdown(wait=False, cancel_futures=True)
 
     def _update(self, job_id: str, **changes) -> None:
         with self._lock:
@@ -89,20 +91,10 @@ class PathJobs:
                 job.file.unlink(missing_ok=True)
                 del self.jobs[job.id]
 
-    def _run(self, job_id: str, render: PathRender) -> None:
-        from slam.path_video import path_frames, write_mp4
-
-        job = self.jobs[job_id]
+    def _run(self, job_id: str, call: VideoCall) -> None:
         self._update(job_id, state="rendering")
-        partial = job.file.with_suffix(".part.mp4")
         try:
-            frames = path_frames(render.mapset, render.path, render.K, render.width, render.height, render.outputs,
-                                 depth_range=render.depth_range, crop=render.crop,
-                                 on_frame=lambda done, total: self._update(job_id, frames_done=done))
-            write_mp4(frames, partial, render.path.fps)
-            partial.replace(job.file)
+            self.pool.call(render_video, call, on_progress=lambda done, total: self._update(job_id, frames_done=done))
             self._update(job_id, state="finished")
         except Exception as error:  # noqa: BLE001 - a failed video fails its job only
-            partial.unlink(missing_ok=True)
-            last = traceback.format_exception_only(type(error), error)[-1].strip()
-            self._update(job_id, state="failed", error=last)
+            self._update(job_id, state="failed", error=f"{type(error).__name__}: {error}")

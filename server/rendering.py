@@ -1,8 +1,11 @@
-"""CPU-heavy work behind the render, mesh, pick and AR endpoints (called in a thread pool).
+"""CPU-heavy work behind the render, mesh, pick and AR endpoints. The routes run it in the
+render helpers (``server.render_calls``, out of the API process); the viewer's own neural
+views call it from their thread.
 
 Maps are read from a session's ``map.pt``, which the runtime rewrites atomically while it runs;
-loaded maps are cached by the file's modification time, so repeated renders of a running
-session reload only after the map changed. Everything returns encoded bytes or plain arrays.
+loaded maps are cached by the file's modification time and size, so repeated renders of a
+running session reload only after the map changed. Everything returns encoded bytes or plain
+arrays.
 """
 
 from __future__ import annotations
@@ -211,9 +214,15 @@ def _patch_normal(points: np.ndarray, valid: np.ndarray, half: int) -> np.ndarra
 
 def mesh_bytes_from_arrays(parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]], file_format: str) -> bytes:
     """Concatenate per-map world-frame meshes (V,3 / F,3 / V,3 uint8) and encode them."""
-    import trimesh
-
     from slam import mesh_to_bytes
+
+    return mesh_to_bytes(mesh_from_arrays(parts), file_format)
+
+
+def mesh_from_arrays(parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]]):
+    """One ``trimesh.Trimesh`` of per-map world-frame meshes (V,3 / F,3 / V,3 uint8 or None);
+    NoMapYet when they hold no face."""
+    import trimesh
 
     vertices, faces, colors, base = [], [], [], 0
     if not any(len(f) for _, f, _ in parts):
@@ -224,9 +233,8 @@ def mesh_bytes_from_arrays(parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]
         colors.append(np.asarray(c, dtype=np.uint8)[:, :3] if c is not None
                       else np.full((len(v), 3), 180, dtype=np.uint8))
         base += len(v)
-    mesh = trimesh.Trimesh(np.concatenate(vertices), np.concatenate(faces), vertex_colors=np.concatenate(colors),
+    return trimesh.Trimesh(np.concatenate(vertices), np.concatenate(faces), vertex_colors=np.concatenate(colors),
                            process=False)
-    return mesh_to_bytes(mesh, file_format)
 
 
 class MeshFiles:

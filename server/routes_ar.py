@@ -1,27 +1,32 @@
 """Augmented reality: virtual objects composited into a rendered view or an input frame,
 hidden where the reconstructed scene is in front of them.
 
-An object without a pose is placed in front of the camera (``in_front_of_camera``), and the
+An object without a pose is placed in front of the camera (``ar_compose.in_front_of_camera``), and the
 response says of every object whether it shows (``X-AR-Objects``): a composite with nothing in
-it looked like success ("Done.") when the object lay outside the view or behind a wall."""
+it looked like success ("Done.") when the object lay outside the view or behind a wall.
+
+The render of the background and the composite run in a render helper (``server.ar_compose``
+through ``server.render_pools``); an input frame behind it is decoded in the decode helper."""
 
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, replace
 
 import numpy as np
 from fastapi import APIRouter, Depends, HTTPException, Response, status
 from starlette.concurrency import run_in_threadpool
 
-from ar import UPRIGHT, ObjectSpecError, VirtualObject, composite, load_objects_json, rasterize_objects
+from ar import ObjectSpecError, load_objects_json
+from server.ar_compose import Background
 from server.assets import AssetStore
 from server.decoding import DecodeFailed, shared_helper
-from server.deps import get_assets, get_manager, get_map_cache, require_token
+from server.deps import get_assets, get_manager, get_render_pools, require_token
 from server.errors import error_text, strip_paths
 from server.inputs import input_frame
-from server.rendering import Camera, MapCache, check_pose, intrinsics_matrix, png_from_rgb, render, with_threads
-from server.routes_render import load_map
+from server.render_calls import ViewCall, ar_composite
+from server.render_pools import HELPER_RESPONSES, RenderPools, http_answers
+from server.rendering import Camera, NoMapYet, check_pose, intrinsics_matrix
+from server.routes_render import map_file, no_map_yet
 from server.schemas import ARRequest, ErrorOut
 from server.sessions import SessionManager, check_session_id
 from slam import DataError
@@ -30,27 +35,10 @@ router = APIRouter(tags=["ar"], dependencies=[Depends(require_token)],
                    responses={401: {"model": ErrorOut}, 404: {"model": ErrorOut}})
 
 TIMESTAMP_TOLERANCE_S = 1e-3
-DEPTH_TOLERANCE_M = 0.01
-"""How far an object may lie behind the scene and still show (as ``ar.composite``'s default)."""
-PLACE_DISTANCE_M = 1.0
-"""How far ahead an object without a pose goes when the image centre has no depth."""
-CENTRE_WINDOW = 0.2
-"""Share of the image's width and height, around its centre, whose median depth places an object."""
 OBJECTS_HEADER = "X-AR-Objects"
 """Response header: a JSON list, per requested object, of ``{"state": "visible" | "hidden" |
 "outside", "visible_pixels", "position"}`` (hidden: behind the scene everywhere; outside: not
 in the camera's view at all, or behind it; position: the object's centre in the world)."""
-
-
-@dataclass(frozen=True)
-class Background:
-    """What the objects are composited into."""
-
-    rgb: np.ndarray
-    """(H, W, 3) float32 in [0, 1]."""
-    depth: np.ndarray
-    """(H, W) float32 metres, 0 = unknown."""
-    camera: Camera
 
 
 def estimated_pose(manager: SessionManager, session_id: str, index: int, timestamp: float,
@@ -93,23 +81,22 @@ def _camera_override(request: ARRequest) -> tuple[np.ndarray | None, np.ndarray 
     return T, K, size
 
 
-async def background_for(request: ARRequest, session_id: str, manager: SessionManager, maps: MapCache) -> Background:
+def background_for(request: ARRequest, session_id: str, manager: SessionManager) -> ViewCall | Background:
+    """What to composite into: a view to render (a ``ViewCall``, rendered in the render
+    helper) or an input frame (decoded in the decode helper) with its camera."""
     T, K, size = _camera_override(request)
     if request.background == "render":
         if T is None or K is None:
             raise HTTPException(422,
                                 "background 'render' needs T_world_cam and intrinsics")
-        camera = Camera(T, K, *size)
-        mapset = await load_map(manager, maps, session_id)
-        view = await run_in_threadpool(with_threads, manager.render_threads(), render, mapset, camera)
-        return Background(np.asarray(view.rgb), np.asarray(view.depth), camera)
+        return ViewCall(map_file(manager, session_id), Camera(T, K, *size), manager.render_threads())
     index, agent = int(request.background.split(":", 1)[1]), request.agent
     state = manager.get(session_id)
     whose = "" if agent == 0 else f" of agent {agent}"
     try:
         # In the decode helper: the frame is an untrusted image (server.inputs).
-        rgb, depth, frame_K, stamp = await run_in_threadpool(shared_helper().call, input_frame, state.sources,
-                                                             manager.session_dir(session_id), index, agent)
+        rgb, depth, frame_K, stamp = shared_helper().call(input_frame, state.sources, manager.session_dir(session_id),
+                                                          index, agent)
     except DecodeFailed as error:
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_ENTITY, f"background frame:{index}{whose}: {error}") from None
     except (KeyError, DataError) as error:
@@ -129,51 +116,13 @@ async def background_for(request: ARRequest, session_id: str, manager: SessionMa
     return Background(rgb, depth, Camera(T, frame_K if K is None else K, width, height))
 
 
-def central_depth(depth: np.ndarray) -> float | None:
-    """Median valid depth (metres) in the CENTRE_WINDOW around the image centre, or None."""
-    height, width = depth.shape
-    dy, dx = max(1, int(height * CENTRE_WINDOW / 2)), max(1, int(width * CENTRE_WINDOW / 2))
-    window = depth[height // 2 - dy: height // 2 + dy, width // 2 - dx: width // 2 + dx]
-    valid = window[np.isfinite(window) & (window > 0)]
-    return float(np.median(valid)) if len(valid) else None
-
-
-def object_box(obj: VirtualObject) -> tuple[np.ndarray, np.ndarray]:
-    """(lo, hi) corners of the object's scaled mesh in its own frame."""
-    vertices = np.asarray(obj.mesh.vertices, dtype=np.float64) * obj.scale
-    return vertices.min(axis=0), vertices.max(axis=0)
-
-
-def in_front_of_camera(obj: VirtualObject, background: Background) -> VirtualObject:
-    """``obj`` with its box centre on the camera's optical axis, just before the surface seen
-    at the image centre (PLACE_DISTANCE_M ahead without depth there), standing upright in the
-    world (``ar.UPRIGHT``)."""
-    lo, hi = object_box(obj)
-    radius = 0.5 * float(np.linalg.norm(hi - lo))
-    surface = central_depth(background.depth)
-    distance = PLACE_DISTANCE_M if surface is None else max(surface - radius, 2.0 * radius)
-    T_cam = background.camera.T_world_cam
-    T = np.eye(4)
-    T[:3, :3] = UPRIGHT
-    T[:3, 3] = T_cam[:3, 3] + distance * T_cam[:3, 2] - UPRIGHT @ ((lo + hi) / 2)
-    return replace(obj, T_world_obj=T)
-
-
-def visibility(objects: list[VirtualObject], background: Background) -> list[dict]:
-    """Per object, whether it shows in the composite (OBJECTS_HEADER), each rasterised alone
-    at one sample per pixel against the scene depth, with the composite's depth test."""
-    camera = background.camera
-    scene = np.asarray(background.depth, dtype=np.float32).reshape(-1)
-    scene = np.where(np.isfinite(scene) & (scene > 0), scene, np.inf)
-    report = []
-    for obj in objects:
-        layer = rasterize_objects([obj], camera.K, camera.T_world_cam, camera.width, camera.height, supersample=1)
-        pixels = layer.pixel_index.cpu().numpy()
-        visible = int((layer.depth.cpu().numpy() < scene[pixels] + DEPTH_TOLERANCE_M).sum())
-        centre = obj.T_world_obj[:3, :3] @ (sum(object_box(obj)) / 2) + obj.T_world_obj[:3, 3]
-        state = "outside" if len(pixels) == 0 else "visible" if visible else "hidden"
-        report.append({"state": state, "visible_pixels": visible, "position": [round(float(v), 4) for v in centre]})
-    return report
+def composite_in_helpers(pools: RenderPools, request: ARRequest, session_id: str, manager: SessionManager,
+                         objects: list) -> tuple[bytes, list[dict]]:
+    """The composite PNG and visibility report, made in a render helper. The helper is taken
+    first, so that at most one input frame per render helper waits in this process."""
+    with http_answers(f"AR composite of session {session_id}"), pools.render.lease() as helper:
+        background = background_for(request, session_id, manager)
+        return helper.call(ar_composite, background, objects, [o.T_world_obj is not None for o in request.objects])
 
 
 @router.post("/api/sessions/{session_id}/ar", response_class=Response,
@@ -183,22 +132,18 @@ def visibility(objects: list[VirtualObject], background: Background) -> list[dic
                                                  "the scene everywhere, outside: not in the view), visible_pixels, "
                                                  "position (its centre in the world)",
                                   "schema": {"type": "string"}}}},
-                        409: {"model": ErrorOut}, 422: {"model": ErrorOut}},
+                        409: {"model": ErrorOut}, 422: {"model": ErrorOut}, **HELPER_RESPONSES},
              summary="Composite virtual objects into a view of the session, with occlusion")
 async def ar_view(session_id: str, request: ARRequest, manager: SessionManager = Depends(get_manager),
-                  maps: MapCache = Depends(get_map_cache), assets: AssetStore = Depends(get_assets)) -> Response:
+                  pools: RenderPools = Depends(get_render_pools), assets: AssetStore = Depends(get_assets)) -> Response:
     check_session_id(session_id)
     try:
         objects = await run_in_threadpool(
             load_objects_json, [o.model_dump(exclude_none=True) for o in request.objects], assets.resolve)
     except (ObjectSpecError, ValueError, KeyError) as error:
         raise HTTPException(422, error_text(error)) from None
-    background = await background_for(request, session_id, manager, maps)
-    objects = [obj if given.T_world_obj is not None else in_front_of_camera(obj, background)
-               for obj, given in zip(objects, request.objects)]
-    camera = background.camera
-    result = await run_in_threadpool(composite, background.rgb, background.depth, objects, camera.K,
-                                     camera.T_world_cam, depth_tolerance=DEPTH_TOLERANCE_M)
-    report = await run_in_threadpool(visibility, objects, background)
-    return Response(await run_in_threadpool(png_from_rgb, result.rgb), media_type="image/png",
-                    headers={OBJECTS_HEADER: json.dumps(report)})
+    try:
+        data, report = await run_in_threadpool(composite_in_helpers, pools, request, session_id, manager, objects)
+    except NoMapYet as error:
+        raise no_map_yet(session_id, error) from None
+    return Response(data, media_type="image/png", headers={OBJECTS_HEADER: json.dumps(report)})

@@ -1,6 +1,10 @@
 """Camera-path videos (issue 44 item 9): ``POST /api/sessions/{id}/render/path`` starts one,
 ``GET .../render/path/{job}`` tells its progress, ``GET .../render/path/{job}/video`` serves the
-MP4 (colour | depth | normals side by side) once it is written."""
+MP4 (colour | depth | normals side by side) once it is written.
+
+Videos render in the video helper (``server.path_jobs``); a video of more than
+``budget.MAX_VIDEO_PIXELS`` rendered pixels gets 422, one more than ``budget.MAX_VIDEO_JOBS``
+queued or rendering gets 429."""
 
 from __future__ import annotations
 
@@ -8,10 +12,12 @@ import numpy as np
 from fastapi import APIRouter, Depends, HTTPException, status
 from fastapi.responses import FileResponse
 
-from server.deps import get_manager, get_map_cache, get_path_jobs, get_viewer, require_token
-from server.path_jobs import PathJob, PathJobs, PathRender
-from server.rendering import MapCache, check_pose, intrinsics_matrix
-from server.routes_render import load_map
+from server.budget import MAX_VIDEO_PIXELS
+from server.deps import get_manager, get_path_jobs, get_viewer, require_token
+from server.path_jobs import PathJob, PathJobs, TooManyJobs
+from server.render_calls import VideoCall
+from server.rendering import check_pose, intrinsics_matrix
+from server.routes_render import map_file
 from server.schemas import ErrorOut, PathJobOut, PathPreview, PathRequest
 from server.sessions import SessionManager, check_session_id
 from server.viewer import ViewerAdapter
@@ -45,19 +51,38 @@ def camera_path(request: PathRequest | PathPreview) -> CameraPath:
 
 
 @router.post("/{session_id}/render/path", response_model=PathJobOut, status_code=status.HTTP_202_ACCEPTED,
-             responses={409: {"model": ErrorOut}, 422: {"model": ErrorOut}},
+             responses={409: {"model": ErrorOut}, 422: {"model": ErrorOut},
+                        429: {"model": ErrorOut, "description": "as many videos as the server takes are queued or "
+                                                                "rendering; retry after Retry-After seconds",
+                              "headers": {"Retry-After": {"schema": {"type": "integer"},
+                                                          "description": "seconds to wait"}}}},
              summary="Render a video along a smooth camera path through keyframe poses (MP4, in the background)")
-async def start_path_video(session_id: str, request: PathRequest, manager: SessionManager = Depends(get_manager),
-                           maps: MapCache = Depends(get_map_cache),
-                           jobs: PathJobs = Depends(get_path_jobs)) -> PathJobOut:
-    """The map as it is now (a running session's newest ``map.pt``); poll the job for progress."""
+def start_path_video(session_id: str, request: PathRequest, manager: SessionManager = Depends(get_manager),
+                     jobs: PathJobs = Depends(get_path_jobs)) -> PathJobOut:
+    """The map as it is now (a running session's newest ``map.pt``), rendered in the video
+    helper; poll the job for progress. A video may render at most MAX_VIDEO_PIXELS pixels."""
     path = camera_path(request)
-    mapset = await load_map(manager, maps, session_id)
     i = request.intrinsics
-    render = PathRender(mapset, path, intrinsics_matrix(i.fx, i.fy, i.cx, i.cy), i.width, i.height,
-                        tuple(request.outputs), request.depth_range,
-                        None if request.crop is None else (request.crop.min, request.crop.max))
-    return job_out(jobs.start(session_id, manager.session_dir(session_id), render))
+    check_video_size(path.frame_count, i.width, i.height)
+    call = VideoCall(map_file(manager, session_id), path, intrinsics_matrix(i.fx, i.fy, i.cx, i.cy), i.width,
+                     i.height, tuple(request.outputs), out_file="", threads=manager.render_threads(),
+                     depth_range=request.depth_range,
+                     crop=None if request.crop is None else (request.crop.min, request.crop.max))
+    try:
+        return job_out(jobs.start(session_id, manager.session_dir(session_id), call))
+    except TooManyJobs as error:
+        raise HTTPException(status.HTTP_429_TOO_MANY_REQUESTS, str(error),
+                            headers={"Retry-After": str(error.retry_after_s)}) from None
+
+
+def check_video_size(frames: int, width: int, height: int) -> None:
+    """422 saying the numbers when frames x width x height passes MAX_VIDEO_PIXELS."""
+    pixels = frames * width * height
+    if pixels > MAX_VIDEO_PIXELS:
+        raise HTTPException(422,
+                            f"the video would render {frames} frames of {width}x{height} = {pixels / 1e6:,.1f} "
+                            f"million pixels; at most {MAX_VIDEO_PIXELS / 1e6:,.0f} million are rendered per video "
+                            f"(a shorter duration_s, a lower fps or a smaller image)")
 
 
 def _job(session_id: str, job_id: str, jobs: PathJobs) -> PathJob:

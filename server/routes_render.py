@@ -1,4 +1,7 @@
-"""Novel views of a session's map: colour or depth images for any camera, and surface picking."""
+"""Novel views of a session's map: colour or depth images for any camera, and surface picking.
+
+The views are rendered in the render helpers (``server.render_pools``), which load the map
+themselves: the API process only checks that ``map.pt`` exists and waits for the PNG."""
 
 from __future__ import annotations
 
@@ -7,24 +10,13 @@ from typing import Literal
 import numpy as np
 from fastapi import APIRouter, Depends, HTTPException, Query, Response, status
 from pydantic import ValidationError
-from starlette.concurrency import run_in_threadpool
 
-from server.deps import get_manager, get_map_cache, get_viewer, require_token
+from server.deps import get_manager, get_render_pools, get_viewer, require_token
 from server.errors import validation_message
-from server.rendering import (
-    Camera,
-    MapCache,
-    NoMapYet,
-    check_pose,
-    intrinsics_matrix,
-    pick_surface,
-    png_from_depth,
-    png_from_depth_preview,
-    png_from_normals,
-    png_from_rgb,
-    render,
-    with_threads,
-)
+from server import render_calls
+from server.render_calls import ViewCall, depth_range  # noqa: F401 - depth_range: tests use it from here
+from server.render_pools import HELPER_RESPONSES, RenderPools, http_answers
+from server.rendering import Camera, NoMapYet, check_pose, intrinsics_matrix
 from server.routes_series import estimated_trajectory
 from server.schemas import (
     CameraRequest,
@@ -58,32 +50,23 @@ def camera_from(request: CameraRequest) -> Camera:
     return Camera(T, intrinsics_matrix(i.fx, i.fy, i.cx, i.cy), i.width, i.height)
 
 
-async def load_map(manager: SessionManager, maps: MapCache, session_id: str):
-    """The latest map of a session (409 while it has none)."""
+def map_file(manager: SessionManager, session_id: str) -> str:
+    """The path of a session's newest ``map.pt`` (409 while it has none). Only its existence
+    is checked here: the helpers load it (``server.render_calls``)."""
     directory = manager.session_dir(check_session_id(session_id))
     manager.get(session_id)
-    try:
-        return await run_in_threadpool(maps.get, session_id, directory / "map.pt")
-    except NoMapYet as error:
-        raise HTTPException(status.HTTP_409_CONFLICT, f"session {session_id}: {error}") from None
+    path = directory / "map.pt"
+    if not path.is_file():
+        raise no_map_yet(session_id, NoMapYet("the session has no map yet: map.pt is written after the first keyframes"))
+    return str(path)
 
 
-def depth_range(depth: np.ndarray, low: float | None, high: float | None) -> tuple[float, float] | None:
-    """The preview's colour range: the given ends, the view's own percentiles for the rest;
-    422 when they cross."""
-    if low is None and high is None:
-        return None
-    from slam.path_video import auto_depth_range
-
-    auto = auto_depth_range(depth)
-    near, far = (auto[0] if low is None else low), (auto[1] if high is None else high)
-    if not near < far:
-        raise HTTPException(422, f"depth_min ({near:g} m) must be below depth_max ({far:g} m)")
-    return near, far
+def no_map_yet(session_id: str, error: NoMapYet) -> HTTPException:
+    return HTTPException(status.HTTP_409_CONFLICT, f"session {session_id}: {error}")
 
 
 @router.post("/api/sessions/{session_id}/render", response_class=Response,
-             responses={200: PNG, 409: {"model": ErrorOut}, 422: {"model": ErrorOut}},
+             responses={200: PNG, 409: {"model": ErrorOut}, 422: {"model": ErrorOut}, **HELPER_RESPONSES},
              summary="Render the map from a camera: colour PNG, or depth as a 16-bit PNG in millimetres")
 async def render_image(session_id: str, request: CameraRequest,
                       output: Literal["color", "depth", "depth_preview", "normals"] = Query(
@@ -93,37 +76,43 @@ async def render_image(session_id: str, request: CameraRequest,
                       depth_min: float | None = Query(None, ge=0, description="depth_preview: metres shown red"),
                       depth_max: float | None = Query(None, gt=0, description="depth_preview: metres shown blue"),
                       manager: SessionManager = Depends(get_manager),
-                      maps: MapCache = Depends(get_map_cache)) -> Response:
-    """Works while the session runs (the newest ``map.pt``) and after it ended."""
+                      pools: RenderPools = Depends(get_render_pools)) -> Response:
+    """Works while the session runs (the newest ``map.pt``) and after it ended. Rendered and
+    encoded in a render helper (``server.render_pools``: 503 with Retry-After when they are
+    all busy, 504 past the time limit)."""
     if depth_min is not None and depth_max is not None and not depth_min < depth_max:
         raise HTTPException(422, f"depth_min ({depth_min:g} m) must be below depth_max ({depth_max:g} m)")
-    camera = camera_from(request)
-    mapset = await load_map(manager, maps, session_id)
-    crop = None if request.crop is None else (request.crop.min, request.crop.max)
-    view = await run_in_threadpool(with_threads, manager.render_threads(), render, mapset, camera, crop=crop)
-    if output == "color":
-        data = await run_in_threadpool(png_from_rgb, view.rgb)
-    elif output == "depth":
-        data = await run_in_threadpool(png_from_depth, view.depth)
-    elif output == "normals":
-        data = await run_in_threadpool(png_from_normals, view.depth, camera.K)
-    else:
-        data = await run_in_threadpool(png_from_depth_preview, view.depth, depth_range(view.depth, depth_min, depth_max))
+    call = view_call(manager, session_id, camera_from(request), request.crop)
+    try:
+        with http_answers(f"render of session {session_id}"):
+            data = await pools.render.run(render_calls.render_png, call, output, depth_min, depth_max)
+    except NoMapYet as error:
+        raise no_map_yet(session_id, error) from None
     return Response(data, media_type="image/png")
 
 
+def view_call(manager: SessionManager, session_id: str, camera: Camera, crop=None) -> ViewCall:
+    """What a helper needs to render ``camera``'s view of the session's newest map."""
+    box = None if crop is None else (crop.min, crop.max)
+    return ViewCall(map_file(manager, session_id), camera, manager.render_threads(), box)
+
+
 @router.post("/api/sessions/{session_id}/pick", response_model=PickOut,
-             responses={409: {"model": ErrorOut}, 422: {"model": ErrorOut}},
+             responses={409: {"model": ErrorOut}, 422: {"model": ErrorOut}, **HELPER_RESPONSES},
              summary="Back-project a pixel of a rendered view onto the map's surface")
 async def pick(session_id: str, request: PickRequest, manager: SessionManager = Depends(get_manager),
-               maps: MapCache = Depends(get_map_cache)) -> PickOut:
+                     pools: RenderPools = Depends(get_render_pools)) -> PickOut:
     """The world point (and surface normal) seen at pixel (u, v); used to place AR objects."""
     camera = camera_from(request)
     if request.u > camera.width or request.v > camera.height:
         raise HTTPException(422,
                             f"pixel ({request.u}, {request.v}) is outside the {camera.width}x{camera.height} image")
-    mapset = await load_map(manager, maps, session_id)
-    result = await run_in_threadpool(with_threads, manager.render_threads(), pick_surface, mapset, camera, request.u, request.v)
+    call = view_call(manager, session_id, camera)
+    try:
+        with http_answers(f"pick in session {session_id}"):
+            result = await pools.render.run(render_calls.pick, call, request.u, request.v)
+    except NoMapYet as error:
+        raise no_map_yet(session_id, error) from None
     if result is None:
         return PickOut(hit=False)
     return PickOut(hit=True, point=result.point.tolist(), normal=result.normal.tolist(), depth=result.depth)

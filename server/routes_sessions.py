@@ -17,9 +17,11 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from server.budget import MAX_FRAMES_OPTION, MAX_STRIDE
 from server.decoding import DecodeFailed, shared_helper
-from server.deps import get_manager, get_map_cache, get_mesh_files, get_settings, require_token
+from server.deps import get_manager, get_render_pools, get_settings, require_token
 from server.errors import strip_paths, validation_message
-from server.rendering import MapCache, MeshFiles, NoMapYet, mesh_bytes_from_arrays, with_threads
+from server.render_calls import LiveMesh, MapMesh, PlyMesh, export_mesh
+from server.render_pools import HELPER_RESPONSES, RenderPools, http_answers
+from server.rendering import NoMapYet
 from server.schemas import ErrorOut, SessionCreated, SessionCreateJSON, SessionOut, SessionOutputs
 from server.sessions import SessionManager, SessionNotFound, SessionStatus, check_session_id, new_session_id
 from server.settings import Settings
@@ -382,58 +384,50 @@ def parse_crop(text: str | None) -> tuple[list[float], list[float]] | None:
     return values[:3], values[3:]
 
 
-def crop_mesh_bytes(ply: bytes, box: tuple[list[float], list[float]], file_format: str) -> bytes:
-    """A PLY's faces inside ``box`` in ``file_format``; 409 when none is."""
-    import io
-
-    import trimesh
-
-    from slam import crop_mesh, mesh_to_bytes
-
-    mesh = crop_mesh(trimesh.load(io.BytesIO(ply), file_type="ply", process=False), *box)
-    if len(mesh.faces) == 0:
-        raise HTTPException(status.HTTP_409_CONFLICT, "crop: no face of the mesh lies inside the box")
-    return mesh_to_bytes(mesh, file_format)
-
-
 @router.get("/{session_id}/mesh", responses={200: {"content": {t: {} for t in set(MESH_MEDIA_TYPES.values())}},
-                                             409: {"model": ErrorOut}},
+                                             409: {"model": ErrorOut}, **HELPER_RESPONSES},
             summary="The current mesh (world frame, vertex colours), also while running")
 async def get_mesh(session_id: str, format: Literal["ply", "glb", "obj"] = Query("ply"),
                    crop: str | None = Query(None, examples=["-1,-1,0,1,1,2"],
                                             description="xmin,ymin,zmin,xmax,ymax,zmax (world frame, metres): only "
                                                         "the faces inside this box"),
-                   manager: SessionManager = Depends(get_manager), maps: MapCache = Depends(get_map_cache),
-                   mesh_files: MeshFiles = Depends(get_mesh_files)) -> Response:
+                   manager: SessionManager = Depends(get_manager),
+                   pools: RenderPools = Depends(get_render_pools)) -> Response:
     """Finished sessions serve ``mesh.ply`` (converted for GLB/OBJ). Running sessions serve the
-    latest live meshes of their maps, or extract one from the latest ``map.pt``."""
+    latest live meshes of their maps, or extract one from the latest ``map.pt``. Conversion,
+    extraction and cropping run in a render helper (``server.render_calls.export_mesh``)."""
     box = parse_crop(crop)
-    if box is not None:
-        ply = await get_mesh(session_id, "ply", None, manager, maps, mesh_files)
-        data = ply.body if not isinstance(ply, FileResponse) else Path(ply.path).read_bytes()
-        cropped = await run_in_threadpool(crop_mesh_bytes, data, box, format)
-        return Response(cropped, media_type=MESH_MEDIA_TYPES[format],
-                        headers={"Content-Disposition": f'attachment; filename="{session_id}_mesh_crop.{format}"'})
     directory = manager.session_dir(check_session_id(session_id))
     state = manager.get(session_id)
-    filename = f"{session_id}_mesh.{format}"
-    headers = {"Content-Disposition": f'attachment; filename="{filename}"'}
     ply = directory / "mesh.ply"
-    if state.status in ("finished", "failed", "cancelled") and ply.is_file():
-        if format == "ply":
-            return FileResponse(ply, media_type=MESH_MEDIA_TYPES["ply"], filename=filename)
-        data = await run_in_threadpool(mesh_files.convert, ply, format)
-        return Response(data, media_type=MESH_MEDIA_TYPES[format], headers=headers)
-    live = manager.live_meshes(session_id)
-    if live:
-        data = await run_in_threadpool(mesh_bytes_from_arrays, [live[m] for m in sorted(live)], format)
-        return Response(data, media_type=MESH_MEDIA_TYPES[format], headers=headers)
+    suffix = "_mesh" if box is None else "_mesh_crop"
+    headers = {"Content-Disposition": f'attachment; filename="{session_id}{suffix}.{format}"'}
+    source = mesh_source(manager, state, directory)
+    if isinstance(source, PlyMesh) and format == "ply" and box is None:
+        return FileResponse(ply, media_type=MESH_MEDIA_TYPES["ply"], filename=f"{session_id}_mesh.ply")
     try:
-        mapset = await run_in_threadpool(maps.get, session_id, directory / "map.pt")
-        data = await run_in_threadpool(with_threads, manager.render_threads(), mesh_files.extract_from_map, mapset,
-                                      format)
+        with http_answers(f"mesh of session {session_id}"):
+            data = await pools.render.run(export_mesh, source, format, box)
     except NoMapYet as error:
-        if ply.is_file():
-            return FileResponse(ply, media_type=MESH_MEDIA_TYPES["ply"], filename=filename)
-        raise HTTPException(status.HTTP_409_CONFLICT, f"session {session_id}: {error}") from None
+        if not isinstance(source, MapMesh) or not ply.is_file():
+            raise HTTPException(status.HTTP_409_CONFLICT, f"session {session_id}: {error}") from None
+        with http_answers(f"mesh of session {session_id}"):  # a map without a surface yet: the written mesh
+            data = await pools.render.run(export_mesh, PlyMesh(str(ply)), format, box)
     return Response(data, media_type=MESH_MEDIA_TYPES[format], headers=headers)
+
+
+def mesh_source(manager: SessionManager, state: SessionStatus, directory: Path) -> PlyMesh | LiveMesh | MapMesh:
+    """Where a session's mesh comes from now: the written ``mesh.ply`` once it ended, else
+    the live meshes, else its ``map.pt``, else a ``mesh.ply`` (409 without any)."""
+    ply, map_path = directory / "mesh.ply", directory / "map.pt"
+    if state.status in ("finished", "failed", "cancelled") and ply.is_file():
+        return PlyMesh(str(ply))
+    live = manager.live_meshes(state.id)
+    if live:
+        return LiveMesh([live[m] for m in sorted(live)])
+    if map_path.is_file():
+        return MapMesh(str(map_path), manager.render_threads())
+    if ply.is_file():
+        return PlyMesh(str(ply))
+    raise HTTPException(status.HTTP_409_CONFLICT, f"session {state.id}: the session has no map yet: map.pt is "
+                                                  "written after the first keyframes")

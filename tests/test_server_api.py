@@ -178,24 +178,18 @@ def test_render_threads_follow_the_running_sessions():
 
 @needs_runtime
 def test_a_render_uses_every_core_while_no_session_runs(client, synthetic_session, monkeypatch):
-    import torch
-
-    import server.routes_render as routes
     from server.settings import usable_cores
 
+    pool = client.app.state.render_pools.render
     seen = []
 
-    def counting_render(*args, **kwargs):
-        seen.append(torch.get_num_threads())  # in the pool thread that renders
-        return render(*args, **kwargs)
+    async def counting_run(function, call, *args, **kwargs):
+        seen.append(call.threads)  # the torch threads the render helper is told to use
+        return await run(function, call, *args, **kwargs)
 
-    render = routes.render
-    monkeypatch.setattr(routes, "render", counting_render)
-    before = torch.get_num_threads()
-    try:
-        response = client.post(f"/api/sessions/{synthetic_session}/render", json=first_pose_camera(client, synthetic_session))
-    finally:
-        torch.set_num_threads(before)  # the test client may render in this very thread
+    run = pool.run
+    monkeypatch.setattr(pool, "run", counting_run)
+    response = client.post(f"/api/sessions/{synthetic_session}/render", json=first_pose_camera(client, synthetic_session))
     assert response.status_code == 200, response.text
     assert seen == [usable_cores()]
 
