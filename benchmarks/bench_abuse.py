@@ -257,7 +257,8 @@ def cases() -> dict[str, object]:
     return {"1 upload names files outside itself": outside_paths, "2 image bombs in a zip": image_bombs,
             "3 huge sizes in small requests": huge_sizes, "4 150 creates at a full queue": full_queue,
             "5 200 MiB and 200k-deep JSON": big_and_deep_json, "7 values out of range": out_of_range,
-            "7 lists racing deletions, empty mesh": operator, "7 300 assets": many_assets}
+            "7 lists racing deletions, empty mesh": operator, "7 300 assets": many_assets,
+            "10 zips the disk cannot unpack": unpackable_zips}
 
 
 def slow_body_then_sigterm(data_dir: Path) -> CaseResult:
@@ -282,6 +283,114 @@ def slow_body_then_sigterm(data_dir: Path) -> CaseResult:
     result.note = f"exited {result.seconds} s after SIGTERM"
     sock.close()
     server.stop()
+    return result
+
+
+def unpackable_zips(client):
+    """Case 10: zips no disk can unpack as they are (a file that another entry needs as a folder,
+    either order; a 300-character name; 2000 folders deep), at the top and in a folder: 422 each."""
+    deep = "/".join(["d"] * 2000) + "/x.png"
+    for names in (["d/x", "d/x/y"], ["d/x/y", "d/x"], ["rgb/" + "n" * 300 + ".png"], [deep]):
+        for top in ("", "rgbd_dataset_freiburg1_tiny/"):
+            buffer = io.BytesIO()
+            with zipfile.ZipFile(buffer, "w") as archive:
+                for name in names + ["rgb.txt"]:
+                    archive.writestr(top + name, b"x")
+            yield _upload(client, buffer.getvalue())
+
+
+def worker_processes(server_pid: int) -> int:
+    """Spawned processes of the server now (its session workers, and its decode helper when
+    one runs): direct children started by multiprocessing's spawn."""
+    count = 0
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            if int(stat.read_text().rsplit(")", 1)[1].split()[1]) != server_pid:
+                continue
+            count += b"spawn_main" in (stat.parent / "cmdline").read_bytes()
+        except (OSError, ValueError):
+            continue
+    return count
+
+
+SLOT_SESSIONS = 34
+
+
+def cancel_queued_under_one_slot(data_dir: Path) -> CaseResult:
+    """Case 11: VOXFUSION_MAX_SESSIONS=1, 34 synthetic sessions (one running, 33 queued), then
+    all deleted at once; the worker processes alive at once are counted every 0.1 s until none
+    is left (target: never more than 1)."""
+    server = Server(data_dir, {"VOXFUSION_MAX_SESSIONS": "1", "VOXFUSION_MAX_QUEUED": str(SLOT_SESSIONS)})
+    result = CaseResult(f"11 {SLOT_SESSIONS} sessions deleted at once under MAX_SESSIONS=1")
+    started = time.monotonic()
+    baseline = worker_processes(server.process.pid)  # no session yet
+    spec = {"source": "synthetic", "preset": "test", "spec": "orbit?frames=400&width=64&height=48"}
+    ids = []
+    for _ in range(SLOT_SESSIONS):
+        response = _send(lambda: server.client.post("/api/sessions", json=spec))
+        result.statuses.append(getattr(response, "status_code", -1))
+        if getattr(response, "status_code", 0) == 201:
+            ids.append(response.json()["id"])
+    while worker_processes(server.process.pid) == baseline and time.monotonic() - started < HANG_S:
+        time.sleep(0.1)
+    peak = [0]
+    done = threading.Event()
+
+    def sample() -> None:
+        while not done.is_set():
+            peak[0] = max(peak[0], worker_processes(server.process.pid) - baseline)
+            time.sleep(0.1)
+
+    sampler = threading.Thread(target=sample, daemon=True)
+    sampler.start()
+    threads = [threading.Thread(target=lambda s=s: result.statuses.append(
+        getattr(_send(lambda: server.client.delete(f"/api/sessions/{s}")), "status_code", -1))) for s in ids]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    deadline = time.monotonic() + 60
+    while worker_processes(server.process.pid) > baseline and time.monotonic() < deadline:
+        time.sleep(0.2)
+    done.set()
+    sampler.join()
+    result.seconds = round(time.monotonic() - started, 2)
+    result.server_errors = sum(s >= 500 for s in result.statuses) + (peak[0] > 1)
+    result.peak_mb = round(server.memory_mb()[1], 1)
+    result.note = f"at most {peak[0]} worker processes alive at once (target 1)"
+    server.stop()
+    return result
+
+
+def sigterm_in_first_seconds(data_dir: Path) -> CaseResult:
+    """Case 12: SIGTERM as soon as a session has reported its first frame: the server must be
+    gone within 10 s with the session's trajectory.txt written and run.json's frames > 0."""
+    server = Server(data_dir)
+    result = CaseResult("12 SIGTERM in a session's first seconds")
+    created = server.client.post("/api/sessions", json={"source": "synthetic", "preset": "test",
+                                                        "spec": "orbit?frames=60&width=64&height=48"})
+    session = created.json()["id"]
+    deadline = time.monotonic() + 120
+    while server.client.get(f"/api/sessions/{session}").json()["frames_done"] < 1 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    started = time.monotonic()
+    server.process.terminate()
+    try:
+        server.process.wait(timeout=HANG_S)
+    except subprocess.TimeoutExpired:
+        result.hangs += 1
+    result.seconds = round(time.monotonic() - started, 2)
+    server.stop()
+    folder = data_dir / "sessions" / session
+    trajectory = folder / "trajectory.txt"
+    rows = sum(1 for line in trajectory.read_text().splitlines() if line and line[0] != "#") if trajectory.is_file() else 0
+    try:
+        frames = json.loads((folder / "run.json").read_text()).get("frames", 0)
+    except (OSError, ValueError):
+        frames = 0
+    result.server_errors = int(rows == 0 or frames == 0 or result.seconds >= 10)
+    result.note = (f"gone {result.seconds} s after SIGTERM; trajectory.txt {rows} rows, run.json frames {frames} "
+                   f"(targets: < 10 s, > 0, > 0)")
     return result
 
 
@@ -326,6 +435,9 @@ def main() -> int:
         server.stop()
     results.append(slow_body_then_sigterm(work / "data2"))
     print(f"{results[-1].name}: {results[-1].note}, hangs {results[-1].hangs}", flush=True)
+    for case, data in ((cancel_queued_under_one_slot, "data3"), (sigterm_in_first_seconds, "data4")):
+        results.append(case(work / data))
+        print(f"{results[-1].name}: {results[-1].note}, 5xx/failed {results[-1].server_errors}", flush=True)
     errors = sum(r.server_errors for r in results)
     hangs = sum(r.hangs for r in results)
     peak = max(r.peak_mb for r in results)
