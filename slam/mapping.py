@@ -51,7 +51,7 @@ from .losses import LossWeights, Losses, compute_losses
 from .maps import Keyframe, MapSet, SubMap
 from .padded import color_slots, grid_samples, grid_size, pack_samples, render_padded, round_up
 from .photometric import fit_exposure
-from .profiling import MAPPING_ITERATION, scope
+from .profiling import MAPPING_ITERATION, StageClock, scope
 from .render import TrainingThinning, render_rays
 from .transfer import to_host
 from .voxels import grow_adam_state, lookup_sorted, morton_encode, voxel_coords_of
@@ -289,7 +289,7 @@ class Mapper:
         self.agent = agent
         self.maps = MapSet(config)
         self.version = 0
-        self.timer = _Timer()
+        self.timer = StageClock()
         self.last_iterations = 0
         """Iterations the last joint optimisation ran (fewer than asked when its deadline passed)."""
         self.active: dict[int, SubMap] = {}
@@ -417,6 +417,8 @@ class Mapper:
         T_map_cam = self._T_map_cam(submap, tracked.T_world_cam)
         ta = time.perf_counter()
         points, surface = self._points(tracked.frame, T_map_cam)
+        tb = time.perf_counter()
+        self.timer.add("keyframe_decision", tb - ta)
         observed, new, codes = self._keyframe_coverage(submap, points)
         ratio = new / max(observed, 1)
         m = self.config.mapping
@@ -440,7 +442,7 @@ class Mapper:
             self._last_keyframe[agent] = (submap.map_id, T_map_cam.detach().clone())
         else:
             self._frames_since_keyframe[agent] = self.frames_since_keyframe + 1
-        self.timer.add("voxel_allocation", time.perf_counter() - ta)
+        self.timer.add("voxel_allocation", time.perf_counter() - tb)
         losses: dict[str, float] = {}
         if optimize:
             iters = m.first_frame_iterations if first else m.iterations

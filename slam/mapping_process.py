@@ -172,8 +172,10 @@ def _integrate(side: _MapperSide, msg: FrameMessage, optimize: bool) -> list[Rep
     submap = mapper.active[msg.agent]
     if step.is_keyframe:
         out += _new_keyframe(side, msg, step, submap)
-    out += _map_updates(side, step, submap)
-    _checkpoint_if_due(side)
+    with mapper.timer.stage("publish"):
+        out += _map_updates(side, step, submap)
+    with mapper.timer.stage("checkpoint"):
+        _checkpoint_if_due(side)
     side.busy += time.perf_counter() - t0
     side.frames_integrated += 1
     return out
@@ -209,7 +211,8 @@ def _new_keyframe(side: _MapperSide, msg: FrameMessage, step: MappingStep, subma
     side.keyframes_since_mesh += 1
     side.keyframes_since_checkpoint += 1
     if side.closer is not None:
-        out += _close_loops(side, side.closer, submap, msg)
+        with side.mapper.timer.stage("loop_detection"):
+            out += _close_loops(side, side.closer, submap, msg)
     return out
 
 
@@ -410,7 +413,9 @@ def _idle_step(side: _MapperSide, frame_waiting: Callable[[], bool]) -> list[Rep
         mapper.optimize(submap, mapper.config.mapping.iterations, interrupted=frame_waiting)
         mapper.version += 1
         out.append(SnapshotReply(side.snapshot(submap)))
-    side.busy += time.perf_counter() - t0
+    seconds = time.perf_counter() - t0
+    side.busy += seconds
+    mapper.timer.add("idle_optimisation", seconds)
     return out
 
 

@@ -315,7 +315,8 @@ def write_outputs(out: Path, config: SLAMConfig, tracks: list["AgentTrack"], sta
                   use_gt_poses: bool, map_poses: dict[int, np.ndarray] | None = None,
                   map_waits: tuple[int, float] = (0, 0.0), frames_skipped: list[dict] | None = None,
                   progress: list[ProgressSample] | None = None,
-                  retracking: tuple[int, float] = (0, 0.0)) -> RunResult:
+                  retracking: tuple[int, float] = (0, 0.0),
+                  tracking_stages: dict[str, float] | None = None) -> RunResult:
     interpolate = config.mapping.frame_correction == "interpolated"
     trajectories = [agent_trajectory(t, stats, map_poses or {}, use_gt_poses, interpolate) for t in tracks if t.records]
     _write_trajectories(out, trajectories, len(tracks) > 1)
@@ -373,6 +374,7 @@ def write_outputs(out: Path, config: SLAMConfig, tracks: list["AgentTrack"], sta
             "tracking_waited_for_map": map_waits[1],
             "tracking_retracking": retracking[1],
             **({f"mapping_{k}": v for k, v in stats.timings.items()} if stats else {}),
+            **{f"tracking_{k}": v for k, v in (tracking_stages or {}).items()},
         },
         "busy_share": {
             "tracking": tracking_busy / max(elapsed, 1e-9),

@@ -1,4 +1,4 @@
-"""Counting what the inner loops ask of the device (issue 40).
+"""Counting what the inner loops ask of the device, and timing where a run's wall time goes.
 
 The tracker's and the mapper's iterations run inside named scopes (``scope``): a profiler
 range (``torch.profiler.record_function``, about a microsecond when no profiler runs) and a
@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import contextlib
 import threading
+import time
 from collections import Counter
 from dataclasses import dataclass, field
 from typing import Iterator
@@ -109,3 +110,23 @@ def aten_counts(events, names: tuple[str, ...] = (TRACKING_ITERATION, MAPPING_IT
                 counts.syncs += 1
                 counts.by_op[name] += 1
     return out
+
+
+@dataclass
+class StageClock:
+    """Wall seconds spent in each named stage of a loop, summed over the run (``run.json``'s
+    ``timings_s``): where a frame's time goes, at the cost of two clock reads a stage."""
+
+    totals: dict[str, float] = field(default_factory=dict)
+
+    def add(self, name: str, seconds: float) -> None:
+        self.totals[name] = self.totals.get(name, 0.0) + seconds
+
+    @contextlib.contextmanager
+    def stage(self, name: str) -> Iterator[None]:
+        """Time the ``with`` block into ``name`` (also when it raises)."""
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.add(name, time.perf_counter() - t0)

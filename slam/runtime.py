@@ -62,6 +62,7 @@ from .mapping_process import InlineMapper, MapperFailed, ProcessMapper
 from .mapping_process import process_threads
 from .messages import (Done, EventReply, Failed, FinalMaps, FrameMessage, FramePose, MapPosesReply, MapperStats,
                        MapStart, Reply, SnapshotReply)
+from .profiling import StageClock
 from .outputs import (PROGRESS_EVERY, FrameRecord, ProgressSample, RunResult, corrected_poses, refine_with_keyframes,
                       running_ate, write_outputs, write_progress)
 from .loop.keyframe_graph import frame_covariance
@@ -173,6 +174,8 @@ class _TrackingSide:
     """Frames the final re-tracking moved, and its seconds."""
     stopped: Callable[[], bool] = lambda: False
     """Whether the run was asked to stop: ends any wait for the mapper (``_poll_mapper``)."""
+    stages: StageClock = field(default_factory=StageClock)
+    """Where the tracking side's wall time goes, stage by stage (``run.json``'s ``timings_s``)."""
 
     def frozen_map(self, map_id: int) -> FrozenMap:
         """The tracker's copy of a map, rebuilt only when a newer snapshot arrived, placed
@@ -516,13 +519,16 @@ def _track_frame(side: _TrackingSide, track: AgentTrack, frame: Frame, raw: Fram
     if config.runtime.deterministic:
         _deterministic_map(side, channel, emit)
     t0 = time.perf_counter()
-    map_id = _track_map(side, track, channel, emit)
-    fmap = side.frozen_map(map_id)
+    with side.stages.stage("map_update"):
+        map_id = _track_map(side, track, channel, emit)
+        fmap = side.frozen_map(map_id)
     tf = prepare_frame(frame, None, side.device, config.voxel.max_depth)
     T_init = torch.from_numpy(track.good_poses[-1]).float().to(side.device)
-    matches = track.features.correspondences(raw) if track.features is not None else None
-    features = _features_for_loops(config, track, frame, raw)
-    result = side.tracker.track(tf, fmap, T_init, matches)
+    with side.stages.stage("features"):
+        matches = track.features.correspondences(raw) if track.features is not None else None
+        features = _features_for_loops(config, track, frame, raw)
+    with side.stages.stage("track"):
+        result = side.tracker.track(tf, fmap, T_init, matches)
     T = result.T_world_cam.detach().cpu().numpy().astype(np.float64)
     if track.features is not None:
         track.features.remember(T if result.ok else None)
@@ -532,7 +538,8 @@ def _track_frame(side: _TrackingSide, track: AgentTrack, frame: Frame, raw: Fram
     rec = FrameRecord(frame.index, float(frame.timestamp), map_id, T_mc, result.ok, gt)
     covariance = frame_covariance(result.information) if result.ok and result.information is not None else None
     if side.retracker is not None and result.ok and new_map is None:
-        track.kept_rays[frame.index] = side.tracker.keep_rays(tf, side.retrack_rays, side.rays_generator)
+        with side.stages.stage("keep_rays"):
+            track.kept_rays[frame.index] = side.tracker.keep_rays(tf, side.retrack_rays, side.rays_generator)
     return FrameMessage(track.agent, frame, map_id, T_mc.astype(np.float32), result.ok, new_map, covariance,
                         prepared=tf, features=features), rec
 
@@ -582,6 +589,19 @@ def _interleave(sources: list[Iterable[Frame]]) -> Iterator[tuple[int, Frame]]:
                 alive.remove(k)
 
 
+def _timed(items: Iterable, clock: StageClock, name: str) -> Iterator:
+    """``items`` as they come, the time each takes to come (reading and decoding a frame)
+    added to ``clock``'s ``name``."""
+    iterator = iter(items)
+    while True:
+        with clock.stage(name):
+            try:
+                item = next(iterator)
+            except StopIteration:
+                return
+        yield item
+
+
 def _skipped_frames(sources: list[Iterable[Frame]]) -> list[dict]:
     """Frames the sources left out because they could not be read (``FileSequence.skipped``):
     agent, index and why, for ``run.json``."""
@@ -612,6 +632,7 @@ def run_slam(sources: list[Iterable[Frame]], config: SLAMConfig, out_dir: str | 
         config = with_given_poses(config)
     run = _open_run(sources, config, Path(out_dir), on_event, stop, progress)
     _track_all(run, sources, use_gt_poses)
+    run.tracking_ended = time.perf_counter()
     if run.side is not None:
         # Tracking is over (the input ended, a stop, a failure): every pose on disk first, in
         # milliseconds, before the final refinement (minutes) or a stop's checkpoint and mesh,
@@ -645,6 +666,8 @@ class _Run:
     error: str | None = None
     side: _TrackingSide | None = None
     channel: InlineMapper | ProcessMapper | None = None
+    tracking_ended: float | None = None
+    """When the last frame was tracked (perf_counter): the end-of-run phases start."""
 
     def stopped(self) -> bool:
         return self.stop is not None and self.stop.is_set()
@@ -681,7 +704,7 @@ def _track_all(run: _Run, sources: list[Iterable[Frame]], use_gt_poses: bool) ->
         side.on_keyframe = lambda: _write_progress(run.out, side, run.total, run.started)
         side.stopped = run.stopped
         run.emit(PhaseEvent("tracking"))
-        for agent, raw in _interleave(sources):
+        for agent, raw in _timed(_interleave(sources), side.stages, "read"):
             if run.stopped():
                 run.status = "cancelled"
                 break
@@ -704,17 +727,21 @@ def _process_frame(run: _Run, agent: int, raw: Frame, use_gt_poses: bool) -> Non
     side, channel = run.side, run.channel
     assert side is not None and channel is not None
     track = side.agents.setdefault(agent, AgentTrack(agent))
-    frame = resize_frame(raw, run.config.runtime.input_width)  # once: tracker and mapper share it
+    with side.stages.stage("prepare"):
+        frame = resize_frame(raw, run.config.runtime.input_width)  # once: tracker and mapper share it
     # Track it against the agent's active map; lost, or out of the map's region: a new map.
     msg, rec = _estimate_pose(side, track, frame, raw, channel, use_gt_poses, run.emit)
     track.records.append(rec)
-    _publish_pose(run, track.agent, frame, msg, rec)
+    with side.stages.stage("publish"):
+        _publish_pose(run, track.agent, frame, msg, rec)
     # Hand it to the mapping side: it decides keyframes, maps the frame, and looks for loops
     # at every new keyframe.
     if msg is not None:
-        _hand_over(side, msg, channel)
+        with side.stages.stage("hand_over"):
+            _hand_over(side, msg, channel)
     # What the mapping side sent back meanwhile: keyframes, loops, moved maps, snapshots.
-    _handle_replies(channel.poll(), side, run.emit)
+    with side.stages.stage("replies"):
+        _handle_replies(channel.poll(), side, run.emit)
     _count_frame(run)
 
 
@@ -785,6 +812,8 @@ def _write_results(run: _Run, sources: list[Iterable[Frame]], use_gt_poses: bool
     elapsed = time.perf_counter() - run.started
     run.emit(PhaseEvent("writing"))
     side = run.side
+    if side is not None and run.tracking_ended is not None:
+        side.stages.add("end_of_run", elapsed - (run.tracking_ended - run.started))
     tracks = sorted(side.agents.values(), key=lambda t: t.agent) if side is not None else []
     result = write_outputs(run.out, run.config, tracks, side.mapper_stats if side else None, run.status, run.error,
                            elapsed, run.total, side.busy if side else 0.0, use_gt_poses,
@@ -792,7 +821,8 @@ def _write_results(run: _Run, sources: list[Iterable[Frame]], use_gt_poses: bool
                            (side.map_waits, side.map_wait_seconds) if side else (0, 0.0),
                            frames_skipped=_skipped_frames(sources),
                            progress=side.progress if side else None,
-                           retracking=side.retracking if side else (0, 0.0))
+                           retracking=side.retracking if side else (0, 0.0),
+                           tracking_stages=side.stages.totals if side else None)
     if side is not None:
         run.emit(_stats_event(side, run.total, result.fps, run.started, run.done, ate=result.ate_rmse))
     run.emit(FinishedEvent(run.status, run.error))

@@ -170,6 +170,20 @@ def test_run_json_fields(run):
     assert "ate_rmse_m" in info and info["ate_rmse_m"] is not None, "synthetic frames carry GT"
 
 
+def test_run_json_times_every_stage(run):
+    """Where a frame's time goes: each stage of both sides, and the phases after the last frame,
+    as ``benchmarks/bench_stages.py`` tabulates them."""
+    timings = run.info["timings_s"]
+    for stage in ("read", "prepare", "map_update", "track", "publish", "hand_over", "replies", "end_of_run"):
+        assert timings[f"tracking_{stage}"] >= 0, stage
+    for stage in ("keyframe_decision", "voxel_allocation", "render", "backward", "final_bundle_adjustment",
+                  "final_outputs"):
+        assert timings[f"mapping_{stage}"] >= 0, stage
+    assert timings["tracking_track"] > 0 and timings["mapping_render"] > 0
+    tracked = sum(timings[f"tracking_{s}"] for s in ("read", "prepare", "map_update", "track", "publish"))
+    assert tracked + timings["tracking_end_of_run"] <= timings["wall"] * 1.01, "stages are parts of the wall"
+
+
 def test_run_json_traces_the_runs_course(frames, tmp_path, monkeypatch):
     monkeypatch.setattr(runtime, "PROGRESS_EVERY", 2)
     info = do_run([frames], config(False), tmp_path).info
