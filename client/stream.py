@@ -4,12 +4,16 @@ Flow: open the source (its camera is known before anything is sent), create a st
 over HTTP (``POST /api/sessions``, intrinsics and depth scale given there), open the session's
 WebSocket (``/api/sessions/ID/stream``, protocol in ``server/routes_stream.py``), wait until
 the session's worker tracks (its start takes seconds; a replay's clock starts then), send binary
-frames waiting for each ack (the server's flow control), then ``{"type": "finish"}``.
+frames waiting for each answer (the server's flow control), then ``{"type": "finish"}``.
 
 Back-pressure: a reader thread takes frames from the source as they arrive and puts them in a
 ``FrameSlot`` of one frame. By default a new frame replaces the one not yet sent (counted as
 dropped), so the camera never stalls and nothing queues; with ``all_frames`` the reader waits
 for the slot instead (a replay then runs at the server's pace and every frame is processed).
+The server answers every frame at once, accepted or dropped (its buffer is full); a dropped
+frame is sent again after the server's ``retry_after_s`` with ``all_frames`` (nothing is lost;
+``BUSY_WAIT_S`` without room ends the stream), and counted and left behind otherwise (a live
+camera's next frame is newer). The end prints frames sent, accepted and dropped.
 
 Faults end with a message on stderr and a non-zero exit code: 1 the stream failed (server
 gone, source failed mid-stream), 2 bad source or arguments, 3 the server could not be reached
@@ -43,12 +47,16 @@ BINARY_PREFIX = struct.Struct("<dI")
 
 HTTP_TIMEOUT_S = 10.0
 ACK_TIMEOUT_S = 90.0
-"""Longest wait for one ack: the server holds a frame up to 30 s before answering 503."""
+"""Longest wait for the answer to one frame (the server answers at once; older ones held a
+frame up to 30 s before answering 503)."""
 RECONNECT_S = 15.0
 """How long a broken stream tries to get back to its session: a network blip, or a server that
 restarts (it comes back without the session's stream; then the session's state is reported)."""
-BUSY_RETRIES = 5
-"""Resends of a frame the server answered 503 (behind) before it is counted as dropped."""
+BUSY_WAIT_S = 300.0
+"""``all_frames``: how long one frame is sent again while the server drops it (its buffer full)
+before the stream ends as failed: the session has stopped taking frames."""
+RETRY_AFTER_S = (0.05, 0.5, 5.0)
+"""Wait before sending a dropped frame again: (least, without the server's word, most) seconds."""
 START_TIMEOUT_S = 600.0
 """Longest wait for a new session to start tracking (it may be queued behind others)."""
 STATUS_EVERY_S = 0.25
@@ -230,12 +238,15 @@ class Progress:
 
     arrived: int = 0
     sent: int = 0
+    """Frame messages sent (a frame sent again counts again)."""
+    resent: int = 0
+    """Of those, the ones that sent again a frame the server had dropped (``all_frames``)."""
     acked: int = 0
     rejected: int = 0
     dropped: int = 0
     """Frames replaced in the slot by newer ones before they could be sent."""
-    gave_up: int = 0
-    """Frames the server answered 503 (behind) to every resend."""
+    server_dropped: int = 0
+    """Frames the server dropped (its buffer full) and not sent again (live mode)."""
     lost: int = 0
     """Frames in flight when the connection broke (reconnected after; the server may or may
     not have taken them, so they are not sent twice)."""
@@ -258,9 +269,26 @@ class Progress:
         fps = "-" if self.server_fps is None else f"{self.server_fps:.1f}"
         done = "-" if self.server_frames_done is None else str(self.server_frames_done)
         lost = f"lost {self.lost}  " if self.lost else ""
-        return (f"sent {self.sent}  acked {self.acked}  dropped {self.dropped + self.gave_up}  {lost}"
+        return (f"sent {self.frames_sent}  acked {self.acked}  dropped {self.all_dropped}  {lost}"
                 f"rejected {self.rejected}  "
                 f"server: {done} tracked, {fps} frames/s")
+
+    @property
+    def frames_sent(self) -> int:
+        """Frames sent, each counted once however often it was sent again."""
+        return self.sent - self.resent
+
+    @property
+    def all_dropped(self) -> int:
+        """Frames that never reached the server's queue: replaced before sending, or dropped by it."""
+        return self.dropped + self.server_dropped
+
+    def summary(self) -> str:
+        """The end's counts in one line: sent, accepted, dropped (and why), rejected."""
+        resent = f", {self.resent} sent again after the server dropped them" if self.resent else ""
+        return (f"frames sent {self.frames_sent}, accepted {self.acked}, dropped {self.all_dropped} "
+                f"({self.server_dropped} by the server, its buffer full; {self.dropped} replaced by newer ones "
+                f"before sending), rejected {self.rejected}{resent}")
 
     def latency_summary(self) -> str:
         parts = []
@@ -337,37 +365,63 @@ def _close_reason(error) -> str:
     return f"code {frame.code}: {frame.reason}" if frame.reason else f"code {frame.code}"
 
 
-def send_frame(socket, item: PendingFrame, progress: Progress) -> None:
-    """Send one frame, wait for its ack (resending on 503); counts go to ``progress``."""
+def send_frame(socket, item: PendingFrame, progress: Progress) -> float | None:
+    """Send one frame and wait for its answer; counts go to ``progress``. None when the server
+    took it (or refused it as bad); when it dropped it (its buffer full), the seconds to wait
+    before sending it again (``deliver`` decides whether to)."""
+    sent_at = _send_message(socket, binary_message(item.encode()), item)
+    progress.sent += 1
+    answer = _receive(socket, ACK_TIMEOUT_S)
+    if answer.get("type") == "ack":
+        progress.acked += 1
+        progress.ack_latency_s.append(time.monotonic() - item.arrived)
+        if isinstance(answer.get("index"), int) and len(progress.sent_at) < LATENCY_SAMPLES:
+            progress.sent_at[answer["index"]] = sent_at
+        return None
+    if answer.get("status") == 503:  # "dropped"; an older server's "error" after its wait
+        return retry_after_s(answer)
+    if answer.get("type") == "error" and answer.get("status") == 409:
+        raise StreamError(f"the session does not take frames any more: {answer.get('detail')}")
+    progress.rejected += 1
+    print(f"voxfusion stream: frame {item.index} rejected: {answer.get('detail', answer)}", file=sys.stderr)
+    return None
+
+
+def deliver(socket, item: PendingFrame, progress: Progress, resend_dropped: bool) -> None:
+    """Send one frame. One the server drops is sent again after the wait it asks for with
+    ``resend_dropped`` (StreamError after BUSY_WAIT_S of that), else counted as dropped."""
+    busy_since = time.monotonic()
+    while (retry_s := send_frame(socket, item, progress)) is not None:
+        if not resend_dropped:
+            progress.server_dropped += 1
+            return
+        if time.monotonic() - busy_since > BUSY_WAIT_S:
+            raise StreamError(f"the session took no frame for {BUSY_WAIT_S:g} s (its buffer stayed full)")
+        time.sleep(retry_s)
+        progress.resent += 1
+
+
+def _send_message(socket, message: bytes | str, item: PendingFrame | None) -> float:
+    """Send ``item``'s message (or the header); ``time.monotonic()`` when it went (ConnectionLost: it did not)."""
     from websockets.exceptions import ConnectionClosed
 
-    frame = item.encode()
-    message = binary_message(frame)
-    for _ in range(1 + BUSY_RETRIES):
-        sent_at = time.monotonic()
-        try:
-            socket.send(message)
-        except ConnectionClosed as error:
-            raise ConnectionLost(f"the server closed the stream ({_close_reason(error)})", item) from None
-        except OSError as error:
-            raise ConnectionLost(f"the connection to the server broke while sending: {error}", item) from None
-        progress.sent += 1
-        answer = _receive(socket, ACK_TIMEOUT_S)
-        if answer.get("type") == "ack":
-            progress.acked += 1
-            progress.ack_latency_s.append(time.monotonic() - item.arrived)
-            if isinstance(answer.get("index"), int) and len(progress.sent_at) < LATENCY_SAMPLES:
-                progress.sent_at[answer["index"]] = sent_at
-            return
-        if answer.get("type") == "error" and answer.get("status") == 503:
-            time.sleep(0.5)
-            continue
-        if answer.get("type") == "error" and answer.get("status") == 409:
-            raise StreamError(f"the session does not take frames any more: {answer.get('detail')}")
-        progress.rejected += 1
-        print(f"voxfusion stream: frame {item.index} rejected: {answer.get('detail', answer)}", file=sys.stderr)
-        return
-    progress.gave_up += 1
+    sent_at = time.monotonic()
+    try:
+        socket.send(message)
+    except ConnectionClosed as error:
+        raise ConnectionLost(f"the server closed the stream ({_close_reason(error)})", item) from None
+    except OSError as error:
+        raise ConnectionLost(f"the connection to the server broke while sending: {error}", item) from None
+    return sent_at
+
+
+def retry_after_s(answer: dict) -> float:
+    """Seconds to wait before sending a dropped frame again: the server's word, within bounds."""
+    least, default, most = RETRY_AFTER_S
+    value = answer.get("retry_after_s")
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return default
+    return min(max(float(value), least), most)
 
 
 def open_socket(server: Server, session_id: str):
@@ -382,7 +436,7 @@ def open_socket(server: Server, session_id: str):
         raise StreamError(f"the server refused the stream socket ({error.response.status_code})", EXIT_SERVER) from None
     except (WebSocketException, OSError, TimeoutError) as error:
         raise Unreachable(f"cannot open the stream socket: {error}", EXIT_SERVER) from None
-    socket.send(json.dumps({}))
+    _send_message(socket, json.dumps({}), None)
     answer = _receive(socket, HTTP_TIMEOUT_S)
     if answer.get("type") != "ready":
         socket.close()
@@ -396,11 +450,11 @@ def finish(server: Server, session_id: str, socket) -> int | None:
     if socket is not None:
         try:
             socket.send(json.dumps({"type": "finish"}))
-            for _ in range(3):  # an ack still under way (Ctrl-C while waiting for it) comes first
+            for _ in range(3):  # an answer still under way (Ctrl-C while waiting for it) comes first
                 answer = _receive(socket, ACK_TIMEOUT_S)
                 if answer.get("type") == "finished":
                     return int(answer["frames"])
-                if answer.get("type") != "ack":
+                if answer.get("type") not in ("ack", "dropped"):
                     break
         except Exception:
             pass
@@ -547,6 +601,7 @@ def _stream_session(source: FrameSource, server: Server, session_id: str, option
     socket, code, message = _send_source(source, server, session_id, options, progress, printer)
     printer.update(progress, force=True)
     printer.done()
+    print(f"voxfusion stream: {progress.summary()}", file=out, flush=True)
     frames = finish(server, session_id, socket)
     if socket is not None:
         socket.close()
@@ -557,7 +612,7 @@ def _stream_session(source: FrameSource, server: Server, session_id: str, option
               f"{progress.acked} frames were acknowledged", file=sys.stderr)
         return StreamResult(code or EXIT_FAILED, session_id, progress)
     print(f"voxfusion stream: finished session {session_id}: {frames} frames on the server, "
-          f"{progress.dropped + progress.gave_up} dropped{_lost(progress)}", file=out, flush=True)
+          f"{progress.all_dropped} dropped{_lost(progress)}", file=out, flush=True)
     if options.wait_s is None or code not in (EXIT_OK, EXIT_INTERRUPTED):
         return StreamResult(code, session_id, progress, frames)
     return _wait_for_result(server, session_id, options.wait_s, code, progress, frames, out)
@@ -649,7 +704,7 @@ def _send_all(socket, slot: FrameSlot, progress: Progress, printer: _Printer,
         item, first = first or slot.get(), None
         if item is None:
             break
-        send_frame(socket, item, progress)
+        deliver(socket, item, progress, resend_dropped=not slot.replace)  # all frames: none may be lost
         progress.arrived = item.index + 1
         _show(printer, progress, slot)
     if slot.error:

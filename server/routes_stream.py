@@ -13,10 +13,16 @@ WebSocket protocol at ``/api/sessions/{id}/stream`` (token as ``?token=`` when o
      PNG bytes (16-bit) up to the end of the message; or
    * one **text** message ``{"timestamp": t, "color": "<base64>", "depth": "<base64>"}``
      (``intrinsics`` / ``depth_scale`` / ``agent`` may be added as in the header).
-   The server answers each with ``{"type": "ack", "index": i}`` (``i`` counts that agent's
-   frames from 0; ``"agent": k`` is added for agents other than 0), or with
-   ``{"type": "error", "status": 422, "detail": "..."}`` for a bad frame (the socket stays open;
-   503 means the session is behind: resend later).
+   The server answers each at once, in order, with one of
+   * ``{"type": "ack", "index": i}``: accepted (``i`` counts that agent's frames from 0;
+     ``"agent": k`` is added for agents other than 0, ``"dropped": d`` once the stream has
+     dropped any frame);
+   * ``{"type": "dropped", "status": 503, "detail": "...", "dropped": d, "retry_after_s": s}``:
+     the session's frame buffer is full, the frame was dropped (``d`` dropped so far, all
+     sockets of the session together). A live camera sends its next frame; a replay that must
+     not lose one sends it again after ``s`` seconds. The socket never waits for room: it goes
+     on reading, so the keepalive pings are answered however far behind the session is;
+   * ``{"type": "error", "status": 422, "detail": "..."}`` for a bad frame (the socket stays open).
 3. ``{"type": "finish"}`` ends the input; the server answers ``{"type": "finished", "frames": n}``
    and closes. Closing without it leaves the stream open (reconnect, or POST ``/finish``).
 
@@ -26,7 +32,10 @@ out, the server stops, another client finished it) the server sends
 closes the socket with code :data:`WS_STREAM_CLOSED` (4409) and the reason in the close frame
 (cut to the 123 bytes a close frame holds); it notices within :data:`CLOSED_POLL_S`, whether or
 not the client is sending. A socket opened on such a session gets the same in answer to its
-header (or after :data:`CLOSED_POLL_S` without one). HTTP frames get the same detail with a 409.
+header (or after :data:`CLOSED_POLL_S` without one), and so does one opened on a session that
+is not a stream (an upload, a synthetic scene). HTTP frames get the same detail with a 409; an
+HTTP frame that finds the buffer full waits up to ``stream_put_timeout_s`` for room, then gets
+503 with ``Retry-After``.
 """
 
 from __future__ import annotations
@@ -38,12 +47,13 @@ import json
 import struct
 
 from fastapi import APIRouter, Depends, File, Form, UploadFile, WebSocket, WebSocketDisconnect, status
+from fastapi.responses import JSONResponse
 from starlette.concurrency import run_in_threadpool
 
 from server.deps import get_manager, require_token, token_ok
 from server.schemas import ErrorOut, FrameAccepted, StreamFinished
 from server.sessions import SessionConflict, SessionManager, SessionNotFound, check_session_id
-from server.stream import StreamClosed, StreamInput
+from server.stream import StreamBusy, StreamClosed, StreamInput
 from server.upload import MAX_AGENTS, UploadError, parse_agent
 
 router = APIRouter(prefix="/api/sessions", tags=["streaming"],
@@ -55,6 +65,8 @@ WS_STREAM_CLOSED = 4409
 CLOSED_POLL_S = 0.25
 """How often a socket waiting for the client looks whether its stream still accepts frames."""
 MAX_CLOSE_REASON_BYTES = 123
+FINISH = object()
+"""What :func:`answer_message` returns for ``{"type": "finish"}``."""
 
 
 @router.post("/{session_id}/frames", response_model=FrameAccepted, dependencies=[Depends(require_token)],
@@ -79,8 +91,11 @@ async def post_frame(
     stream = manager.stream(check_session_id(session_id))
     agent_id = 0 if agent in (None, "") else parse_agent(agent)
     color_bytes, depth_bytes = await color.read(), await depth.read()
-    index = await run_in_threadpool(stream.add_frame, color_bytes, depth_bytes, timestamp=timestamp,
-                                    depth_scale=depth_scale, intrinsics=intrinsics, agent=agent_id)
+    try:
+        index = await run_in_threadpool(stream.add_frame, color_bytes, depth_bytes, timestamp=timestamp,
+                                        depth_scale=depth_scale, intrinsics=intrinsics, agent=agent_id)
+    except StreamBusy as busy:
+        return JSONResponse({"detail": str(busy)}, status_code=503, headers={"Retry-After": str(busy.retry_after_s)})
     return FrameAccepted(index=index, frames_received=stream.frames_received, agent=agent_id)
 
 
@@ -121,8 +136,12 @@ def decode_json_frame(data: dict) -> tuple[object, bytes, bytes, dict]:
     return data.get("timestamp"), images[0], images[1], options
 
 
+def _error_answer(error: UploadError) -> dict:
+    return {"type": "error", "status": error.status, "detail": str(error)}
+
+
 async def _send_error(websocket: WebSocket, error: UploadError) -> None:
-    await websocket.send_json({"type": "error", "status": error.status, "detail": str(error)})
+    await websocket.send_json(_error_answer(error))
 
 
 @router.websocket("/{session_id}/stream")
@@ -134,8 +153,12 @@ async def stream_socket(websocket: WebSocket, session_id: str) -> None:
     manager: SessionManager = websocket.app.state.manager
     try:
         stream = manager.stream(check_session_id(session_id))
-    except (SessionNotFound, SessionConflict) as error:
+    except SessionNotFound as error:
         await websocket.close(code=status.WS_1008_POLICY_VIOLATION, reason=f"no stream session {session_id}: {error}")
+        return
+    except SessionConflict as error:
+        await websocket.accept()
+        await _refuse_not_a_stream(websocket, str(error))
         return
     await websocket.accept()
     try:
@@ -162,9 +185,27 @@ def _close_reason(text: str) -> str:
 
 async def _close_stream_ended(websocket: WebSocket, stream: StreamInput) -> None:
     """The stream accepts no more frames: one error that says why, then close (module doc)."""
-    reason = stream.closed_reason or "the session has ended"
+    await _close_409(websocket, stream.closed_reason or "the session has ended")
+
+
+async def _close_409(websocket: WebSocket, reason: str) -> None:
     await websocket.send_json({"type": "error", "status": 409, "detail": f"the stream does not accept frames: {reason}"})
     await websocket.close(code=WS_STREAM_CLOSED, reason=_close_reason(reason))
+
+
+async def _refuse_not_a_stream(websocket: WebSocket, reason: str) -> None:
+    """A socket on a session that takes no frames: its header is read when it comes within
+    CLOSED_POLL_S (so the client reads the error, not a broken pipe), then 409 and close 4409."""
+    try:
+        message = await asyncio.wait_for(websocket.receive(), timeout=CLOSED_POLL_S)
+    except asyncio.TimeoutError:
+        message = None
+    if message is not None and message["type"] == "websocket.disconnect":
+        return
+    try:
+        await _close_409(websocket, reason)
+    except WebSocketDisconnect:
+        return
 
 
 async def _receive(websocket: WebSocket, stream: StreamInput) -> dict | None:
@@ -226,31 +267,53 @@ async def _serve_frames(websocket: WebSocket, stream: StreamInput, options: dict
         if message["type"] == "websocket.disconnect":
             return
         try:
-            if message.get("bytes") is not None:
-                timestamp, color, depth = decode_binary_frame(message["bytes"])
-                extra = {}
-            else:
-                data = json.loads(message.get("text") or "null")
-                if not isinstance(data, dict):
-                    raise UploadError("frame: expected a JSON object", status=400)
-                if data.get("type") == "finish":
-                    frames = await run_in_threadpool(stream.finish)
-                    await websocket.send_json({"type": "finished", "frames": frames})
-                    await websocket.close()
-                    return
-                timestamp, color, depth, extra = decode_json_frame(data)
-            frame_options = {**options, **extra}
-            agent = frame_options.get("agent", 0)
-            index = await run_in_threadpool(stream.add_frame, color, depth, timestamp=timestamp,
-                                            depth_scale=frame_options.get("depth_scale"),
-                                            intrinsics=frame_options.get("intrinsics"), agent=agent)
-            # Intrinsics and scale are remembered by the stream after each agent's first frame.
-            await websocket.send_json({"type": "ack", "index": index} if agent == 0 else
-                                      {"type": "ack", "index": index, "agent": agent})
-        except json.JSONDecodeError as error:
-            await _send_error(websocket, UploadError(f"frame: not valid JSON ({error})", status=400))
+            # Parsing, decoding and queueing run off the event loop, and never wait for room.
+            answer = await run_in_threadpool(answer_message, stream, message, options)
+            if answer is FINISH:
+                frames = await run_in_threadpool(stream.finish)
+                await websocket.send_json({"type": "finished", "frames": frames})
+                await websocket.close()
+                return
         except StreamClosed:
             await _close_stream_ended(websocket, stream)
             return
         except UploadError as error:
-            await _send_error(websocket, error)
+            answer = _error_answer(error)
+        await websocket.send_json(answer)
+
+
+def answer_message(stream: StreamInput, message: dict, options: dict) -> dict | object:
+    """One frame message of a socket (``options``: its header's) -> the answer to send: an
+    ack, a drop (the buffer is full) or an error (module doc); :data:`FINISH` for a finish.
+    Blocking work (a worker thread's); raises StreamClosed when the stream takes no frames."""
+    try:
+        if message.get("bytes") is not None:
+            timestamp, color, depth = decode_binary_frame(message["bytes"])
+            extra = {}
+        else:
+            data = json.loads(message.get("text") or "null")
+            if not isinstance(data, dict):
+                raise UploadError("frame: expected a JSON object", status=400)
+            if data.get("type") == "finish":
+                return FINISH
+            timestamp, color, depth, extra = decode_json_frame(data)
+        frame_options = {**options, **extra}
+        agent = frame_options.get("agent", 0)
+        # Intrinsics and scale are remembered by the stream after each agent's first frame.
+        index = stream.add_frame(color, depth, timestamp=timestamp, depth_scale=frame_options.get("depth_scale"),
+                                 intrinsics=frame_options.get("intrinsics"), agent=agent, wait=False)
+    except json.JSONDecodeError as error:
+        return _error_answer(UploadError(f"frame: not valid JSON ({error})", status=400))
+    except StreamBusy as busy:
+        return {"type": "dropped", "status": 503, "detail": str(busy), "dropped": busy.dropped,
+                "retry_after_s": busy.retry_after_s}
+    except StreamClosed:
+        raise
+    except UploadError as error:
+        return _error_answer(error)
+    ack = {"type": "ack", "index": index}
+    if agent != 0:
+        ack["agent"] = agent
+    if stream.frames_dropped:
+        ack["dropped"] = stream.frames_dropped
+    return ack

@@ -2,11 +2,17 @@
 bounded queue (back-pressure instead of unbounded memory), and keep a copy of the raw bytes in
 the session folder so that the frames can be shown again later (AR ``frame:N`` backgrounds).
 
+A frame that finds the queue full is dropped and counted (``frames_dropped``), with a
+:class:`StreamBusy` (503) that says so: at once for a WebSocket frame (``wait=False``: the
+socket's reader must never stall, or the server stops reading the client's pongs and its
+keepalive closes the socket), after waiting up to ``put_timeout_s`` for room for an HTTP frame
+(one request holds one frame). The wait for room holds no lock, so one waiting frame never
+holds up another transport's frames.
+
 A queued session has no worker queue yet (the executor makes its pipes only when the session
 starts, so a queue of waiting sessions holds no descriptors): until then frames wait in an
-in-process buffer of the same size, with the same back-pressure (a frame that finds it full
-waits up to ``put_timeout_s``, then 503), and ``attach`` moves them, in order, to the worker's
-queue when the session starts.
+in-process buffer of the same size, with the same back-pressure, and ``attach`` moves them, in
+order, to the worker's queue when the session starts.
 
 A stream may carry several agents (cameras of one collaborative session): each frame names
 its ``agent`` (default 0). Frame indices, intrinsics and depth scale are per agent: each
@@ -52,11 +58,27 @@ DEFAULT_FPS = 30.0
 """A frame without a timestamp is stamped index / 30 s."""
 
 
+BUSY_RETRY_AFTER_S = 1
+"""Seconds a client is told to wait before it sends a dropped frame again (``Retry-After``)."""
+
+
 class StreamClosed(UploadError):
     """Frames after ``finish`` (or after the session ended): 409."""
 
     def __init__(self, message: str) -> None:
         super().__init__(message, status=409)
+
+
+class StreamBusy(UploadError):
+    """The session's frame buffer is full: the frame was dropped (503, module doc).
+
+    ``dropped``: frames dropped so far in this stream, this one included;
+    ``retry_after_s``: when to send it again (a client that must not lose it)."""
+
+    def __init__(self, message: str, dropped: int, retry_after_s: int = BUSY_RETRY_AFTER_S) -> None:
+        super().__init__(message, status=503)
+        self.dropped = dropped
+        self.retry_after_s = retry_after_s
 
 
 @dataclass(frozen=True)
@@ -85,6 +107,7 @@ class StreamInput:
     def __init__(self, frame_queue, input_dir: Path, *, intrinsics: tuple[float, ...] | None,
                  depth_scale: float | None, put_timeout_s: float, buffer_frames: int = 16) -> None:
         self._queue = frame_queue if frame_queue is not None else queue.Queue(maxsize=max(1, buffer_frames))
+        self._buffer_frames = max(1, buffer_frames)
         self._queue_lock = threading.Lock()
         """Held to swap ``_queue`` (``attach``) and around each put, so no frame lands in the
         buffer after it was moved."""
@@ -98,6 +121,7 @@ class StreamInput:
         self._lock = threading.Lock()
         self._count = 0
         self._refused = 0
+        self._dropped = 0
         self._agent_counts: dict[int, int] = {}
         self._closed_reason: str | None = None
         self._finish_reason: str | None = None
@@ -117,6 +141,11 @@ class StreamInput:
     def frames_refused(self) -> int:
         """Frames refused as bad (422/413: corrupt, too large, inconsistent): skipped, counted."""
         return self._refused
+
+    @property
+    def frames_dropped(self) -> int:
+        """Frames dropped because the session's buffer was full (503, ``StreamBusy``)."""
+        return self._dropped
 
     @property
     def agent_count(self) -> int:
@@ -152,19 +181,33 @@ class StreamInput:
 
     def add_frame(self, color: bytes, depth: bytes, *, timestamp: float | str | None = None,
                   depth_scale: float | str | None = None, intrinsics: str | list | None = None,
-                  agent: int | str | None = None) -> int:
+                  agent: int | str | None = None, wait: bool = True) -> int:
         """Validate one frame of ``agent`` (default 0) and queue it for the worker; returns its
-        index among that agent's frames.
+        index among that agent's frames. When the buffer is full the frame waits up to
+        ``put_timeout_s`` for room, or not at all without ``wait`` (module doc).
 
-        Raises UploadError: 422 bad frame, bad agent or missing intrinsics, 409 after finish,
-        503 when the worker has not taken frames for ``put_timeout_s`` (retry later).
+        Raises UploadError: 422 bad frame, bad agent or missing intrinsics, 409 after finish;
+        StreamBusy (503) when it found no room: the frame was dropped (send it again later).
         """
         agent = 0 if agent in (None, "") else parse_agent(agent)
+        deadline = time.monotonic() + (self._put_timeout_s if wait else 0.0)
+        while True:
+            index = self._try_add_frame(color, depth, timestamp, depth_scale, intrinsics, agent)
+            if index is not None:
+                return index
+            if not wait or not self._wait_for_room(deadline):
+                raise self._drop(waited=wait)
+
+    def _try_add_frame(self, color: bytes, depth: bytes, timestamp, depth_scale, intrinsics,
+                       agent: int) -> int | None:
+        """``add_frame`` once: the frame's index, or None when the buffer is full."""
         with self._lock:
             self._check_open()
             if self._count >= MAX_STREAM_FRAMES:
                 raise UploadError(f"the session has received {self._count} frames, the most one stream session "
                                   f"takes; finish it and start another", status=413)
+            if self._queue_full():
+                return None  # before decoding: a stream that outruns the worker costs no decoding
             try:
                 K = self._resolve_intrinsics(intrinsics, agent)
                 scale = self._resolve_depth_scale(depth_scale, agent)
@@ -174,9 +217,8 @@ class StreamInput:
             except UploadError:
                 self._refused += 1  # the frame is skipped; the stream goes on
                 raise
-            if not self._put(frame):
-                raise UploadError(f"the session has not taken a frame for {self._put_timeout_s:.0f} s "
-                                  f"(its buffer is full); retry later", status=503)
+            if not self._put_nowait(frame):
+                return None
             self._record(agent, index, frame, color, depth)
             self._K[agent], self._depth_scale[agent] = K, scale
             self._agent_counts[agent] = index + 1
@@ -185,15 +227,20 @@ class StreamInput:
             return index
 
     def finish(self) -> int:
-        """End the input: the worker finishes after the frames already queued. Returns the count."""
+        """End the input: the worker finishes after the frames already queued (waiting up to
+        ``put_timeout_s`` for room to say so). Returns the count."""
         from server.worker import END_OF_STREAM
 
-        with self._lock:
-            if self._closed_reason is None:
-                if not self._put(END_OF_STREAM):
-                    raise UploadError("the session's frame buffer stayed full; finish again later", status=503)
-                self._closed_reason = self._finish_reason = "the stream was finished"
-            return self._count
+        deadline = time.monotonic() + self._put_timeout_s
+        while True:
+            with self._lock:
+                if self._closed_reason is not None:
+                    return self._count
+                if self._put_nowait(END_OF_STREAM):
+                    self._closed_reason = self._finish_reason = "the stream was finished"
+                    return self._count
+            if not self._wait_for_room(deadline):
+                raise UploadError("the session's frame buffer stayed full; finish again later", status=503)
 
     def finish_if_idle(self, reason: str) -> bool:
         """End the input as ``finish`` does, but only if no frame is being added and the worker
@@ -255,22 +302,42 @@ class StreamInput:
         if reason is not None:
             raise StreamClosed(f"the stream does not accept frames: {reason}")
 
-    def _put(self, item, poll_s: float = PUT_POLL_S) -> bool:
-        """Queue ``item``, waiting up to put_timeout_s for room; False on timeout.
+    def _drop(self, waited: bool) -> StreamBusy:
+        """Count a frame that found no room; the error that says so."""
+        with self._lock:
+            self._dropped += 1
+            dropped = self._dropped
+        why = (f"the session has not taken a frame for {self._put_timeout_s:g} s" if waited else
+               "the session is behind")
+        return StreamBusy(f"{why} (its buffer of {self._buffer_frames} frames is full): frame dropped, "
+                          f"{dropped} so far; send it again after {BUSY_RETRY_AFTER_S} s", dropped)
+
+    def _queue_full(self) -> bool:
+        """Whether the worker's queue (or the buffer) has no room now; StreamClosed after ``release``."""
+        with self._queue_lock:
+            if self._queue is None:
+                raise StreamClosed("the stream does not accept frames: the session has ended")
+            return self._queue.full()
+
+    def _put_nowait(self, item) -> bool:
+        """Queue ``item`` if there is room; StreamClosed after ``release``."""
+        with self._queue_lock:
+            if self._queue is None:
+                raise StreamClosed("the stream does not accept frames: the session has ended")
+            try:
+                self._queue.put_nowait(item)
+                return True
+            except queue.Full:
+                return False
+
+    def _wait_for_room(self, deadline: float, poll_s: float = PUT_POLL_S) -> bool:
+        """Wait (holding no lock) until the queue has room: True, or False at ``deadline``.
         Raises StreamClosed if the stream is closed meanwhile."""
-        deadline = time.monotonic() + self._put_timeout_s
         while True:
             self._check_open()
-            with self._queue_lock:
-                frame_queue = self._queue
-                if frame_queue is None:
-                    raise StreamClosed("the stream does not accept frames: the session has ended")
-                try:
-                    frame_queue.put_nowait(item)
-                    return True
-                except queue.Full:
-                    pass
-            if time.monotonic() > deadline:
+            if not self._queue_full():
+                return True
+            if time.monotonic() >= deadline:
                 return False
             time.sleep(poll_s)
 
