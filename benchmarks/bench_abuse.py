@@ -6,7 +6,7 @@ Starts ``voxfusion serve`` (``python -m server.cli serve``) on 127.0.0.1 with a 
 subprocess, then runs each case an attacker or an operator tried (uploads naming the server's
 files, image bombs, huge sizes in small requests, a full queue, oversized and deeply nested
 JSON, a slow body, out-of-range numbers, empty mesh exports, lists racing deletions, many
-assets) and reports per case: the answers' status codes, whether any was a 5xx, whether one
+assets, a stream socket flooded with frames) and reports per case: the answers' status codes, whether any was a 5xx, whether one
 hung (no answer within 30 s), and the API process's resident memory (peak so far, from
 ``/proc/PID/status`` ``VmHWM``). With ``--fuzz-minutes`` it then runs schemathesis's CLI
 against the same server for that long (with the token) and counts server errors.
@@ -97,6 +97,15 @@ class CaseResult:
     note: str = ""
 
 
+@dataclass(frozen=True)
+class CaseNote:
+    """What a case found beyond HTTP answers (a WebSocket's fate): ``text`` goes to the
+    report, ``failed`` counts as a server error."""
+
+    text: str
+    failed: bool = False
+
+
 class Server:
     """``voxfusion serve`` in a subprocess on 127.0.0.1, behind a token."""
 
@@ -153,6 +162,9 @@ def run_case(server: Server, name: str, requests) -> CaseResult:
         if isinstance(outcome, httpx.TimeoutException):
             result.hangs += 1
             result.statuses.append(0)
+        elif isinstance(outcome, CaseNote):
+            result.note += outcome.text
+            result.server_errors += outcome.failed
         elif isinstance(outcome, Exception):
             result.note = f"{type(outcome).__name__}: {outcome}"
             result.statuses.append(-1)
@@ -177,6 +189,56 @@ def _send(call):
 def _upload(client, data: bytes, **form):
     return _send(lambda: client.post("/api/sessions", files={"file": ("d.zip", data, "application/zip")},
                                      data={"preset": "test", **form}))
+
+
+FLOOD_FRAMES = 49
+KEEPALIVE_HOLD_S = 45.0
+"""Longer than uvicorn's keepalive round (a ping every 20 s, 20 s for its pong)."""
+
+
+def stream_flood(client):
+    """Case 8: a stream socket sends 49 frames as fast as it can, then reads the answers; every
+    frame must get one (ack or dropped), and the socket must still take a frame after
+    ``KEEPALIVE_HOLD_S`` with its session still behind, then finish."""
+    created = _send(lambda: client.post("/api/sessions", json={
+        "source": "stream", "preset": "test", "intrinsics": "52,52,31.5,23.5", "depth_scale": 5000}))
+    yield created
+    if isinstance(created, Exception) or created.status_code != 201:
+        return
+    session = created.json()["id"]
+    yield flood_socket(str(client.base_url).replace("http", "ws", 1) + f"/api/sessions/{session}/stream?token={TOKEN}")
+    yield _send(lambda: client.delete(f"/api/sessions/{session}"))
+
+
+def flood_socket(url: str) -> CaseNote:
+    """The socket half of case 8: acks / drops / errors of the frames sent, and whether it survived."""
+    import websockets.sync.client as ws_client
+    from websockets.exceptions import ConnectionClosed
+
+    answers: list[str] = []
+    survived, closed = False, ""
+    try:
+        with ws_client.connect(url, open_timeout=HANG_S, close_timeout=5) as sock:
+            sock.send("{}")
+            sock.recv(timeout=HANG_S)
+            for i in range(FLOOD_FRAMES):
+                sock.send(struct.pack("<dI", i / 30, len(COLOR)) + COLOR + DEPTH)
+            for _ in range(FLOOD_FRAMES):
+                answers.append(json.loads(sock.recv(timeout=HANG_S))["type"])
+            time.sleep(KEEPALIVE_HOLD_S)
+            sock.send(struct.pack("<dI", FLOOD_FRAMES / 30, len(COLOR)) + COLOR + DEPTH)
+            late = json.loads(sock.recv(timeout=HANG_S))["type"]
+            sock.send(json.dumps({"type": "finish"}))
+            survived = late in ("ack", "dropped") and json.loads(sock.recv(timeout=HANG_S))["type"] == "finished"
+    except ConnectionClosed as error:
+        closed = f"; closed: {error.rcvd.code} {error.rcvd.reason}" if error.rcvd else "; connection lost"
+    except TimeoutError:
+        closed = f"; no answer within {HANG_S:g} s"
+    counts = {kind: answers.count(kind) for kind in ("ack", "dropped", "error")}
+    unanswered = FLOOD_FRAMES - len(answers)
+    text = (f"sent {FLOOD_FRAMES}: acks {counts['ack']}, dropped {counts['dropped']}, errors {counts['error']}, "
+            f"unanswered {unanswered}; socket {'survived' if survived else 'died'} a {KEEPALIVE_HOLD_S:g} s hold{closed}")
+    return CaseNote(text, failed=unanswered > 0 or not survived)
 
 
 def cases() -> dict[str, object]:
@@ -258,6 +320,7 @@ def cases() -> dict[str, object]:
             "3 huge sizes in small requests": huge_sizes, "4 150 creates at a full queue": full_queue,
             "5 200 MiB and 200k-deep JSON": big_and_deep_json, "7 values out of range": out_of_range,
             "7 lists racing deletions, empty mesh": operator, "7 300 assets": many_assets,
+            "8 a stream sending 49 frames as fast as it can": stream_flood,
             "10 zips the disk cannot unpack": unpackable_zips}
 
 
