@@ -8,8 +8,6 @@ asset store. Run it with one uvicorn worker (sessions live in this process's mem
 
 from __future__ import annotations
 
-import logging
-import re
 from contextlib import asynccontextmanager
 from dataclasses import dataclass
 
@@ -17,11 +15,14 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from fastapi.staticfiles import StaticFiles
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import Match, Mount
 
 from server.assets import AssetStore
 from server.budget import RequestBudget
 from server.decoding import shared_helper
 from server.errors import error_text, validation_message
+from server.log_redaction import RedactTokens, redact_logs  # noqa: F401 (RedactTokens: tests)
 from server.path_jobs import PathJobs
 from server.render_pools import render_pools
 from server.rendering import MapCache, MeshFiles, NoMapYet, with_threads
@@ -67,25 +68,25 @@ class DemoSession:
     """Printed with the session id once the server is up (the URL to open)."""
 
 
-class RedactTokens(logging.Filter):
-    """Blanks ``token=...`` in uvicorn's access log lines: the page and the viewer pass the
-    token in the query string once, and a log is read by more people than the token is for."""
-
-    PATTERN = re.compile(r"(?i)(token=)[^&\s]*")
-
-    def filter(self, record: logging.LogRecord) -> bool:
-        if isinstance(record.args, tuple):
-            record.args = tuple(self.PATTERN.sub(r"\1***", a) if isinstance(a, str) else a for a in record.args)
-        elif isinstance(record.msg, str):
-            record.msg = self.PATTERN.sub(r"\1***", record.msg)
-        return True
+HTTP_METHODS = ("GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS")
 
 
-def redact_access_log() -> None:
-    """Install :class:`RedactTokens` on uvicorn's access logger (once)."""
-    logger = logging.getLogger("uvicorn.access")
-    if not any(isinstance(f, RedactTokens) for f in logger.filters):
-        logger.addFilter(RedactTokens())
+def allowed_methods(app, scope) -> list[str]:
+    """Every method some route of ``app`` answers at ``scope``'s path (Starlette's 405 names
+    only the first route that matches the path, and ``/api/sessions`` has one route per
+    method). Asked through each route's ``matches``, which sees into included routers;
+    mounts match any method and answer their own 405, so they are left out."""
+    return [method for method in HTTP_METHODS
+            if any(not isinstance(route, Mount) and route.matches({**scope, "type": "http", "method": method})[0]
+                   is Match.FULL for route in app.router.routes)]
+
+
+async def method_not_allowed(request: Request, error: StarletteHTTPException) -> JSONResponse:
+    """405 with ``Allow`` naming every method of the path (RFC 9110 requires the header)."""
+    methods = allowed_methods(request.app, request.scope) or [
+        m.strip() for m in (error.headers or {}).get("Allow", "").split(",") if m.strip()]
+    return JSONResponse({"detail": f"{request.method} is not allowed here; allowed: {', '.join(methods) or 'none'}"},
+                        status_code=405, headers={**(error.headers or {}), "Allow": ", ".join(methods)})
 
 
 def _error_handlers(app: FastAPI) -> None:
@@ -105,6 +106,7 @@ def _error_handlers(app: FastAPI) -> None:
         return JSONResponse({"detail": validation_message(error.errors())}, status_code=422)
 
     app.add_exception_handler(RequestValidationError, invalid_request)
+    app.add_exception_handler(405, method_not_allowed)
     app.add_exception_handler(UploadError, upload_error)
     app.add_exception_handler(SessionNotFound, detail(404))
     app.add_exception_handler(SessionConflict, detail(409))
@@ -170,7 +172,7 @@ def create_app(settings: Settings | None = None, demo: DemoSession | None = None
         import torch
 
         settings.data_dir.mkdir(parents=True, exist_ok=True)
-        redact_access_log()  # here: uvicorn has configured its loggers by now
+        redact_logs(settings.token)  # here: uvicorn has configured its loggers by now
         threads_before = torch.get_num_threads()
         viewer = None
         if settings.viewer_enabled:

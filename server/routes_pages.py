@@ -20,7 +20,7 @@ from pathlib import Path
 from fastapi import APIRouter, Request, WebSocket, status
 from fastapi.responses import FileResponse, HTMLResponse, Response
 
-from server.deps import TOKEN_COOKIE, token_ok
+from server.deps import TOKEN_COOKIE, refuse_foreign_origin, token_ok
 from server.viewer import RELAY_HEADER
 
 router = APIRouter(include_in_schema=False)
@@ -77,6 +77,8 @@ async def viewer_socket(websocket: WebSocket) -> None:
     """Relay the viser client's WebSocket to the viser server on loopback."""
     import websockets
 
+    if await refuse_foreign_origin(websocket):
+        return
     if not token_ok(websocket):
         await websocket.close(code=status.WS_1008_POLICY_VIOLATION, reason="missing or wrong token")
         return

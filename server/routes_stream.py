@@ -50,7 +50,7 @@ from fastapi import APIRouter, Depends, File, Form, UploadFile, WebSocket, WebSo
 from fastapi.responses import JSONResponse
 from starlette.concurrency import run_in_threadpool
 
-from server.deps import get_manager, require_token, token_ok
+from server.deps import get_manager, refuse_foreign_origin, require_token, token_ok
 from server.schemas import ErrorOut, FrameAccepted, StreamFinished
 from server.sessions import SessionConflict, SessionManager, SessionNotFound, check_session_id
 from server.stream import StreamBusy, StreamClosed, StreamInput
@@ -147,6 +147,8 @@ async def _send_error(websocket: WebSocket, error: UploadError) -> None:
 @router.websocket("/{session_id}/stream")
 async def stream_socket(websocket: WebSocket, session_id: str) -> None:
     """Frames over a WebSocket; the protocol is in this module's docstring and the README."""
+    if await refuse_foreign_origin(websocket):
+        return
     if not token_ok(websocket):
         await websocket.close(code=status.WS_1008_POLICY_VIOLATION, reason="missing or wrong token")
         return
