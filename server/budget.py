@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import json
 import re
+import sys
 from dataclasses import dataclass
 
 import numpy as np
@@ -239,8 +240,11 @@ def _json_problem(body: bytes) -> str | None:
         json.loads(body)
     except UnicodeDecodeError:
         return "the body is not valid JSON: it is not UTF-8 text"
-    except (ValueError, RecursionError) as error:  # JSONDecodeError, and ints past Python's digit limit
+    except (json.JSONDecodeError, RecursionError) as error:
         return f"the body is not valid JSON ({error})"
+    except ValueError:  # an integer past Python's digit limit: its message names interpreter internals
+        return (f"the body is not valid JSON here: it holds a number too long "
+                f"(at most {sys.get_int_max_str_digits()} digits)")
     return None
 
 

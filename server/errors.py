@@ -33,6 +33,8 @@ def _message(error: dict) -> str:
     if error.get("type") == "json_invalid":
         reason = (error.get("ctx") or {}).get("error")
         return "not valid JSON" + (f" ({reason})" if reason else "")
+    if error.get("type") == "finite_number":  # NaN or Infinity: pydantic's text names no limit
+        return "must be a finite number"
     text = str(error.get("msg", "invalid value"))
     # pydantic prefixes the text of a validator's ValueError; the field location says enough.
     for prefix in ("Value error, ", "Assertion failed, "):

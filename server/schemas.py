@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
@@ -12,11 +12,15 @@ from server.budget import DEPTH_SCALE_RANGE, MAX_FRAMES_OPTION
 EXAMPLE_POSE = [[1.0, 0.0, 0.0, 0.5], [0.0, 0.0, 1.0, -1.5], [0.0, -1.0, 0.0, 1.4], [0.0, 0.0, 0.0, 1.0]]
 MAX_SIDE = 2048
 
-Matrix4 = list[list[float]]
+Matrix4 = Annotated[list[Annotated[list[float], Field(min_length=4, max_length=4)]], Field(min_length=4, max_length=4)]
+"""A 4x4 matrix as four rows of four numbers (the schema says so: a client that follows it
+never meets the shape check)."""
 
 
 class Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    """A request body: unknown keys and non-finite numbers (NaN, Infinity) are refused."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
 MAX_EDGE_ANGLE_DEG = 85.0
@@ -44,8 +48,6 @@ class Intrinsics(Strict):
     """A pinhole camera: focal lengths and principal point in pixels, image size. The image
     must lie within MAX_EDGE_ANGLE_DEG of the optical axis on both axes."""
 
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
-
     fx: float = Field(gt=0, examples=[200.0])
     fy: float = Field(gt=0, examples=[200.0])
     cx: float = Field(examples=[160.0])
@@ -62,16 +64,19 @@ class Intrinsics(Strict):
         return self
 
 
-def _check_matrix(value: Matrix4) -> Matrix4:
-    if len(value) != 4 or any(len(row) != 4 for row in value):
+def _check_matrix(value: object) -> object:
+    """Before the type check, so that a wrong shape reads as one sentence (not one error per row)."""
+    if isinstance(value, list) and (len(value) != 4 or any(isinstance(row, list) and len(row) != 4 for row in value)):
         raise ValueError("must be a 4x4 nested list")
     return value
 
 
+def _check_matrices(value: object) -> object:
+    return [_check_matrix(m) for m in value] if isinstance(value, list) else value
+
+
 class CropBox(Strict):
     """An axis-aligned box in the world frame (metres): only what lies inside it is rendered."""
-
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     min: tuple[float, float, float] = Field(examples=[[-1.0, -1.0, 0.0]])
     max: tuple[float, float, float] = Field(examples=[[1.0, 1.0, 2.0]])
@@ -90,7 +95,7 @@ class CameraRequest(Strict):
     intrinsics: Intrinsics
     crop: CropBox | None = Field(None, description="render only what lies inside this box (the render call)")
 
-    _matrix = field_validator("T_world_cam")(_check_matrix)
+    _matrix = field_validator("T_world_cam", mode="before")(_check_matrix)
 
     model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{
         "T_world_cam": EXAMPLE_POSE,
@@ -242,7 +247,7 @@ class ARObject(Strict):
     scale: float = Field(1.0, gt=0, le=100)
     color: list[float] | None = Field(None, min_length=3, max_length=3, description="[r, g, b] in [0, 1]")
 
-    _matrix = field_validator("T_world_obj")(lambda v: v if v is None else _check_matrix(v))
+    _matrix = field_validator("T_world_obj", mode="before")(_check_matrix)
 
 
 class ARRequest(Strict):
@@ -256,7 +261,7 @@ class ARRequest(Strict):
     intrinsics: Intrinsics | None = Field(None, description="required for 'render'; default for 'frame:N': the frame's")
     objects: list[ARObject] = Field(max_length=64)
 
-    _matrix = field_validator("T_world_cam")(lambda v: v if v is None else _check_matrix(v))
+    _matrix = field_validator("T_world_cam", mode="before")(_check_matrix)
 
     model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{
         "background": "render",
@@ -326,7 +331,7 @@ class PathRequest(Strict):
                                                                 "frame's 2nd-98th percentile)")
     crop: "CropBox | None" = Field(None, description="render only what lies inside this box")
 
-    _matrices = field_validator("keyframes")(lambda value: [_check_matrix(m) for m in value])
+    _matrices = field_validator("keyframes", mode="before")(_check_matrices)
 
     @model_validator(mode="after")
     def _sane(self) -> "PathRequest":
@@ -343,7 +348,7 @@ class PathPreview(Strict):
     keyframes: list[Matrix4] = Field(min_length=2, max_length=64, examples=[[EXAMPLE_POSE, EXAMPLE_POSE]])
     loop: bool = False
 
-    _matrices = field_validator("keyframes")(lambda value: [_check_matrix(m) for m in value])
+    _matrices = field_validator("keyframes", mode="before")(_check_matrices)
 
 
 class PathJobOut(BaseModel):

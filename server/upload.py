@@ -354,7 +354,9 @@ def parse_depth_scale(value: float | str, what: str = "depth_scale") -> float:
         scale = float(value)
     except (TypeError, ValueError):
         raise UploadError(f"{what}: expected a number (raw depth units per metre), got {value!r}") from None
-    if not np.isfinite(scale) or scale <= 0:
+    if not np.isfinite(scale):
+        raise UploadError(f"{what}: must be a finite number (raw depth units per metre), got {value!r}")
+    if scale <= 0:
         raise UploadError(f"{what}: must be a positive number (raw depth units per metre), got {value!r}")
     low, high = DEPTH_SCALE_RANGE
     if not low <= scale <= high:
