@@ -9,6 +9,9 @@ maps at once; uvicorn then drains open connections for at most :data:`GRACEFUL_S
 (a client that sends its body a byte a second no longer holds the server) and the app's
 shutdown waits for the workers until ``min(VOXFUSION_CANCEL_GRACE_S, 5)`` seconds after the
 signal, killing what is left. Everything is done well within the 10 s ``docker stop`` gives.
+
+Slow and idle connections: uvicorn runs with ``server.connection_limits`` (a deadline and a
+size cap on each request's head, the keep-alive timeout, a cap on connections at once).
 """
 
 from __future__ import annotations
@@ -117,6 +120,7 @@ def _serve(args: argparse.Namespace, demo_spec: tuple[str, str] | None = None) -
     the URL to open (after viser is up, so that it is the last URL a newcomer reads)."""
     import uvicorn
 
+    from server.connection_limits import uvicorn_limits
     from server.main import DemoSession, create_app
 
     settings = _settings(args)
@@ -135,7 +139,7 @@ def _serve(args: argparse.Namespace, demo_spec: tuple[str, str] | None = None) -
     app = create_app(settings, demo=demo)
     # One worker: sessions, their worker processes and the viewer live in this process.
     config = uvicorn.Config(app, host=args.host, port=port, workers=1, log_level="info",
-                            timeout_graceful_shutdown=GRACEFUL_SHUTDOWN_S)
+                            timeout_graceful_shutdown=GRACEFUL_SHUTDOWN_S, **uvicorn_limits())
 
     class StoppingServer(uvicorn.Server):
         """uvicorn's server whose exit signal first stops the sessions (module doc)."""
