@@ -241,6 +241,88 @@ def flood_socket(url: str) -> CaseNote:
     return CaseNote(text, failed=unanswered > 0 or not survived)
 
 
+@dataclass(frozen=True)
+class Handshake:
+    """A WebSocket handshake's answer as a status code: 101 accepted, else the refusal's."""
+
+    status_code: int
+
+
+def handshake(url: str, origin: str | None = None):
+    """Open and close a WebSocket: a :class:`Handshake`, or the exception that ended it."""
+    from websockets.exceptions import InvalidStatus, WebSocketException
+    from websockets.sync.client import connect
+
+    try:
+        with connect(url, origin=origin, open_timeout=HANG_S, close_timeout=2):
+            return Handshake(101)
+    except InvalidStatus as refused:
+        return Handshake(refused.response.status_code)
+    except (OSError, WebSocketException) as error:
+        return error
+
+
+def _stream_session(client):
+    created = _send(lambda: client.post("/api/sessions", json={"source": "stream", "preset": "test"}))
+    ok = not isinstance(created, Exception) and created.status_code == 201
+    return created, (created.json()["id"] if ok else "000000000000")
+
+
+def token_everywhere(client):
+    """Case 9: the token in every spelling a client may use, over HTTP and WebSockets (the log
+    is scanned for it once every case has run: :func:`token_leaks`)."""
+    created, session = _stream_session(client)
+    yield created
+    bare = httpx.Client(base_url=str(client.base_url), timeout=HANG_S)
+    encoded = "".join(f"%{b:02X}" for b in TOKEN.encode())
+    for path in (f"/api/sessions?token={TOKEN}", f"/api/sessions?TOKEN={encoded.lower()}&x=1", f"/?token={TOKEN}",
+                 f"/viewer%3Ftoken%3D{TOKEN}", f"/api/sessions/token%3D{encoded}", f"/api/sessions/{TOKEN}"):
+        yield _send(lambda: bare.get(path))
+    yield _send(lambda: bare.get("/api/sessions", headers={"Authorization": f"Bearer {TOKEN}"}))
+    ws = str(client.base_url).replace("http", "ws", 1)
+    for path in (f"/api/sessions/{session}/stream?token={TOKEN}", f"/api/sessions/{session}/stream?token={encoded}",
+                 f"/viewer?token={TOKEN}", f"/api/sessions/{session}/stream%3Ftoken%3D{TOKEN}"):
+        yield handshake(ws + path)
+    bare.close()
+    yield _send(lambda: client.delete(f"/api/sessions/{session}"))
+
+
+def foreign_origins(client):
+    """Case 9: WebSocket handshakes from other sites' pages (each must get 403), then from our
+    own page and from a program without ``Origin`` (both 101)."""
+    created, session = _stream_session(client)
+    yield created
+    base = str(client.base_url)
+    url = base.replace("http", "ws", 1) + f"/api/sessions/{session}/stream?token={TOKEN}"
+    port = base.rsplit(":", 1)[1]
+    for origin in ("http://evil.example", f"http://evil.example:{port}", f"http://127.0.0.1:{free_port()}", "null"):
+        yield handshake(url, origin)
+    for origin in (base, None):
+        yield handshake(url, origin)
+    yield _send(lambda: client.delete(f"/api/sessions/{session}"))
+
+
+ORIGIN_CASE = "9 WebSockets from another site's page"
+
+
+def foreign_accepted(result: CaseResult) -> int:
+    """Handshakes from foreign origins that were accepted (the first 101s before our own two)."""
+    return result.statuses[1:5].count(101)
+
+
+def token_spellings(token: str = TOKEN) -> list[str]:
+    from urllib.parse import quote, quote_plus
+
+    every_byte = "".join(f"%{b:02X}" for b in token.encode())
+    return [token, quote(token, safe=""), quote_plus(token), every_byte, every_byte.lower()]
+
+
+def token_leaks(log: Path) -> int:
+    """How often the token appears in the server's log, in any spelling (target 0)."""
+    text = log.read_text(errors="replace")
+    return sum(text.count(spelling) for spelling in set(token_spellings()))
+
+
 def cases() -> dict[str, object]:
     def outside_paths(client):
         for name in ("/etc/hostname", "/no/such/file.png", "../../../../etc/passwd", "rgb/../../x.png"):
@@ -321,6 +403,7 @@ def cases() -> dict[str, object]:
             "5 200 MiB and 200k-deep JSON": big_and_deep_json, "7 values out of range": out_of_range,
             "7 lists racing deletions, empty mesh": operator, "7 300 assets": many_assets,
             "8 a stream sending 49 frames as fast as it can": stream_flood,
+            "9 the token in every spelling, HTTP and WebSocket": token_everywhere, ORIGIN_CASE: foreign_origins,
             "10 zips the disk cannot unpack": unpackable_zips}
 
 
@@ -501,10 +584,14 @@ def main() -> int:
     for case, data in ((cancel_queued_under_one_slot, "data3"), (sigterm_in_first_seconds, "data4")):
         results.append(case(work / data))
         print(f"{results[-1].name}: {results[-1].note}, 5xx/failed {results[-1].server_errors}", flush=True)
+    leaks = token_leaks(Path(server.log.name))
+    accepted = sum(foreign_accepted(r) for r in results if r.name == ORIGIN_CASE)
+    print(f"token in the server's log: {leaks} times (target 0); foreign-origin WebSockets accepted: {accepted} "
+          f"(target 0)", flush=True)
     errors = sum(r.server_errors for r in results)
     hangs = sum(r.hangs for r in results)
     peak = max(r.peak_mb for r in results)
-    verdict = errors == 0 and hangs == 0 and peak < 1024
+    verdict = errors == 0 and hangs == 0 and peak < 1024 and leaks == 0 and accepted == 0
     print(f"\nserver errors {errors}, hangs {hangs}, peak API memory {peak:.0f} MiB: "
           f"{'PASS' if verdict else 'FAIL'} (0, 0, < 1024)")
     if args.out:
