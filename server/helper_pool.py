@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import importlib
 import multiprocessing as mp
+import os
 import pickle
 import resource
 import threading
@@ -52,6 +53,8 @@ class HelperKind:
     """Longest one call may run (a call may ask for another)."""
     preload: tuple[str, ...] = ()
     """Modules imported before the cap is set (the heavy imports)."""
+    niceness: int = 0
+    """Added to the helper's nice value: long work yields the CPU to the API process."""
 
 
 class HelperFailed(RuntimeError):
@@ -120,6 +123,8 @@ def _serve(connection, kind: HelperKind) -> None:
     """The helper's loop: (function, args) in, progress then result or _Raised out, until the
     pipe closes."""
     global _connection
+    if kind.niceness:
+        os.nice(kind.niceness)
     for module in kind.preload:  # the heavy imports happen before the cap is set
         importlib.import_module(module)
     try:

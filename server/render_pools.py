@@ -21,10 +21,13 @@ from server.helper_pool import HelperFailed, HelperKind, HelperPool, HelperTimed
 from server.render_calls import PRELOAD, RequestProblem
 from server.schemas import ErrorOut
 
+HELPER_NICENESS = 10
+"""Render and video helpers run below the API process's priority, so that its event loop
+answers while they render."""
 RENDER_KIND = HelperKind("render", "rendering", "render", budget.RENDER_HELPER_MEMORY_BYTES, budget.RENDER_TIMEOUT_S,
-                         PRELOAD)
+                         PRELOAD, HELPER_NICENESS)
 VIDEO_KIND = HelperKind("video", "the video", "video", budget.RENDER_HELPER_MEMORY_BYTES, budget.VIDEO_TIMEOUT_S,
-                        PRELOAD)
+                        PRELOAD, HELPER_NICENESS)
 
 
 HELPER_RESPONSES = {
