@@ -6,7 +6,7 @@ Starts ``voxfusion serve`` (``python -m server.cli serve``) on 127.0.0.1 with a 
 subprocess, then runs each case an attacker or an operator tried (uploads naming the server's
 files, image bombs, huge sizes in small requests, a full queue, oversized and deeply nested
 JSON, a slow body, out-of-range numbers, empty mesh exports, lists racing deletions, many
-assets) and reports per case: the answers' status codes, whether any was a 5xx, whether one
+assets, a stream socket flooded with frames) and reports per case: the answers' status codes, whether any was a 5xx, whether one
 hung (no answer within 30 s), and the API process's resident memory (peak so far, from
 ``/proc/PID/status`` ``VmHWM``). With ``--fuzz-minutes`` it then runs schemathesis's CLI
 against the same server for that long (with the token) and counts server errors.
@@ -97,6 +97,15 @@ class CaseResult:
     note: str = ""
 
 
+@dataclass(frozen=True)
+class CaseNote:
+    """What a case found beyond HTTP answers (a WebSocket's fate): ``text`` goes to the
+    report, ``failed`` counts as a server error."""
+
+    text: str
+    failed: bool = False
+
+
 class Server:
     """``voxfusion serve`` in a subprocess on 127.0.0.1, behind a token."""
 
@@ -153,6 +162,9 @@ def run_case(server: Server, name: str, requests) -> CaseResult:
         if isinstance(outcome, httpx.TimeoutException):
             result.hangs += 1
             result.statuses.append(0)
+        elif isinstance(outcome, CaseNote):
+            result.note += outcome.text
+            result.server_errors += outcome.failed
         elif isinstance(outcome, Exception):
             result.note = f"{type(outcome).__name__}: {outcome}"
             result.statuses.append(-1)
@@ -179,6 +191,138 @@ def _upload(client, data: bytes, **form):
                                      data={"preset": "test", **form}))
 
 
+FLOOD_FRAMES = 49
+KEEPALIVE_HOLD_S = 45.0
+"""Longer than uvicorn's keepalive round (a ping every 20 s, 20 s for its pong)."""
+
+
+def stream_flood(client):
+    """Case 8: a stream socket sends 49 frames as fast as it can, then reads the answers; every
+    frame must get one (ack or dropped), and the socket must still take a frame after
+    ``KEEPALIVE_HOLD_S`` with its session still behind, then finish."""
+    created = _send(lambda: client.post("/api/sessions", json={
+        "source": "stream", "preset": "test", "intrinsics": "52,52,31.5,23.5", "depth_scale": 5000}))
+    yield created
+    if isinstance(created, Exception) or created.status_code != 201:
+        return
+    session = created.json()["id"]
+    yield flood_socket(str(client.base_url).replace("http", "ws", 1) + f"/api/sessions/{session}/stream?token={TOKEN}")
+    yield _send(lambda: client.delete(f"/api/sessions/{session}"))
+
+
+def flood_socket(url: str) -> CaseNote:
+    """The socket half of case 8: acks / drops / errors of the frames sent, and whether it survived."""
+    import websockets.sync.client as ws_client
+    from websockets.exceptions import ConnectionClosed
+
+    answers: list[str] = []
+    survived, closed = False, ""
+    try:
+        with ws_client.connect(url, open_timeout=HANG_S, close_timeout=5) as sock:
+            sock.send("{}")
+            sock.recv(timeout=HANG_S)
+            for i in range(FLOOD_FRAMES):
+                sock.send(struct.pack("<dI", i / 30, len(COLOR)) + COLOR + DEPTH)
+            for _ in range(FLOOD_FRAMES):
+                answers.append(json.loads(sock.recv(timeout=HANG_S))["type"])
+            time.sleep(KEEPALIVE_HOLD_S)
+            sock.send(struct.pack("<dI", FLOOD_FRAMES / 30, len(COLOR)) + COLOR + DEPTH)
+            late = json.loads(sock.recv(timeout=HANG_S))["type"]
+            sock.send(json.dumps({"type": "finish"}))
+            survived = late in ("ack", "dropped") and json.loads(sock.recv(timeout=HANG_S))["type"] == "finished"
+    except ConnectionClosed as error:
+        closed = f"; closed: {error.rcvd.code} {error.rcvd.reason}" if error.rcvd else "; connection lost"
+    except TimeoutError:
+        closed = f"; no answer within {HANG_S:g} s"
+    counts = {kind: answers.count(kind) for kind in ("ack", "dropped", "error")}
+    unanswered = FLOOD_FRAMES - len(answers)
+    text = (f"sent {FLOOD_FRAMES}: acks {counts['ack']}, dropped {counts['dropped']}, errors {counts['error']}, "
+            f"unanswered {unanswered}; socket {'survived' if survived else 'died'} a {KEEPALIVE_HOLD_S:g} s hold{closed}")
+    return CaseNote(text, failed=unanswered > 0 or not survived)
+
+
+@dataclass(frozen=True)
+class Handshake:
+    """A WebSocket handshake's answer as a status code: 101 accepted, else the refusal's."""
+
+    status_code: int
+
+
+def handshake(url: str, origin: str | None = None):
+    """Open and close a WebSocket: a :class:`Handshake`, or the exception that ended it."""
+    from websockets.exceptions import InvalidStatus, WebSocketException
+    from websockets.sync.client import connect
+
+    try:
+        with connect(url, origin=origin, open_timeout=HANG_S, close_timeout=2):
+            return Handshake(101)
+    except InvalidStatus as refused:
+        return Handshake(refused.response.status_code)
+    except (OSError, WebSocketException) as error:
+        return error
+
+
+def _stream_session(client):
+    created = _send(lambda: client.post("/api/sessions", json={"source": "stream", "preset": "test"}))
+    ok = not isinstance(created, Exception) and created.status_code == 201
+    return created, (created.json()["id"] if ok else "000000000000")
+
+
+def token_everywhere(client):
+    """Case 9: the token in every spelling a client may use, over HTTP and WebSockets (the log
+    is scanned for it once every case has run: :func:`token_leaks`)."""
+    created, session = _stream_session(client)
+    yield created
+    bare = httpx.Client(base_url=str(client.base_url), timeout=HANG_S)
+    encoded = "".join(f"%{b:02X}" for b in TOKEN.encode())
+    for path in (f"/api/sessions?token={TOKEN}", f"/api/sessions?TOKEN={encoded.lower()}&x=1", f"/?token={TOKEN}",
+                 f"/viewer%3Ftoken%3D{TOKEN}", f"/api/sessions/token%3D{encoded}", f"/api/sessions/{TOKEN}"):
+        yield _send(lambda: bare.get(path))
+    yield _send(lambda: bare.get("/api/sessions", headers={"Authorization": f"Bearer {TOKEN}"}))
+    ws = str(client.base_url).replace("http", "ws", 1)
+    for path in (f"/api/sessions/{session}/stream?token={TOKEN}", f"/api/sessions/{session}/stream?token={encoded}",
+                 f"/viewer?token={TOKEN}", f"/api/sessions/{session}/stream%3Ftoken%3D{TOKEN}"):
+        yield handshake(ws + path)
+    bare.close()
+    yield _send(lambda: client.delete(f"/api/sessions/{session}"))
+
+
+def foreign_origins(client):
+    """Case 9: WebSocket handshakes from other sites' pages (each must get 403), then from our
+    own page and from a program without ``Origin`` (both 101)."""
+    created, session = _stream_session(client)
+    yield created
+    base = str(client.base_url)
+    url = base.replace("http", "ws", 1) + f"/api/sessions/{session}/stream?token={TOKEN}"
+    port = base.rsplit(":", 1)[1]
+    for origin in ("http://evil.example", f"http://evil.example:{port}", f"http://127.0.0.1:{free_port()}", "null"):
+        yield handshake(url, origin)
+    for origin in (base, None):
+        yield handshake(url, origin)
+    yield _send(lambda: client.delete(f"/api/sessions/{session}"))
+
+
+ORIGIN_CASE = "9 WebSockets from another site's page"
+
+
+def foreign_accepted(result: CaseResult) -> int:
+    """Handshakes from foreign origins that were accepted (the first 101s before our own two)."""
+    return result.statuses[1:5].count(101)
+
+
+def token_spellings(token: str = TOKEN) -> list[str]:
+    from urllib.parse import quote, quote_plus
+
+    every_byte = "".join(f"%{b:02X}" for b in token.encode())
+    return [token, quote(token, safe=""), quote_plus(token), every_byte, every_byte.lower()]
+
+
+def token_leaks(log: Path) -> int:
+    """How often the token appears in the server's log, in any spelling (target 0)."""
+    text = log.read_text(errors="replace")
+    return sum(text.count(spelling) for spelling in set(token_spellings()))
+
+
 RENDER_FLOOD_RENDERS = 16
 RENDER_FLOOD_VIDEOS = 20
 RENDER_FLOOD_WAIT_S = 300.0
@@ -203,7 +347,7 @@ def _map_session(client) -> str | None:
 
 
 def render_flood(client):
-    """Case 10: 16 concurrent 2048x2048 renders and 20 camera-path videos (half of them over
+    """Case 11: 16 concurrent 2048x2048 renders and 20 camera-path videos (half of them over
     the pixel budget) while a second client polls ``GET /api/sessions``: the answers (200, or
     503/504/429/422 from the budget), the second client's p95 latency, and (run_case) the API
     process's peak memory."""
@@ -257,7 +401,7 @@ def render_flood(client):
     yield _send(lambda: client.delete(f"/api/sessions/{session}"))
 
 
-RENDER_FLOOD_CASE = "10 16 renders 2048x2048 + 20 videos while a client polls"
+RENDER_FLOOD_CASE = "11 16 renders 2048x2048 + 20 videos while a client polls"
 
 
 def cases() -> dict[str, object]:
@@ -339,7 +483,9 @@ def cases() -> dict[str, object]:
             "3 huge sizes in small requests": huge_sizes, "4 150 creates at a full queue": full_queue,
             "5 200 MiB and 200k-deep JSON": big_and_deep_json, "7 values out of range": out_of_range,
             "7 lists racing deletions, empty mesh": operator, "7 300 assets": many_assets,
-            RENDER_FLOOD_CASE: render_flood}
+            "8 a stream sending 49 frames as fast as it can": stream_flood,
+            "9 the token in every spelling, HTTP and WebSocket": token_everywhere, ORIGIN_CASE: foreign_origins,
+            "10 zips the disk cannot unpack": unpackable_zips, RENDER_FLOOD_CASE: render_flood}
 
 
 def slow_body_then_sigterm(data_dir: Path) -> CaseResult:
@@ -364,6 +510,114 @@ def slow_body_then_sigterm(data_dir: Path) -> CaseResult:
     result.note = f"exited {result.seconds} s after SIGTERM"
     sock.close()
     server.stop()
+    return result
+
+
+def unpackable_zips(client):
+    """Case 10: zips no disk can unpack as they are (a file that another entry needs as a folder,
+    either order; a 300-character name; 2000 folders deep), at the top and in a folder: 422 each."""
+    deep = "/".join(["d"] * 2000) + "/x.png"
+    for names in (["d/x", "d/x/y"], ["d/x/y", "d/x"], ["rgb/" + "n" * 300 + ".png"], [deep]):
+        for top in ("", "rgbd_dataset_freiburg1_tiny/"):
+            buffer = io.BytesIO()
+            with zipfile.ZipFile(buffer, "w") as archive:
+                for name in names + ["rgb.txt"]:
+                    archive.writestr(top + name, b"x")
+            yield _upload(client, buffer.getvalue())
+
+
+def worker_processes(server_pid: int) -> int:
+    """Spawned processes of the server now (its session workers, and its decode helper when
+    one runs): direct children started by multiprocessing's spawn."""
+    count = 0
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            if int(stat.read_text().rsplit(")", 1)[1].split()[1]) != server_pid:
+                continue
+            count += b"spawn_main" in (stat.parent / "cmdline").read_bytes()
+        except (OSError, ValueError):
+            continue
+    return count
+
+
+SLOT_SESSIONS = 34
+
+
+def cancel_queued_under_one_slot(data_dir: Path) -> CaseResult:
+    """Case 11: VOXFUSION_MAX_SESSIONS=1, 34 synthetic sessions (one running, 33 queued), then
+    all deleted at once; the worker processes alive at once are counted every 0.1 s until none
+    is left (target: never more than 1)."""
+    server = Server(data_dir, {"VOXFUSION_MAX_SESSIONS": "1", "VOXFUSION_MAX_QUEUED": str(SLOT_SESSIONS)})
+    result = CaseResult(f"11 {SLOT_SESSIONS} sessions deleted at once under MAX_SESSIONS=1")
+    started = time.monotonic()
+    baseline = worker_processes(server.process.pid)  # no session yet
+    spec = {"source": "synthetic", "preset": "test", "spec": "orbit?frames=400&width=64&height=48"}
+    ids = []
+    for _ in range(SLOT_SESSIONS):
+        response = _send(lambda: server.client.post("/api/sessions", json=spec))
+        result.statuses.append(getattr(response, "status_code", -1))
+        if getattr(response, "status_code", 0) == 201:
+            ids.append(response.json()["id"])
+    while worker_processes(server.process.pid) == baseline and time.monotonic() - started < HANG_S:
+        time.sleep(0.1)
+    peak = [0]
+    done = threading.Event()
+
+    def sample() -> None:
+        while not done.is_set():
+            peak[0] = max(peak[0], worker_processes(server.process.pid) - baseline)
+            time.sleep(0.1)
+
+    sampler = threading.Thread(target=sample, daemon=True)
+    sampler.start()
+    threads = [threading.Thread(target=lambda s=s: result.statuses.append(
+        getattr(_send(lambda: server.client.delete(f"/api/sessions/{s}")), "status_code", -1))) for s in ids]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    deadline = time.monotonic() + 60
+    while worker_processes(server.process.pid) > baseline and time.monotonic() < deadline:
+        time.sleep(0.2)
+    done.set()
+    sampler.join()
+    result.seconds = round(time.monotonic() - started, 2)
+    result.server_errors = sum(s >= 500 for s in result.statuses) + (peak[0] > 1)
+    result.peak_mb = round(server.memory_mb()[1], 1)
+    result.note = f"at most {peak[0]} worker processes alive at once (target 1)"
+    server.stop()
+    return result
+
+
+def sigterm_in_first_seconds(data_dir: Path) -> CaseResult:
+    """Case 12: SIGTERM as soon as a session has reported its first frame: the server must be
+    gone within 10 s with the session's trajectory.txt written and run.json's frames > 0."""
+    server = Server(data_dir)
+    result = CaseResult("12 SIGTERM in a session's first seconds")
+    created = server.client.post("/api/sessions", json={"source": "synthetic", "preset": "test",
+                                                        "spec": "orbit?frames=60&width=64&height=48"})
+    session = created.json()["id"]
+    deadline = time.monotonic() + 120
+    while server.client.get(f"/api/sessions/{session}").json()["frames_done"] < 1 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    started = time.monotonic()
+    server.process.terminate()
+    try:
+        server.process.wait(timeout=HANG_S)
+    except subprocess.TimeoutExpired:
+        result.hangs += 1
+    result.seconds = round(time.monotonic() - started, 2)
+    server.stop()
+    folder = data_dir / "sessions" / session
+    trajectory = folder / "trajectory.txt"
+    rows = sum(1 for line in trajectory.read_text().splitlines() if line and line[0] != "#") if trajectory.is_file() else 0
+    try:
+        frames = json.loads((folder / "run.json").read_text()).get("frames", 0)
+    except (OSError, ValueError):
+        frames = 0
+    result.server_errors = int(rows == 0 or frames == 0 or result.seconds >= 10)
+    result.note = (f"gone {result.seconds} s after SIGTERM; trajectory.txt {rows} rows, run.json frames {frames} "
+                   f"(targets: < 10 s, > 0, > 0)")
     return result
 
 
@@ -408,10 +662,17 @@ def main() -> int:
         server.stop()
     results.append(slow_body_then_sigterm(work / "data2"))
     print(f"{results[-1].name}: {results[-1].note}, hangs {results[-1].hangs}", flush=True)
+    for case, data in ((cancel_queued_under_one_slot, "data3"), (sigterm_in_first_seconds, "data4")):
+        results.append(case(work / data))
+        print(f"{results[-1].name}: {results[-1].note}, 5xx/failed {results[-1].server_errors}", flush=True)
+    leaks = token_leaks(Path(server.log.name))
+    accepted = sum(foreign_accepted(r) for r in results if r.name == ORIGIN_CASE)
+    print(f"token in the server's log: {leaks} times (target 0); foreign-origin WebSockets accepted: {accepted} "
+          f"(target 0)", flush=True)
     errors = sum(r.server_errors for r in results)
     hangs = sum(r.hangs for r in results)
     peak = max(r.peak_mb for r in results)
-    verdict = errors == 0 and hangs == 0 and peak < 1024
+    verdict = errors == 0 and hangs == 0 and peak < 1024 and leaks == 0 and accepted == 0
     print(f"\nserver errors {errors}, hangs {hangs}, peak API memory {peak:.0f} MiB: "
           f"{'PASS' if verdict else 'FAIL'} (0, 0, < 1024)")
     if args.out:
