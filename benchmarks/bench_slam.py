@@ -243,9 +243,15 @@ def target_figures(rows: list[dict], seqs: list[BenchSequence]) -> list[Figure]:
                 other = next((o for o in rows if o["system"] == peer and o["sequence"] == seq.name), None)
                 if other is None or "error" in other or "error" in r:
                     continue
-                target = ">= 0.6" if seq.synthetic_spec is None and peer == "open3d" else ""
+                real = seq.synthetic_spec is None
+                target = (">= 0.6" if peer == "open3d" else ">= 1.0") if real else ""
                 figures.append(Figure(f"{seq.name}: frames/s against {peer} (same run)", r["fps"] / other["fps"],
                                       "x", target, f"{r['fps']:.2f} against {other['fps']:.2f} frames/s"))
+            timings = r.get("timings_s") or {}
+            if "tracking_end_of_run" in timings and timings.get("wall"):
+                figures.append(Figure(f"{seq.name}: end-of-run phases, share of wall",
+                                      100 * timings["tracking_end_of_run"] / timings["wall"], "%", "<= 10",
+                                      "final bundle adjustment, re-tracking, colour fit, map and mesh"))
     return figures
 
 
