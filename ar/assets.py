@@ -6,11 +6,20 @@ colours become per-corner colours; textures are sampled at the vertices by trime
 mesh is flat shaded because files rarely say which edges are meant to be sharp.
 Coordinates are kept as they are in the file: the object's ``scale`` and ``T_world_obj``
 place it.
+
+Sizes are checked before trimesh sees the bytes, from what the file says of itself: a PLY's
+header element counts, an OBJ's ``v`` and ``f`` lines, a GLB's JSON chunk (its node count,
+the depth of its node hierarchy, which must be a forest, and the faces and vertices its mesh
+instances add up to). trimesh's scene graph costs far more than linear time in the depth of
+a node chain, so a small file could otherwise keep a parser busy for minutes. The counts are
+checked again on the parsed meshes (an OBJ polygon becomes several triangles).
 """
 
 from __future__ import annotations
 
 import io
+import json
+import struct
 from pathlib import Path
 
 import numpy as np
@@ -22,6 +31,12 @@ SUPPORTED_EXTENSIONS = ("glb", "obj", "ply")
 MAX_ASSET_FACES = 500_000
 MAX_ASSET_VERTICES = 1_500_000
 MAX_ASSET_BYTES = 64 * 1024 * 1024
+MAX_GLTF_NODES = 4096
+"""Nodes of a GLB (trimesh flattens that many instances in seconds)."""
+MAX_GLTF_DEPTH = 64
+"""Levels of a GLB's node hierarchy (real models nest a handful deep)."""
+PLY_HEADER_BYTES = 64 * 1024
+"""Where a PLY's ``end_header`` must appear."""
 
 
 class AssetError(ValueError):
@@ -54,6 +69,7 @@ def load_asset(
         raise AssetError(f"{name}: unsupported asset type {extension!r}, expected one of {expected}")
     if not data:
         raise AssetError(f"{name}: the file is empty")
+    check_declared_size(data, extension, name, max_faces=max_faces, max_vertices=max_vertices)
     try:
         # process=False keeps the file's vertices as they are (no merging that would blend
         # the per-corner colours of a face-coloured mesh).
@@ -66,17 +82,139 @@ def load_asset(
     meshes = _triangle_meshes(loaded)
     if not meshes:
         raise AssetError(f"{name}: contains no triangles")
-    num_faces = sum(len(m.faces) for m in meshes)
-    num_vertices = sum(len(m.vertices) for m in meshes)
-    if num_faces > max_faces or num_vertices > max_vertices:
-        raise AssetError(
-            f"{name}: too large ({num_faces} faces, {num_vertices} vertices; limits {max_faces} and {max_vertices})"
-        )
+    _check_counts(name, sum(len(m.faces) for m in meshes), sum(len(m.vertices) for m in meshes),
+                  max_faces, max_vertices)
     try:
         return _concatenate(meshes)
     except ValueError as error:
         raise AssetError(f"{name} holds mesh data that cannot be used (faces that point at missing "
                          f"vertices, or mismatched colours)") from error
+
+
+def check_declared_size(data: bytes, extension: str, name: str, *, max_faces: int = MAX_ASSET_FACES,
+                        max_vertices: int = MAX_ASSET_VERTICES) -> None:
+    """Refuse a file whose own description (PLY header, OBJ lines, GLB JSON) is over a limit,
+    without parsing its geometry; AssetError names the file and the limit."""
+    if extension == "ply":
+        _check_ply_header(data, name, max_faces, max_vertices)
+    elif extension == "obj":
+        _check_counts(name, _obj_lines(data, b"f"), _obj_lines(data, b"v"), max_faces, max_vertices)
+    elif extension == "glb":
+        _check_gltf(_glb_json(data, name), name, max_faces, max_vertices)
+
+
+def _check_counts(name: str, faces: int, vertices: int, max_faces: int, max_vertices: int) -> None:
+    if faces > max_faces:
+        raise AssetError(f"{name}: {faces} faces; the limit is {max_faces} (too large)")
+    if vertices > max_vertices:
+        raise AssetError(f"{name}: {vertices} vertices; the limit is {max_vertices} (too large)")
+
+
+def _obj_lines(data: bytes, keyword: bytes) -> int:
+    """Lines of an OBJ that start with ``keyword`` and a space or tab (C-speed byte counts)."""
+    return sum(data.startswith(keyword + gap) + data.count(b"\n" + keyword + gap) for gap in (b" ", b"\t"))
+
+
+def _check_ply_header(data: bytes, name: str, max_faces: int, max_vertices: int) -> None:
+    """Every ``element NAME COUNT`` of the header within its limit (faces, else vertices)."""
+    end = data.find(b"end_header", 0, PLY_HEADER_BYTES)
+    if not data.startswith(b"ply") or end < 0:
+        raise AssetError(f"{name} could not be read as a PLY file: no PLY header in its first "
+                         f"{PLY_HEADER_BYTES // 1024} KiB")
+    for line in data[:end].decode("ascii", "replace").splitlines():
+        words = line.split()
+        if len(words) != 3 or words[0] != "element":
+            continue
+        try:
+            count = int(words[2])
+        except ValueError:
+            raise AssetError(f"{name} could not be read as a PLY file: bad element line {line!r}") from None
+        if words[1] == "face":
+            _check_counts(name, count, 0, max_faces, max_vertices)
+        elif words[1] == "vertex":
+            _check_counts(name, 0, count, max_faces, max_vertices)
+        elif count > max_vertices:
+            raise AssetError(f"{name}: {count} {words[1]} elements; the limit is {max_vertices} (too large)")
+
+
+def _glb_json(data: bytes, name: str) -> dict:
+    """The JSON chunk of a binary glTF (header: magic, version, length; then the chunk)."""
+    damaged = AssetError(f"{name} could not be read as a GLB file: it is damaged or not a GLB file")
+    if len(data) < 20 or data[:4] != b"glTF":
+        raise damaged
+    length, kind = struct.unpack_from("<I4s", data, 12)
+    if kind != b"JSON" or 20 + length > len(data):
+        raise damaged
+    try:
+        document = json.loads(data[20:20 + length])
+    except (ValueError, RecursionError):
+        raise damaged from None
+    if not isinstance(document, dict):
+        raise damaged
+    return document
+
+
+def _check_gltf(document: dict, name: str, max_faces: int, max_vertices: int) -> None:
+    """Node count, hierarchy depth (a forest: one parent each, no cycles) and the faces and
+    vertices of every mesh instance, from the glTF JSON alone."""
+    nodes = document.get("nodes") or []
+    if not isinstance(nodes, list) or not all(isinstance(n, dict) for n in nodes):
+        raise AssetError(f"{name} could not be read as a GLB file: its nodes are not a list of objects")
+    depth = _hierarchy_depth([_children(n, len(nodes), name) for n in nodes], name)
+    if depth > MAX_GLTF_DEPTH:
+        raise AssetError(f"{name}: its nodes nest {depth} levels deep; the limit is {MAX_GLTF_DEPTH}")
+    if len(nodes) > MAX_GLTF_NODES:
+        raise AssetError(f"{name}: {len(nodes)} nodes; the limit is {MAX_GLTF_NODES}")
+    mesh_sizes = _gltf_mesh_sizes(document)
+    instances = [mesh_sizes.get(n["mesh"], (0, 0)) for n in nodes if isinstance(n.get("mesh"), int)]
+    _check_counts(name, sum(f for f, _ in instances), sum(v for _, v in instances), max_faces, max_vertices)
+
+
+def _children(node: dict, count: int, name: str) -> list[int]:
+    children = node.get("children", [])
+    if not isinstance(children, list) or not all(isinstance(c, int) and 0 <= c < count for c in children):
+        raise AssetError(f"{name} could not be read as a GLB file: a node names children that do not exist")
+    return children
+
+
+def _hierarchy_depth(children: list[list[int]], name: str) -> int:
+    """Levels of the node forest (1 for nodes without children), walked breadth first."""
+    parents = [0] * len(children)
+    for child in (c for kids in children for c in kids):
+        parents[child] += 1
+        if parents[child] > 1:
+            raise AssetError(f"{name}: node {child} has more than one parent; glTF nodes form trees")
+    level = [i for i, count in enumerate(parents) if count == 0]
+    depth = seen = 0
+    while level:
+        depth, seen = depth + 1, seen + len(level)
+        level = [c for i in level for c in children[i]]
+    if seen < len(children):
+        raise AssetError(f"{name}: its nodes form a cycle; glTF nodes form trees")
+    return depth
+
+
+def _gltf_mesh_sizes(document: dict) -> dict[int, tuple[int, int]]:
+    """Mesh index -> (triangles, vertices) its primitives declare (accessor counts; a
+    primitive without indices counts its vertices as corners)."""
+    accessors = document.get("accessors") or []
+
+    def count(index: object) -> int:
+        ok = isinstance(index, int) and 0 <= index < len(accessors) and isinstance(accessors[index], dict)
+        value = accessors[index].get("count", 0) if ok else 0
+        return value if isinstance(value, int) and value > 0 else 0
+
+    sizes = {}
+    for index, mesh in enumerate(document.get("meshes") or []):
+        primitives = mesh.get("primitives", []) if isinstance(mesh, dict) else []
+        faces = vertices = 0
+        for primitive in (p for p in primitives if isinstance(p, dict)):
+            attributes = primitive.get("attributes")
+            corners = count(attributes.get("POSITION")) if isinstance(attributes, dict) else 0
+            vertices += corners
+            faces += count(primitive["indices"]) // 3 if "indices" in primitive else corners // 3
+        sizes[index] = (faces, vertices)
+    return sizes
 
 
 def _read_source(source: bytes | str | Path, filename: str | None) -> tuple[bytes, str]:

@@ -138,8 +138,9 @@ async def ar_view(session_id: str, request: ARRequest, manager: SessionManager =
                   pools: RenderPools = Depends(get_render_pools), assets: AssetStore = Depends(get_assets)) -> Response:
     check_session_id(session_id)
     try:
-        objects = await run_in_threadpool(
-            load_objects_json, [o.model_dump(exclude_none=True) for o in request.objects], assets.resolve)
+        with http_answers("AR objects"):  # assets are parsed in the decode helper: 503 when it stays busy
+            objects = await run_in_threadpool(
+                load_objects_json, [o.model_dump(exclude_none=True) for o in request.objects], assets.resolve)
     except (ObjectSpecError, ValueError, KeyError) as error:
         raise HTTPException(422, error_text(error)) from None
     try:

@@ -8,7 +8,7 @@ from fastapi import APIRouter, Depends, HTTPException, Query, status
 from server.deps import get_manager, require_token
 from server.routes_sessions import trajectory_file
 from server.schemas import ErrorOut, SeriesOut
-from server.series import compare, ground_truth, rounded
+from server.series import NOTHING, compare, rounded, source_facts
 from server.sessions import ENDED, SessionManager, check_session_id
 from server.upload import MAX_AGENTS
 from slam import DataError, Trajectory, read_tum
@@ -41,7 +41,8 @@ def get_series(session_id: str,
     """The estimate is aligned onto the ground truth as the ATE aligns it (timestamp pairs
     within 20 ms, rigid Umeyama), so ``estimated`` and ``ground_truth`` share one frame and
     ``error_m`` is each frame's distance after alignment; without ground truth the estimate
-    is in the session's world frame and the error fields are null. ``fps_*`` sample the
+    is in the session's world frame and the error fields are null; ``ground_truth_note`` says
+    why an input's ground truth is not shown (too large to read). ``fps_*`` sample the
     tracking phase (the status's frames/s is ``fps_frames[-1] / fps_time_s[-1]``)."""
     state = manager.get(check_session_id(session_id))
     agents = manager.agent_count(session_id)
@@ -49,12 +50,14 @@ def get_series(session_id: str,
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"session {session_id} has no agent {agent}: it has "
                                                        f"{agents} agent{'s' if agents != 1 else ''}")
     sources = state.sources
-    truth = ground_truth(sources[agent]) if agent < len(sources) else None
+    facts = source_facts(sources[agent]) if agent < len(sources) else NOTHING
+    truth = facts.truth
     estimate = estimated_trajectory(manager, session_id, agent)
     comparison = compare(estimate, truth)
     samples = manager.fps_samples(session_id)
     return SeriesOut(
         agent=agent, timestamps=rounded(estimate.timestamps), estimated=rounded(comparison.estimated),
         aligned=comparison.aligned, ground_truth=None if truth is None else rounded(truth.positions),
+        ground_truth_note=facts.note,
         error_m=rounded(comparison.errors) if comparison.aligned else None, ate_rmse_m=comparison.rmse,
         fps_time_s=[t for t, _ in samples], fps_frames=[n for _, n in samples])

@@ -216,6 +216,10 @@ class SeriesOut(BaseModel):
     ground_truth: list[list[float]] | None = Field(examples=[[[0.0, 0.0, 1.4]]],
                                                    description="the input's ground-truth camera centres (all "
                                                                "frames); null without ground truth")
+    ground_truth_note: str | None = Field(None, examples=["the ground truth is not shown: traj.txt has more than "
+                                                          "200000 lines"],
+                                          description="why the input's ground truth is not shown (too large to "
+                                                      "read, or being read); null otherwise")
     error_m: list[float | None] | None = Field(examples=[[0.002, 0.003]],
                                                description="per estimated frame, its distance to its ground-truth "
                                                            "pose after alignment (null: no pair); null when not "
