@@ -22,6 +22,9 @@ its constant.
 | frames streamed to one session | 1,000,000 | ``server.stream`` |
 | sessions waiting in the queue | ``VOXFUSION_MAX_QUEUED`` | ``server.sessions`` |
 | assets stored by the server | 256 files, 1 GiB in all; at most 16 parsed meshes and 256 MiB in memory | ``server.assets`` |
+| one asset | 500,000 faces, 1,500,000 vertices; a GLB: 4096 nodes nested at most 64 deep (counted before parsing) | ``ar.assets`` |
+| parsing an asset | in the decode helper, 30 s (then 422); one at a time, a request waits at most 10 s more, then 503 + ``Retry-After`` | ``server.assets`` |
+| a ground-truth file the series reads | 200,000 lines, 64 MiB (else the series says so); read in the decode helper, 60 s; 16 sources' times and camera centres, 64 MiB, kept | ``server.series`` |
 | AR objects in one request | 64 | ``server.schemas`` |
 | rendered views | 2048 a side | ``server.schemas`` |
 | renders, picks, AR composites, mesh exports at once | 2 helper processes, 4 more wait up to 10 s, then 503 + ``Retry-After`` | ``server.render_pools`` |
