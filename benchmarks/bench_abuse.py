@@ -404,6 +404,115 @@ def render_flood(client):
 RENDER_FLOOD_CASE = "11 16 renders 2048x2048 + 20 videos while a client polls"
 
 
+def deep_glb(depth: int = 5000) -> bytes:
+    """A GLB of one triangle held by a chain of ``depth`` nodes, each the only child of the
+    one before and each an instance of the triangle."""
+    positions = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32).tobytes()
+    binary = positions + np.array([0, 1, 2, 0], np.uint16).tobytes()
+    nodes = [{"mesh": 0, "children": [i + 1]} for i in range(depth - 1)] + [{"mesh": 0}]
+    document = {"asset": {"version": "2.0"}, "scene": 0, "scenes": [{"nodes": [0]}], "nodes": nodes,
+                "meshes": [{"primitives": [{"attributes": {"POSITION": 0}, "indices": 1}]}],
+                "buffers": [{"byteLength": len(binary)}],
+                "bufferViews": [{"buffer": 0, "byteLength": 36}, {"buffer": 0, "byteOffset": 36, "byteLength": 6}],
+                "accessors": [{"bufferView": 0, "componentType": 5126, "count": 3, "type": "VEC3",
+                               "min": [0, 0, 0], "max": [1, 1, 0]},
+                              {"bufferView": 1, "componentType": 5123, "count": 3, "type": "SCALAR"}]}
+    text = json.dumps(document, separators=(",", ":")).encode()
+    text += b" " * (-len(text) % 4)
+    body = struct.pack("<I4s", len(text), b"JSON") + text + struct.pack("<I4s", len(binary), b"BIN\0") + binary
+    return struct.pack("<4sII", b"glTF", 2, 12 + len(body)) + body
+
+
+def replica_zip_long_traj(lines: int = 2_000_000, frames: int = 3) -> bytes:
+    """A Replica scene of ``frames`` frames whose ``traj.txt`` has ``lines`` poses (distinct
+    rows, so the zip is megabytes, not kilobytes)."""
+    entries = {"cam_params.json": json.dumps({"camera": {"w": 64, "h": 48, "fx": 50.0, "fy": 50.0, "cx": 31.5,
+                                                         "cy": 23.5, "scale": 6553.5}}).encode()}
+    for n in range(frames):
+        entries[f"room0/results/frame{n:06d}.jpg"] = cv2.imencode(".jpg", np.full((48, 64, 3), 100, np.uint8))[1].tobytes()
+        entries[f"room0/results/depth{n:06d}.png"] = png(np.full((48, 64), 6553, np.uint16))
+    rows = (f"1 0 0 {0.001 * i:.3f} 0 1 0 0 0 0 1 1 0 0 0 1\n" for i in range(lines))
+    entries["room0/traj.txt"] = "".join(rows).encode()
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w", compression=zipfile.ZIP_DEFLATED) as archive:
+        for name, data in entries.items():
+            archive.writestr(name, data)
+    return buffer.getvalue()
+
+
+class SessionsPoller:
+    """A second client that lists the sessions every 0.1 s on its own thread until stopped;
+    ``p95_ms`` of its answers' latencies."""
+
+    def __init__(self, client) -> None:
+        self._second = httpx.Client(base_url=str(client.base_url), headers=client.headers, timeout=HANG_S)
+        self._stop = threading.Event()
+        self.latencies: list[float] = []
+        self.answers: list = []
+        self._thread = threading.Thread(target=self._loop, daemon=True)
+        self._thread.start()
+
+    def _loop(self) -> None:
+        while not self._stop.wait(0.1):
+            started = time.monotonic()
+            self.answers.append(_send(lambda: self._second.get("/api/sessions")))
+            self.latencies.append(time.monotonic() - started)
+
+    def stop(self) -> str:
+        self._stop.set()
+        self._thread.join()
+        self._second.close()
+        p95 = 1000 * float(np.percentile(self.latencies, 95)) if self.latencies else float("nan")
+        return f"GET /api/sessions p95 {p95:.0f} ms over {len(self.latencies)} polls"
+
+
+def deep_node_glb(client):
+    """Case 12: a GLB whose 5,000 nodes nest 5,000 deep (422 within seconds, not minutes),
+    then the server still answers."""
+    data = deep_glb()
+    started = time.monotonic()
+    response = _send(lambda: client.post("/api/assets", files={"file": ("tower.glb", data)}))
+    yield response
+    detail = response.json().get("detail", "") if isinstance(response, httpx.Response) else ""
+    yield CaseNote(f"{len(data) // 1024} KiB GLB answered in {time.monotonic() - started:.2f} s: {detail[:90]}")
+    yield _send(lambda: client.get("/api/sessions"))
+
+
+def huge_obj(client):
+    """Case 13: an OBJ of 7 million faces (56 MB) is refused from its line counts."""
+    data = b"v 0 0 0\nv 1 0 0\nv 0 1 0\n" + b"f 1 2 3\n" * 7_000_000
+    started = time.monotonic()
+    response = _send(lambda: client.post("/api/assets", files={"file": ("big.obj", data)}))
+    yield response
+    detail = response.json().get("detail", "") if isinstance(response, httpx.Response) else ""
+    yield CaseNote(f"{len(data) // 2**20} MiB OBJ answered in {time.monotonic() - started:.2f} s: {detail[:90]}")
+
+
+def long_ground_truth(client):
+    """Case 14: a Replica upload whose traj.txt has 2 million lines, then its series (asked
+    three times) while a second client polls ``GET /api/sessions``."""
+    data = replica_zip_long_traj()
+    poller = SessionsPoller(client)
+    started = time.monotonic()
+    # The upload's own check reads traj.txt whole (in the decode helper): minutes, not a hang.
+    created = _send(lambda: client.post("/api/sessions", files={"file": ("d.zip", data, "application/zip")},
+                                        data={"preset": "test"}, timeout=300.0))
+    yield created
+    notes = [f"upload {time.monotonic() - started:.1f} s"]
+    if isinstance(created, httpx.Response) and created.status_code == 201:
+        session = created.json()["id"]
+        for _ in range(3):
+            started = time.monotonic()
+            series = _send(lambda: client.get(f"/api/sessions/{session}/series"))
+            yield series
+            note = series.json().get("ground_truth_note") if isinstance(series, httpx.Response) else None
+            notes.append(f"{time.monotonic() - started:.2f} s ({note})")
+            time.sleep(1.0)
+        yield _send(lambda: client.delete(f"/api/sessions/{session}"))
+    yield CaseNote(f"{len(data) // 2**20} MiB zip; {'; series: '.join(notes)}; {poller.stop()}")
+    yield from poller.answers
+
+
 def cases() -> dict[str, object]:
     def outside_paths(client):
         for name in ("/etc/hostname", "/no/such/file.png", "../../../../etc/passwd", "rgb/../../x.png"):
@@ -485,7 +594,9 @@ def cases() -> dict[str, object]:
             "7 lists racing deletions, empty mesh": operator, "7 300 assets": many_assets,
             "8 a stream sending 49 frames as fast as it can": stream_flood,
             "9 the token in every spelling, HTTP and WebSocket": token_everywhere, ORIGIN_CASE: foreign_origins,
-            "10 zips the disk cannot unpack": unpackable_zips, RENDER_FLOOD_CASE: render_flood}
+            "10 zips the disk cannot unpack": unpackable_zips, RENDER_FLOOD_CASE: render_flood,
+            "12 a GLB whose nodes nest 5,000 deep": deep_node_glb, "13 an OBJ of 7 million faces": huge_obj,
+            "14 a 2M-line traj.txt and its series while a client polls": long_ground_truth}
 
 
 def slow_body_then_sigterm(data_dir: Path) -> CaseResult:
