@@ -11,7 +11,7 @@ per frame compare within one run. A variant is a set of config overrides.
         [--frames 40] [--variants JSON] [--map-config JSON] [--json FILE] [--per-frame]
 
 ``--map-config`` overrides the mapper's config (the ``cpu`` preset's), e.g.
-``{"mapping": {"exposure": "per_channel"}}`` to compare the trackers against a map built
+``{"mapping": {"window_size": 6}}`` to compare the trackers against a map built
 another way (one map per run: run it once per map setting).
 
 The default variants are the ``cpu`` preset against its tracker before issue 18's cuts (6

@@ -310,6 +310,11 @@ RETIRED_FIELDS = {
     ("tracking", "constant_velocity"): _rejected("tracking.constant_velocity", "a86dcd1"),
     ("mapping", "keyframe_iterations"): _rejected("mapping.keyframe_iterations", "a86dcd1"),
     ("fine_color", "fit_extra_block"): _rejected("fine_color.fit_extra_block", "a86dcd1"),
+    ("tracking", "exposure"): _rejected("tracking.exposure", "a86dcd1"),
+    ("tracking", "exposure_prior"): _rejected("tracking.exposure", "a86dcd1"),
+    ("mapping", "exposure"): _rejected("mapping.exposure", "a86dcd1"),
+    ("mapping", "exposure_prior"): _rejected("mapping.exposure", "a86dcd1"),
+    ("mapping", "exposure_lr"): _rejected("mapping.exposure", "a86dcd1"),
 }
 """Fields that configs written by earlier versions (checkpoints, run.json) may still hold."""
 

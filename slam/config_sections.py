@@ -42,7 +42,6 @@ class DecoderConfig:
 
 
 STATIC_SHAPES = ("auto", "on", "off")
-EXPOSURE_MODES = ("off", "shared", "per_channel")
 COLOR_KERNELS = ("none", "huber", "cauchy")
 
 
@@ -174,11 +173,6 @@ class TrackingConfig:
     """Fewer PnP inliers than this: the frame is tracked without features."""
     feature_dense_check: bool = False
     """Gauss-Newton only: drop the features when the dense loss prefers the guess to their PnP pose."""
-    exposure: str = "off"
-    """Per-frame affine exposure fit of the rendered colour to the observed (``slam.photometric``):
-    ``off``, ``shared`` (one gain and bias) or ``per_channel`` (white balance too)."""
-    exposure_prior: float = 0.01
-    """Ridge weight holding the exposure fit at gain 1, bias 0, per unit of ray weight."""
     color_robust: str = "none"
     """Kernel on the colour residual: ``none`` (the paper's L1), ``huber`` or ``cauchy``, at a scale from its MAD."""
     color_adaptive: float = 0.0
@@ -197,9 +191,7 @@ class TrackingConfig:
         if self.retrack_iterations < 0 or self.retrack_rays < 1 or self.retrack_ray_budget < 0:
             raise ConfigError("tracking.retrack_iterations and retrack_ray_budget must be >= 0 and "
                               "tracking.retrack_rays >= 1")
-        _check_choice("tracking.exposure", self.exposure, EXPOSURE_MODES)
         _check_choice("tracking.color_robust", self.color_robust, COLOR_KERNELS)
-        _check_non_negative("tracking.exposure_prior", self.exposure_prior)
         _check_non_negative("tracking.color_adaptive", self.color_adaptive)
         if self.feature_count < 0 or self.feature_weight < 0 or self.feature_huber_px <= 0:
             raise ConfigError("tracking.feature_count and feature_weight must be >= 0 and feature_huber_px > 0")
@@ -266,19 +258,9 @@ class MappingConfig:
     """With ``thin_samples``: keep one free-space sample in this many (1: all)."""
     color_weight_eps: float = 1e-5
     """The colour head runs on samples whose weight exceeds this; a ray's colour is their mean."""
-    exposure: str = "off"
-    """A learnable affine exposure per keyframe (``off``, ``shared`` or ``per_channel``), fitted in closed
-    form at its first window, the submap's first keyframe held at identity; stored with the keyframe."""
-    exposure_prior: float = 0.1
-    """Weight of the window's mean squared distance of the exposures from identity ((gain - 1)^2 + bias^2)."""
-    exposure_lr: float = 5e-3
-    """Adam learning rate of the keyframe exposures."""
 
     def __post_init__(self) -> None:
-        _check_choice("mapping.exposure", self.exposure, EXPOSURE_MODES)
         _check_choice("mapping.frame_correction", self.frame_correction, FRAME_CORRECTIONS)
-        _check_non_negative("mapping.exposure_prior", self.exposure_prior)
-        _check_non_negative("mapping.exposure_lr", self.exposure_lr)
         if isinstance(self.free_space_stride, bool) or not isinstance(self.free_space_stride, int) \
                 or self.free_space_stride < 1:
             raise ConfigError(f"mapping.free_space_stride must be an integer >= 1, got {self.free_space_stride!r}")

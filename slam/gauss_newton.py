@@ -315,9 +315,7 @@ def linearise_rendered(rendered: RenderedJacobians, rgb_gt: torch.Tensor, depth_
     """``linearise`` from a render at its pose: the loss against rgb_gt (R, 3), depth_gt (R,)
     over the rays ray_weight (R,) keeps (None: all), and its Gauss-Newton model.
 
-    ``colour`` (``slam.photometric``): exposure fit, robust kernel and colour weight of the
-    colour term; its residual is then ``gain * C + bias - C_gt`` (the exposure refitted at
-    this render, so the cost is the one minimised over it, and its Jacobian ``gain * J_C``);
+    ``colour`` (``slam.photometric``): robust kernel and colour weight of the colour term;
     None or inactive: the paper's L1 term."""
     colour = colour if colour is not None and colour.active else None
     with torch.no_grad():
@@ -358,9 +356,9 @@ def _assemble(rendered: RenderedJacobians, rgb_gt, depth_gt, ray_weight, lw: Los
         g = g + (J * (omega * res)[:, None]).sum(0)
 
     if n_use and colour is not None:
-        res, gain, rho, unit, factor = colour.terms(color[use], rgb_gt[use], color.new_ones(n_use), eps_color)
+        res, rho, unit, factor = colour.terms(color[use], rgb_gt[use], color.new_ones(n_use), eps_color)
         cost += lw.rgb * float(rho.sum() * factor) / (3 * den_use)
-        add((J_color[use] * gain[:, None]).reshape(-1, 6), res.reshape(-1),
+        add(J_color[use].reshape(-1, 6), res.reshape(-1),
             (lw.rgb * factor / (3 * den_use) * unit).reshape(-1))
     elif n_use:
         res_c = (color[use] - rgb_gt[use]).reshape(-1)
@@ -423,11 +421,11 @@ def _assemble_padded(rendered: RenderedJacobians, rgb_gt, depth_gt, ray_weight, 
 
     use_f = use.to(depth.dtype)
     if colour is not None:
-        res, gain, rho, unit, factor = colour.terms(color, rgb_gt, use_f, eps_color)
+        res, rho, unit, factor = colour.terms(color, rgb_gt, use_f, eps_color)
         res_c = res * use_f[:, None]
         cost = cost + lw.rgb * (rho * use_f[:, None]).sum().to(f64) * factor / (3 * den_use_c)
         omega = (lw.rgb * factor / (3 * den_use_c)).to(depth.dtype) * unit * use_f[:, None]
-        add((J_color * gain[:, None]).reshape(-1, 6), res_c.reshape(-1), omega.reshape(-1))
+        add(J_color.reshape(-1, 6), res_c.reshape(-1), omega.reshape(-1))
     else:
         res_c = (color - rgb_gt) * use_f[:, None]                                 # (R, 3)
         cost = cost + lw.rgb * res_c.abs().sum().to(f64) / (3 * den_use_c)

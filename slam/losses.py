@@ -102,8 +102,8 @@ def compute_losses(out: RenderOutput, rgb_gt: torch.Tensor, depth_gt: torch.Tens
     ``ray_weight`` (R,) in {0, 1} drops rays (tracking's outliers) from every term.
     ``normalisation``: ``ray`` (per-ray means, the paper) or ``slots`` (the release's padded
     slot means, ``_slot_means``) for the free-space and SDF terms. ``colour``
-    (``slam.photometric``): the colour term is ``factor * mean rho(gain * C + bias - C_gt)``
-    with the exposure fitted (and held constant) at this render; None or inactive: mean L1.
+    (``slam.photometric``): the colour term is ``factor * mean rho(C - C_gt)``; None or
+    inactive: mean L1.
     """
     num_rays = rgb_gt.shape[0]
     use = out.hit if ray_weight is None else out.hit & (ray_weight > 0)
@@ -111,7 +111,7 @@ def compute_losses(out: RenderOutput, rgb_gt: torch.Tensor, depth_gt: torch.Tens
     # Means over the rays kept, as masked sums: no count is read back from the device.
     use_f, depth_f = use.to(out.depth.dtype), valid_depth.to(out.depth.dtype)
     if colour is not None and colour.active:
-        _, _, rho, _, factor = colour.terms(out.color, rgb_gt, use_f, COLOR_EPS)
+        _, rho, _, factor = colour.terms(out.color, rgb_gt, use_f, COLOR_EPS)
         rgb = factor * (rho * use_f[:, None]).sum() / (3.0 * use_f.sum()).clamp(min=1.0)
     else:
         rgb = ((out.color - rgb_gt).abs() * use_f[:, None]).sum() / (3.0 * use_f.sum()).clamp(min=1.0)

@@ -13,10 +13,7 @@ For every tracked frame the mapper
    the frame itself with its tracked pose held fixed (the paper optimises that pose too, and
    so does ``mapping.optimize_current_pose``: the refined pose is then the frame's estimate,
    ``MappingStep.T_map_cam``). The first keyframe of a map is fixed to remove the gauge
-   freedom; with ``mapping.exposure`` every other frame of the window also has a learnable
-   affine exposure (its rendered colour times a gain plus a bias), fitted in closed form at
-   its first window, kept near identity by ``exposure_prior``, the first keyframe's held at
-   identity (the map's colour is that keyframe's), and stored with the keyframe;
+   freedom;
 4. at the end of a sequence, ``global_bundle_adjustment`` does the same over every keyframe
    of the submap (the paper's intra-map optimisation).
 
@@ -50,7 +47,6 @@ from .geometry import pose_moved, se3_exp, se3_exp_compact, se3_inverse
 from .losses import LossWeights, Losses, compute_losses
 from .maps import Keyframe, MapSet, SubMap
 from .padded import color_slots, grid_samples, grid_size, pack_samples, render_padded, round_up
-from .photometric import fit_exposure
 from .profiling import MAPPING_ITERATION, StageClock, scope
 from .render import TrainingThinning, render_rays
 from .transfer import to_host
@@ -141,81 +137,6 @@ class _Timer:
         self.totals[name] = self.totals.get(name, 0.0) + seconds
 
 
-@dataclass
-class _WindowExposure:
-    """The learnable exposures of one joint optimisation's S frames (``mapping.exposure``).
-
-    ``values`` (P, 2, C) are the gain and bias rows of the frames ``rows`` (P,) of the window,
-    all but the submap's first keyframe (identity, the gauge); ``unfitted`` (U,) indexes the
-    values with no estimate yet (new keyframes, the current frame), fitted in closed form
-    (``fit_exposure``) from the first iteration's render before its loss."""
-
-    values: torch.Tensor
-    identity: torch.Tensor
-    rows: torch.Tensor
-    unfitted: torch.Tensor
-    frames: int
-    per_channel: bool
-    prior: float
-    optimizer: torch.optim.Optimizer
-    fitted: bool = False
-
-    @staticmethod
-    def of(m, keyframes: list[Keyframe], first_kf: Keyframe, frames: int, device: torch.device,
-           fused: bool) -> "_WindowExposure | None":
-        if m.exposure == "off":
-            return None
-        C = 3 if m.exposure == "per_channel" else 1
-        identity = torch.stack([torch.ones(C), torch.zeros(C)])
-        rows, init, unfitted = [], [], []
-        for i in range(frames):
-            kf = keyframes[i] if i < len(keyframes) else None
-            if kf is first_kf:
-                continue
-            if kf is None or kf.exposure is None or kf.exposure.shape[-1] != C:
-                unfitted.append(len(rows))
-                init.append(identity)
-            else:
-                init.append(kf.exposure.detach().cpu())
-            rows.append(i)
-        values = (torch.stack(init) if init else torch.zeros(0, 2, C)).to(device).requires_grad_(True)
-        opt = torch.optim.Adam([values], lr=m.exposure_lr, fused=True if fused else None)
-        as_index = lambda xs: torch.tensor(xs, dtype=torch.long, device=device)  # noqa: E731
-        return _WindowExposure(values, identity.to(device), as_index(rows), as_index(unfitted), frames, m.exposure == "per_channel",
-                               m.exposure_prior, opt, fitted=not unfitted)
-
-    def per_frame(self) -> torch.Tensor:
-        """(S, 2, C): every frame's gain and bias rows, identity for the gauge keyframe."""
-        return self.identity.expand(self.frames, *self.identity.shape).index_copy(0, self.rows, self.values)
-
-    def applied(self, out, rgb_gt: torch.Tensor, rays_per_frame: int):
-        """``out`` with each frame's colour mapped by its exposure (rays frame by frame)."""
-        color = out.color.reshape(self.frames, rays_per_frame, 3)
-        if not self.fitted:
-            with torch.no_grad():
-                hit = out.hit.reshape(self.frames, rays_per_frame).to(color.dtype)
-                fit = fit_exposure(color.detach(), rgb_gt.reshape(self.frames, rays_per_frame, 3), hit,
-                                   per_channel=self.per_channel, prior=self.prior)
-                fitted = torch.stack([fit.gain, fit.bias], 1)[self.rows][self.unfitted]   # (U, 2, C)
-                self.values.index_copy_(0, self.unfitted, fitted)
-            self.fitted = True
-        E = self.per_frame()
-        return replace(out, color=(color * E[:, None, 0] + E[:, None, 1]).reshape(-1, 3))
-
-    def regularised(self, losses: Losses) -> Losses:
-        """``losses`` with ``prior`` times the mean of (gain - 1)^2 + bias^2 over the frames."""
-        E = self.per_frame()
-        penalty = ((E[:, 0] - 1.0) ** 2 + E[:, 1] ** 2).mean()
-        return replace(losses, total=losses.total + self.prior * penalty)
-
-    def store(self, keyframes: list[Keyframe]) -> None:
-        """Write the keyframes' exposures back (the gauge keyframe's stays identity)."""
-        E = self.per_frame().detach()
-        for i in self.rows.tolist():
-            if i < len(keyframes):
-                keyframes[i].exposure = E[i].clone()
-
-
 def fit_pixels(frame: TensorFrame, which: str) -> torch.Tensor:
     """(H, W) bool: the pixels of ``frame`` the fine colour level's rendered-surface fit learns
     from (``fine_color.fit_pixels``): ``observed``, every pixel whose colour the camera saw
@@ -245,7 +166,7 @@ class _JointWindow:
     """What the iterations of one joint optimisation share (``Mapper._joint_optimisation``):
     the S source frames (stacked) and their starting T_map_cam (S, 4, 4); the indices ``free``
     (P) of the free poses, as a tensor in ``free_rows``, their twists (P, 6) and optimiser
-    (None when none is free); the loss weights; the exposures; the map's view and sample step;
+    (None when none is free); the loss weights; the map's view and sample step;
     where the generator draws; the padded samples' shape with static shapes, else None."""
 
     sources: list[TensorFrame]
@@ -257,7 +178,6 @@ class _JointWindow:
     twists: torch.Tensor
     pose_opt: torch.optim.Optimizer | None
     weights: LossWeights
-    exposure: _WindowExposure | None
     view: object
     step: float
     gen_device: torch.device
@@ -649,8 +569,6 @@ class Mapper:
                 self.timer.add("render", tb - tq)
                 self.timer.add("backward", time.perf_counter() - tb)
         frame_poses = [T for _, T in fixed]
-        if w.exposure is not None:
-            w.exposure.store(keyframes)
         if w.free:
             self._move_free_poses(w, keyframes, frame_poses)
         return ({} if losses is None else losses.as_floats()), frame_poses
@@ -674,17 +592,16 @@ class Mapper:
         pose_opt = torch.optim.Adam([twists], lr=m.lr_pose, fused=True if self.static else None) if free else None
         weights = self._loss_weights()
         stack = stack_frames(sources)
-        exposure = _WindowExposure.of(m, keyframes, first_kf, len(sources), self.device, self.static)
         view = submap.view()  # the map does not change inside the loop (no allocation)
         step = r.step_ratio * submap.voxels.voxel_size
         gen_device = draw_device(self._gen, self.device)
         shape = self._sample_shape(sources, stack, rays_per_frame, T_start, view) if self.static else None
         return _JointWindow(sources, stack, rays_per_frame, T_start, free, free_rows, twists, pose_opt, weights,
-                            exposure, view, step, gen_device, shape)
+                            view, step, gen_device, shape)
 
     def _joint_losses(self, submap: SubMap, w: "_JointWindow") -> Losses:
         """One iteration's forward pass: a batch of rays of every source from its pose with the
-        twists applied, rendered (with the exposures) and scored."""
+        twists applied, rendered and scored."""
         batch = self._sample(w.sources, w.stack, w.rays_per_frame)
         T = w.T_start
         if w.free:
@@ -693,13 +610,9 @@ class Mapper:
         o, d = _window_rays(batch, T, len(w.sources), w.rays_per_frame)
         c_gt, d_gt = batch.rgb, batch.depth
         out = self._render_window(submap, w, o, d, d_gt)
-        if w.exposure is not None:
-            out = w.exposure.applied(out, c_gt, w.rays_per_frame)
         r = self.config.render
         losses = compute_losses(out, c_gt, d_gt, r.truncation, w.weights, max_depth=r.max_distance,
                                 normalisation=self.config.loss.normalisation)
-        if w.exposure is not None:
-            losses = w.exposure.regularised(losses)
         if submap.fine is not None:  # the fine level learns the residual; nothing else gets its gradient
             use = out.hit & (d_gt > 0)
             fine = fine_loss(submap.fine, o, d, out.color, out.depth, use, c_gt)
@@ -735,20 +648,15 @@ class Mapper:
                            color_weight_eps=m.color_weight_eps, renormalise_color=True)
 
     def _joint_step(self, submap: SubMap, optimizer, w: "_JointWindow", losses: Losses) -> None:
-        """One iteration's backward pass and the steps of the map's, the poses' and the
-        exposures' optimisers."""
+        """One iteration's backward pass and the steps of the map's and the poses' optimisers."""
         optimizer.zero_grad(set_to_none=True)
         if w.pose_opt is not None:
             w.pose_opt.zero_grad(set_to_none=True)
-        if w.exposure is not None:
-            w.exposure.optimizer.zero_grad(set_to_none=True)
         losses.total.backward()
         self._count_corner_updates(submap)
         optimizer.step()
         if w.pose_opt is not None:
             w.pose_opt.step()
-        if w.exposure is not None:
-            w.exposure.optimizer.step()
 
     @staticmethod
     def _move_free_poses(w: "_JointWindow", keyframes: list[Keyframe], frame_poses: list[torch.Tensor]) -> None:

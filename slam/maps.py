@@ -45,9 +45,6 @@ class Keyframe:
     """(6, 6) twist order (rho, omega): how uncertain tracking left this keyframe's pose
     relative to the same camera's previous keyframe (summed per-frame covariances; the
     keyframe pose graph's odometry edge). None: unknown."""
-    exposure: torch.Tensor | None = None
-    """(2, C) gain row and bias row mapping the map's colour to this keyframe's
-    (``mapping.exposure``, C = 1 or 3; ``slam.photometric``); None: not fitted (identity)."""
 
 
 def optimised_voxel_mask(corner_updates: torch.Tensor, voxel_corners: torch.Tensor,

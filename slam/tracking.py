@@ -244,9 +244,9 @@ class Tracker:
         self.static = config.render.uses_static_shapes(device)
         c = config.tracking
         self.weights = LossWeights(c.rgb_weight, c.depth_weight, c.sdf_weight, c.fs_weight)
-        self.colour = ColourModel(c.exposure, c.exposure_prior, c.color_robust, c.color_adaptive)
-        """The colour term's exposure fit, kernel and weight (``slam.photometric``); its scale and
-        weight are fixed per frame at the first render with the outliers dropped."""
+        self.colour = ColourModel(c.color_robust, c.color_adaptive)
+        """The colour term's kernel and weight (``slam.photometric``); its scale and weight are
+        fixed per frame at the first render with the outliers dropped."""
 
     def track(self, frame: TensorFrame, fmap: FrozenMap, T_init: torch.Tensor,
               matches: Correspondences | None = None) -> TrackingResult:

@@ -93,6 +93,11 @@ REJECTED = [  # (section, field, its decisions.md entry): off in every preset, t
     ("tracking", "constant_velocity", "tracking.constant_velocity"),
     ("mapping", "keyframe_iterations", "mapping.keyframe_iterations"),
     ("fine_color", "fit_extra_block", "fine_color.fit_extra_block"),
+    ("tracking", "exposure", "tracking.exposure"),
+    ("tracking", "exposure_prior", "tracking.exposure"),
+    ("mapping", "exposure", "mapping.exposure"),
+    ("mapping", "exposure_prior", "mapping.exposure"),
+    ("mapping", "exposure_lr", "mapping.exposure"),
 ]
 
 

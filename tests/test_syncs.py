@@ -40,16 +40,16 @@ def torch_kernels(monkeypatch):
     torch.set_num_threads(threads)
 
 
-PHOTOMETRIC = dict(exposure="per_channel", color_robust="cauchy", color_adaptive=0.05)
+PHOTOMETRIC = dict(color_robust="cauchy", color_adaptive=0.05)
 """Issue 41 item 4's colour term, all of it on (``slam.photometric``)."""
 
 
-def _config(mapping_exposure: str = "off", **tracking):
+def _config(**tracking):
     base = preset("test")
     return replace(base, render=replace(base.render, static_shapes="on"),
                    tracking=replace(base.tracking, **tracking),
                    mapping=replace(base.mapping, thin_samples=True, optimize_current_pose=True, iterations=3,
-                                   first_frame_iterations=10, exposure=mapping_exposure))
+                                   first_frame_iterations=10))
 
 
 def _counted(fn):
@@ -72,9 +72,9 @@ def _assert_quiet(counts, checker, name):
     dict(optimizer="adam", iterations=3, resample_rays=True, keep_best_iterate=False, sample_band=0.0,
          check_every=0),
     dict(optimizer="adam", iterations=3, convergence_tol=1e-5, check_every=0),
-    dict(optimizer="gauss_newton", check_every=0, mapping_exposure="per_channel", **PHOTOMETRIC),
-    dict(optimizer="adam", iterations=3, check_every=0, mapping_exposure="shared", **PHOTOMETRIC),
-], ids=["gauss_newton", "adam_whole_ray", "adam_band", "gauss_newton_exposure", "adam_exposure"])
+    dict(optimizer="gauss_newton", check_every=0, **PHOTOMETRIC),
+    dict(optimizer="adam", iterations=3, check_every=0, **PHOTOMETRIC),
+], ids=["gauss_newton", "adam_whole_ray", "adam_band", "gauss_newton_photometric", "adam_photometric"])
 def test_tracking_and_mapping_iterations_read_nothing_back(tracking):
     config = _config(**tracking)
     frames = list(open_sequence(SPEC, max_frames=4))
