@@ -76,14 +76,20 @@ def render_view_of(call: ViewCall):
 
 
 def depth_range(depth: np.ndarray, low: float | None, high: float | None) -> tuple[float, float] | None:
-    """The preview's colour range: the given ends, the view's own percentiles for the rest;
-    RequestProblem 422 when they cross."""
+    """The preview's colour range: the given ends, the view's own percentiles for the rest (an
+    automatic end moved inside a given one, which a schema-valid request may put anywhere);
+    RequestProblem 422 when two given ends cross."""
     if low is None and high is None:
         return None
     from slam.path_video import auto_depth_range
 
     auto = auto_depth_range(depth)
-    near, far = (auto[0] if low is None else low), (auto[1] if high is None else high)
+    near = auto[0] if low is None else low
+    far = auto[1] if high is None else high
+    if low is None and not near < far:
+        near = far / 2
+    elif high is None and not near < far:
+        far = near * 2
     if not near < far:
         raise RequestProblem(422, f"depth_min ({near:g} m) must be below depth_max ({far:g} m)")
     return near, far

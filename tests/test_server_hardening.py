@@ -245,3 +245,18 @@ def test_serve_runs_uvicorn_with_the_connection_limits(tmp_path, monkeypatch):
     config = seen["config"]
     assert config.http is HeadDeadlineProtocol
     assert (config.timeout_keep_alive, config.limit_concurrency) == (KEEP_ALIVE_S, MAX_CONNECTIONS)
+
+
+def test_one_given_end_of_the_depth_preview_range_is_never_refused():
+    """A schema-valid ``depth_max`` below the view's automatic near end (or ``depth_min`` past
+    its far end) moves the automatic end inside it; only two given ends that cross get 422."""
+    import numpy as np
+
+    from server.render_calls import RequestProblem, depth_range
+
+    depth = np.full((4, 4), 2.0)
+    near, far = depth_range(depth, None, 5e-324)
+    assert near < far == 5e-324
+    assert depth_range(depth, 7.0, None) == (7.0, 14.0)
+    with pytest.raises(RequestProblem):
+        depth_range(depth, 3.0, 1.0)
