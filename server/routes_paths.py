@@ -1,4 +1,4 @@
-"""Camera-path videos (issue 44 item 9): ``POST /api/sessions/{id}/render/path`` starts one,
+"""Camera-path videos: ``POST /api/sessions/{id}/render/path`` starts one,
 ``GET .../render/path/{job}`` tells its progress, ``GET .../render/path/{job}/video`` serves the
 MP4 (colour | depth | normals side by side) once it is written.
 

@@ -2,7 +2,7 @@
 
 On CUDA, ``torch.zeros(6)`` (no ``device=``) lands on the CPU, and the first operator that
 meets it with a CUDA tensor of more than zero dimensions raises "Expected all tensors to be
-on the same device" (issue 40: ``Tracker._levenberg_marquardt``'s motion prior). On a machine
+on the same device" (as ``Tracker._levenberg_marquardt``'s motion prior once did). On a machine
 without a GPU every tensor is on the CPU and nothing fails, so ``DeviceMixChecker`` replays
 CUDA's placement rules as a taint on the CPU tensors. The code under test is given
 ``PIPELINE_DEVICE`` (``cpu:0``), which stands for the GPU:

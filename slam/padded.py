@@ -1,4 +1,4 @@
-"""Static-shape rendering: a fixed number of sample slots per ray (issue 40 item 2).
+"""Static-shape rendering: a fixed number of sample slots per ray, for the GPU.
 
 The flat renderer (``slam.render``) keeps only the samples that exist, so its tensors' sizes
 depend on the data: every ``nonzero``, boolean index and ``int(count)`` reads the device

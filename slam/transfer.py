@@ -1,4 +1,4 @@
-"""Many small tensors across the host-device boundary in one copy per dtype (issue 40).
+"""Many small tensors across the host-device boundary in one copy per dtype.
 
 Each ``.cpu()`` of a device tensor waits for the device, and each upload of pageable host
 memory waits for the device's queue: a map snapshot of a dozen arrays paid a dozen of each.
