@@ -36,7 +36,7 @@ from typing import Hashable
 import numpy as np
 
 from server.decoding import DecodeFailed, shared_helper
-from server.helper_pool import PoolBusy
+from server.helper_pool import HelperTimedOut, PoolBusy
 from server.helper_queue import HelperQueue
 from server.tracks import FrameCamera
 from server.worker import SourceSpec, open_source
@@ -129,19 +129,30 @@ def read_source_facts(spec: SourceSpec) -> SourceFacts:
         return SourceFacts(None, None, problem)
     try:
         sequence = open_source(spec)
+    except (DataError, OSError):
+        return NOTHING
+    return SourceFacts(_first_camera(sequence), _ground_truth(spec, sequence))
+
+
+def _first_camera(sequence) -> FrameCamera | None:
+    """The intrinsics and size of the sequence's first frame (decoded), or None."""
+    try:
         frame = sequence[0]
     except (DataError, OSError, IndexError):
-        return NOTHING
-    camera = FrameCamera(np.asarray(frame.K, np.float64), frame.width, frame.height)
+        return None
+    return FrameCamera(np.asarray(frame.K, np.float64), frame.width, frame.height)
+
+
+def _ground_truth(spec: SourceSpec, sequence) -> GroundTruth | None:
+    """The frames' times and ground-truth camera centres (those frames that have a pose)."""
     if spec.kind == "synthetic":
         from slam.data.synthetic import FPS
 
-        return SourceFacts(camera, GroundTruth(sequence.frame_numbers / FPS, sequence.trajectory[:, :3, 3].copy()))
+        return GroundTruth(sequence.frame_numbers / FPS, sequence.trajectory[:, :3, 3].copy())
     pairs = [(t, T[:3, 3]) for t, T in zip(sequence.timestamps, sequence.gt_poses) if T is not None]
     if not pairs:
-        return SourceFacts(camera, None)
-    return SourceFacts(camera, GroundTruth(np.array([t for t, _ in pairs], np.float64),
-                                           np.array([c for _, c in pairs], np.float64)))
+        return None
+    return GroundTruth(np.array([t for t, _ in pairs], np.float64), np.array([c for _, c in pairs], np.float64))
 
 
 class SourceFactsCache:
@@ -188,12 +199,15 @@ def _read_and_keep(spec: SourceSpec) -> SourceFacts:
     """On the queue's thread: the cache again (requests that queued for one source read it
     once), else the helper's answer, kept even when the request stopped waiting."""
     facts = _cache.get(spec)
-    if facts is None:
-        try:
-            facts = shared_helper().call(read_source_facts, spec, timeout_s=_reads.timeout_s)
-        except DecodeFailed as error:
-            facts = SourceFacts(None, None, f"the ground truth is not shown: reading the input failed ({error})")
-        _cache.put(spec, facts)
+    if facts is not None:
+        return facts
+    try:
+        facts = shared_helper().call(read_source_facts, spec, timeout_s=_reads.timeout_s)
+    except DecodeFailed as error:
+        facts = SourceFacts(None, None, f"the ground truth is not shown: reading the input failed ({error})")
+        if not isinstance(error, HelperTimedOut):  # the helper may have failed for reasons of its own
+            return facts
+    _cache.put(spec, facts)  # a read that timed out too: it would take as long again
     return facts
 
 

@@ -266,3 +266,25 @@ def test_the_api_keeps_compact_ground_truth_within_a_budget():
     assert len(cache) == 3 and cache.nbytes() <= 10_000 and cache.get(0) is None and cache.get(4) is not None
     cache.put("big", facts(1000))  # over the whole budget: not kept
     assert cache.get("big") is None and len(cache) == 3
+
+
+def test_an_input_that_times_out_is_read_once_and_a_failed_helper_is_asked_again(monkeypatch):
+    import server.series as series
+    from server.helper_pool import HelperFailed, HelperTimedOut
+    from server.worker import SourceSpec
+
+    class FailingHelper:
+        def __init__(self, error: Exception) -> None:
+            self.error, self.calls = error, 0
+
+        def call(self, *args, **kwargs):
+            self.calls += 1
+            raise self.error
+
+    monkeypatch.setattr(series, "_cache", series.SourceFactsCache())
+    for error, calls in ((HelperTimedOut("decoding took longer than 60 s"), 1), (HelperFailed("did not start"), 2)):
+        helper = FailingHelper(error)
+        monkeypatch.setattr(series, "shared_helper", lambda: helper)
+        spec = SourceSpec("dataset", f"/nowhere/{calls}")
+        notes = [series.source_facts(spec).note for _ in range(2)]
+        assert helper.calls == calls and all(str(error) in note for note in notes), notes
