@@ -444,6 +444,35 @@ def open_socket(server: Server, session_id: str):
     return socket
 
 
+def ground_truth_rows(source: FrameSource) -> list[list[float]]:
+    """A folder's ground truth as the protocol's rows (``[t, 3x4 pose row-major]``, one per
+    frame that has one); [] for a camera or a folder without ground truth."""
+    import numpy as np
+
+    sequence = getattr(source, "sequence", None)
+    stamps, poses = getattr(sequence, "timestamps", None), getattr(sequence, "gt_poses", None)
+    if stamps is None or poses is None:
+        return []
+    return [[float(t), *np.asarray(T, np.float64)[:3, :].reshape(-1).tolist()]
+            for t, T in zip(stamps, poses) if T is not None]
+
+
+def send_ground_truth(socket, source: FrameSource, out: TextIO) -> None:
+    """Send the folder's ground truth once, before the frames, so that the session reports an
+    ATE as an upload does (a server that does not know the message says so; the stream goes on)."""
+    rows = ground_truth_rows(source)
+    if not rows:
+        return
+    _send_message(socket, json.dumps({"type": "ground_truth", "poses": rows}), None)
+    answer = _receive(socket, HTTP_TIMEOUT_S)
+    if answer.get("type") == "ground_truth":
+        print(f"voxfusion stream: sent the ground truth ({answer.get('poses')} poses): the session reports an ATE",
+              file=out, flush=True)
+    else:
+        print(f"voxfusion stream: the server did not take the ground truth: {answer.get('detail', answer)}",
+              file=out, flush=True)
+
+
 def finish(server: Server, session_id: str, socket) -> int | None:
     """End the input: over the socket when it is open, else ``POST .../finish``; frames the
     server has, or None when it cannot be told (server gone)."""
@@ -631,6 +660,7 @@ def _send_source(source: FrameSource, server: Server, session_id: str, options: 
     socket, code, message = None, EXIT_OK, None
     try:
         socket = open_socket(server, session_id)
+        send_ground_truth(socket, source, printer.out)
         wait_until_tracking(server, session_id, printer.out)
         reader.start()
         unsent = None

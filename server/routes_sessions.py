@@ -23,6 +23,7 @@ from server.render_calls import LiveMesh, MapMesh, PlyMesh, export_mesh
 from server.render_pools import HELPER_RESPONSES, RenderPools, http_answers
 from server.rendering import NoMapYet
 from server.schemas import ErrorOut, SessionCreated, SessionCreateJSON, SessionOut, SessionOutputs
+from server.session_status import manager_stream_fields
 from server.sessions import SessionManager, SessionNotFound, SessionStatus, check_session_id, new_session_id
 from server.settings import Settings
 from server.upload import (
@@ -95,6 +96,7 @@ def session_out(manager: SessionManager, state: SessionStatus) -> SessionOut:
                              or (directory / "map.pt").is_file(),
                              map=(directory / "map.pt").is_file())
     files = [spec.name for spec in state.sources if spec.name]
+    data.update(manager_stream_fields(manager, state))  # a stream's frames sent, received, dropped
     return SessionOut(**data, outputs=outputs, files=files, phase_elapsed_s=_phase_elapsed(state))
 
 

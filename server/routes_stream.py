@@ -298,6 +298,9 @@ def answer_message(stream: StreamInput, message: dict, options: dict) -> dict | 
                 raise UploadError("frame: expected a JSON object", status=400)
             if data.get("type") == "finish":
                 return FINISH
+            if data.get("type") == "ground_truth":  # once, before the frames: the run's ATE (server.stream)
+                kept = stream.set_ground_truth(data.get("poses"), options.get("agent", 0))
+                return {"type": "ground_truth", "poses": kept}
             timestamp, color, depth, extra = decode_json_frame(data)
         frame_options = {**options, **extra}
         agent = frame_options.get("agent", 0)

@@ -185,9 +185,28 @@ class SessionOut(BaseModel):
     phase_elapsed_s: float | None = Field(None, examples=[42.0],
                                           description="seconds in the current phase so far (server clock); "
                                                       "null once done")
-    phase_budget_s: float | None = Field(None, examples=[90.0],
-                                         description="while refining: seconds the preset allows the final bundle "
-                                                     "adjustment (the final mesh follows); null without a time cap")
+    phase_budget_s: float | None = Field(None, examples=[None], deprecated=True,
+                                         description="no longer set: see phase_step and phase_estimate_s")
+    phase_step: str | None = Field(
+        None, examples=["colour_fit"],
+        description="while refining or writing: the end-of-run step that runs: bundle_adjustment, retracking, "
+                    "colour_fit, mesh (refining), outputs (writing) (the final bundle adjustment, the "
+                    "re-tracking of the frames against the final maps, the fine colour fit, the map and mesh, the "
+                    "trajectories and run.json); phase_started and phase_elapsed_s then count from the step's "
+                    "start; null outside them")
+    phase_estimate_s: float | None = Field(None, examples=[40.0],
+                                           description="about how many seconds phase_step should take (a time cap "
+                                                       "or a forecast from the run so far); a step may run past "
+                                                       "it; null when nothing predicts it")
+    frames_sent: int | None = Field(None, examples=[300],
+                                    description="a stream's frames sent by its clients: received + dropped + "
+                                                "refused; null for other sources")
+    frames_received: int | None = Field(None, examples=[290],
+                                        description="a stream's frames accepted by the server; null for other "
+                                                    "sources")
+    frames_dropped: int | None = Field(None, examples=[10],
+                                       description="a stream's frames dropped because the session's buffer was "
+                                                   "full (503); null for other sources")
     ate_rmse_m: float | None = Field(
         examples=[0.012], description="absolute trajectory error (RMSE, metres, after rigid alignment) of the first "
                                       "agent against the input's ground truth: so far while tracking, final once "

@@ -91,6 +91,10 @@ class Change:
     stats: StatsEvent | None = None
     phase: str | None = None
     """The phase a PhaseEvent entered."""
+    step: str | None = None
+    """The end-of-run step it started (``slam.events.END_STEPS``), None for a phase's start."""
+    estimate_s: float | None = None
+    """About how long that step should take (seconds), None when nothing predicts it."""
     finished: FinishedEvent | None = None
 
 
@@ -203,6 +207,8 @@ class SessionState:
 
     def _on_phase(self, event: PhaseEvent, change: Change) -> None:
         self.phase = change.phase = event.phase
+        change.step = getattr(event, "step", None)  # events pickled by an older runtime lack it
+        change.estimate_s = getattr(event, "estimate_s", None)
 
     def _on_finished(self, event: FinishedEvent, change: Change) -> None:
         self.finished = change.finished = event

@@ -10,7 +10,15 @@ folder) stays with the scheduler.
 
 ``phase`` refines ``running``: ``tracking`` (frames are read), ``refining`` (the final bundle
 adjustment and mesh), ``writing`` (trajectories, ``run.json``); ``queued`` before and ``done``
-after, whatever the session's end (``status`` says which); ``phase_started`` says since when.
+after, whatever the session's end (``status`` says which). The end of a run is several steps
+(``slam.events.END_STEPS``), each announced by its own PhaseEvent: ``phase_step`` names the one
+that runs, ``phase_started`` says since when (the step's start), ``phase_estimate_s`` about how
+long it should take where something predicts it (a time cap, a forecast from the run so far).
+A step may run past its estimate: the page then says so instead of showing a bound.
+
+A stream's frames (``frames_received``, ``frames_dropped``, ``frames_refused``: see
+``server.stream``) come from its input while it runs (:func:`stream_fields`) and are kept in
+the status once it ends (:func:`with_stream_counts`).
 
 ``fps`` has one definition, shared by the status, the page and the viewer's panel (the
 viewer gets StatsEvents with this value): frames tracked (all agents) per second of the
@@ -70,8 +78,15 @@ class SessionStatus:
     phase_started: str | None = None
     """ISO 8601, UTC: when the current phase began (None for sessions from before it was kept)."""
     phase_budget_s: float | None = None
-    """While refining: the seconds the preset allows the final bundle adjustment (the mesh
-    follows), None when it has no time cap (``refinement_budget_s``)."""
+    """No longer set (``phase_estimate_s`` replaced it); kept so older ``session.json`` files load."""
+    phase_step: str | None = None
+    """The end-of-run step that runs (``slam.events.END_STEPS``); None outside them."""
+    phase_estimate_s: float | None = None
+    """About how many seconds ``phase_step`` should take; None when nothing predicts it."""
+    frames_received: int | None = None
+    """A stream's frames accepted by the server (all agents); None for other sources."""
+    frames_dropped: int | None = None
+    """A stream's frames dropped because its buffer was full (503); None for other sources."""
     ate_rmse_m: float | None = None
     """Agent 0's ATE RMSE in metres (so far while running, final after); None without ground truth."""
     frames_skipped: int = 0
@@ -110,21 +125,6 @@ def _spec_from_json(spec: dict) -> SourceSpec:
     return SourceSpec(**spec)
 
 
-def refinement_budget_s(preset: str, run_seconds: float) -> float | None:
-    """The wall time the preset gives the final bundle adjustment of a run that has taken
-    ``run_seconds`` (as ``slam.mapping_process.final_budget`` computes it from the mapper's
-    start, which is about the worker's), or None without a time cap or refinement."""
-    from slam import ConfigError, preset as preset_config
-
-    try:
-        mapping = preset_config(preset).mapping
-    except ConfigError:
-        return None
-    if mapping.final_iterations <= 0 or mapping.final_time_share <= 0:
-        return None
-    return round(max(mapping.final_min_seconds, mapping.final_time_share * run_seconds), 1)
-
-
 @dataclass(frozen=True)
 class StatusStep:
     """What one event did to a session's status, and what the scheduler is to do about it."""
@@ -154,15 +154,16 @@ class StatusFold:
 
     def apply(self, status: SessionStatus, event: object, started_at: float | None = None,
               now: float | None = None) -> StatusStep:
-        """Fold in one event. ``started_at``: time.monotonic() when the worker started (for
-        the refinement's budget); ``now``: time.monotonic() (default: now)."""
+        """Fold in one event. ``started_at``: time.monotonic() when the worker started (no
+        longer used: each end-of-run step carries its own estimate); ``now``: time.monotonic()
+        (default: now)."""
         now = time.monotonic() if now is None else now
         change = self.scene.apply(event)
         step = StatusStep(status, event=event, finished=change.finished)
         if change.stats is not None:
             step = self._on_stats(status, change, event)
         elif change.phase is not None and change.phase in PHASES:
-            step = self._on_phase(status, change.phase, started_at, now, event)
+            step = self._on_phase(status, change, now, event)
         elif change.keyframe:
             # The mapper's statistics come at the end; keyframes as they are taken.
             step = StatusStep(replace(status, keyframes=max(self.scene.keyframe_events, status.keyframes)),
@@ -194,14 +195,14 @@ class StatusFold:
         # The viewer shows the status's frames/s (see the module doc), not the worker's.
         return StatusStep(status, dirty=True, event=replace(event, fps=status.fps))
 
-    def _on_phase(self, status: SessionStatus, phase: str, started_at: float | None, now: float,
-                  event) -> StatusStep:
-        if phase == "tracking":
+    def _on_phase(self, status: SessionStatus, change: Change, now: float, event) -> StatusStep:
+        """A phase or one of its steps starts: its clock restarts, with the step's own estimate."""
+        if change.phase == "tracking":
             self.tracking_started = now
-        budget = None
-        if phase == "refining" and started_at is not None:
-            budget = refinement_budget_s(status.preset, now - started_at)
-        status = replace(status, phase=phase, phase_started=now_iso(), phase_budget_s=budget)
+        estimate = change.estimate_s
+        status = replace(status, phase=change.phase, phase_started=now_iso(), phase_budget_s=None,
+                         phase_step=change.step,
+                         phase_estimate_s=None if estimate is None else round(float(estimate), 1))
         return StatusStep(status, persist=True, event=event)
 
     def _tracking_fps(self, frames: int, now: float) -> float:
@@ -252,3 +253,34 @@ def with_worker_totals(status: SessionStatus, done: WorkerDone | None) -> Sessio
     return replace(status, frames_done=done.frames, keyframes=done.keyframes, maps=done.maps, loops=done.loops,
                    fps=status.fps or round(done.fps, 3), agents=done.agents or status.agents,
                    ate_rmse_m=status.ate_rmse_m if ate is None else round(float(ate), 6))
+
+
+def stream_fields(status: SessionStatus, stream) -> dict:
+    """A stream session's frame counts for the API (``frames_sent`` among them): live from its input (``server.stream.
+    StreamInput``) while it has one, else as the status kept them; {} for other sources."""
+    if stream is None:
+        if status.frames_received is None:
+            return {}
+        received, dropped, refused = status.frames_received, status.frames_dropped or 0, status.frames_skipped
+    else:
+        received, dropped, refused = stream.frames_received, stream.frames_dropped, stream.frames_refused
+    # Every frame a client sent was accepted, dropped or refused (server.stream).
+    return {"frames_received": received, "frames_dropped": dropped, "frames_sent": received + dropped + refused}
+
+
+def manager_stream_fields(manager, status: SessionStatus) -> dict:
+    """:func:`stream_fields` of a session of ``server.sessions.SessionManager``."""
+    if status.spec.kind != "stream":
+        return {}
+    try:
+        stream = manager.stream(status.id)
+    except (KeyError, RuntimeError):  # gone, or not a stream (SessionNotFound, SessionConflict)
+        stream = None
+    return stream_fields(status, stream)
+
+
+def with_stream_counts(status: SessionStatus, stream) -> SessionStatus:
+    """The status with its stream's frame counts kept (so an ended stream still reports them)."""
+    if stream is None:
+        return status
+    return replace(status, frames_received=stream.frames_received, frames_dropped=stream.frames_dropped)

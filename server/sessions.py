@@ -49,7 +49,8 @@ import numpy as np
 from server.errors import strip_paths
 from server.execution import Execution, Executor, ExecutorError, WorkerPlaced
 from server.executors import make_executor
-from server.session_status import ENDED, SessionStatus, StatusFold, now_iso, run_end, with_worker_totals
+from server.session_status import (ENDED, SessionStatus, StatusFold, now_iso, run_end, with_stream_counts,
+                                   with_worker_totals)
 from server.session_store import (
     WORKER_PID_FILE,
     disk_is_full,
@@ -577,6 +578,7 @@ class SessionManager:
             error = strip_paths(error, session.directory / "input", "the input")
         if session.stream is not None and session.stream.agent_count > session.status.agents:
             session.status = replace(session.status, agents=session.stream.agent_count)
+        session.status = with_stream_counts(session.status, session.stream)
         execution.finish(session.worker_pid)
         session.active = False
         (session.directory / WORKER_PID_FILE).unlink(missing_ok=True)

@@ -33,7 +33,7 @@ import json
 import queue
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -56,6 +56,10 @@ DEFAULT_DEPTH_SCALE = 1000.0
 """Raw depth units per metre when neither the session nor the first frame says (millimetres)."""
 DEFAULT_FPS = 30.0
 """A frame without a timestamp is stamped index / 30 s."""
+MAX_GROUND_TRUTH_POSES = 200_000
+"""Rows of ground truth a stream takes (as many as the series reads from an upload's file)."""
+GROUND_TRUTH_DT_S = 0.02
+"""Largest time between a frame and the ground-truth row it takes (as the ATE's association)."""
 
 
 BUSY_RETRY_AFTER_S = 1
@@ -123,6 +127,8 @@ class StreamInput:
         self._refused = 0
         self._dropped = 0
         self._agent_counts: dict[int, int] = {}
+        self._ground_truth: dict[int, np.ndarray] = {}
+        """agent -> (N, 13) ground-truth rows sorted by time (``set_ground_truth``)."""
         self._closed_reason: str | None = None
         self._finish_reason: str | None = None
         """Why the input ended normally (``finish``, or finished after idling)."""
@@ -217,6 +223,7 @@ class StreamInput:
             except UploadError:
                 self._refused += 1  # the frame is skipped; the stream goes on
                 raise
+            frame = self._with_ground_truth(frame)
             if not self._put_nowait(frame):
                 return None
             self._record(agent, index, frame, color, depth)
@@ -225,6 +232,37 @@ class StreamInput:
             self._count += 1
             self._last_frame_at = time.monotonic()
             return index
+
+    def set_ground_truth(self, poses, agent: int = 0) -> int:
+        """The client's ground truth for ``agent``'s frames: rows ``[t, r00, r01, r02, tx, r10,
+        ..., tz]`` (seconds, then the top three rows of T_world_cam); each later frame within
+        GROUND_TRUTH_DT_S of a row carries its pose, so the run reports an ATE as an upload's
+        does. Returns the rows kept; UploadError (422) for anything else."""
+        if not isinstance(poses, list) or not 0 < len(poses) <= MAX_GROUND_TRUTH_POSES:
+            raise UploadError(f"ground_truth: expected 1 to {MAX_GROUND_TRUTH_POSES} rows of 13 numbers")
+        try:
+            rows = np.array(poses, dtype=np.float64)
+        except (TypeError, ValueError):
+            rows = np.zeros((0, 0))
+        if rows.ndim != 2 or rows.shape[1] != 13 or not np.isfinite(rows).all():
+            raise UploadError("ground_truth: each row must be 13 finite numbers (t and a 3x4 pose, row-major)")
+        rows = rows[np.argsort(rows[:, 0], kind="stable")]
+        with self._lock:
+            self._ground_truth[agent] = rows
+        return len(rows)
+
+    def _with_ground_truth(self, frame: StreamFrame) -> StreamFrame:
+        """The frame with its agent's ground-truth pose at its time, if the client sent one."""
+        rows = self._ground_truth.get(frame.agent)
+        if rows is None:
+            return frame
+        j = int(np.searchsorted(rows[:, 0], frame.timestamp))
+        near = min((k for k in (j - 1, j) if 0 <= k < len(rows)), key=lambda k: abs(rows[k, 0] - frame.timestamp))
+        if abs(rows[near, 0] - frame.timestamp) > GROUND_TRUTH_DT_S:
+            return frame
+        T = np.eye(4)
+        T[:3, :] = rows[near, 1:].reshape(3, 4)
+        return replace(frame, T_world_cam=T)
 
     def finish(self) -> int:
         """End the input: the worker finishes after the frames already queued (waiting up to

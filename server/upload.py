@@ -298,6 +298,7 @@ class StreamFrame:
         depth_scale: raw units per metre.
         K: (3, 3) float64 intrinsics.
         agent: the camera (agent) of a collaborative stream, 0 for a single one.
+        T_world_cam: (4, 4) float64 ground-truth pose the client sent for this time, or None.
     """
 
     timestamp: float
@@ -306,6 +307,7 @@ class StreamFrame:
     depth_scale: float
     K: np.ndarray
     agent: int = 0
+    T_world_cam: np.ndarray | None = None
 
 
 def parse_agent(value: int | str, what: str = "agent") -> int:

@@ -24,9 +24,11 @@ from server.viewer_state import (
     ViewerSession,
     agent_color,
     box_segments,
+    frustum_scale,
     frustum_segments,
     key_text,
     map_color,
+    scene_bounds,
 )
 from server.viewer_views import LAYERS, SHARED_VISIBLE, VARIANT_LAYERS
 from slam import matrix_to_quat_wxyz
@@ -34,8 +36,9 @@ from slam import matrix_to_quat_wxyz
 if TYPE_CHECKING:
     import viser
 
-PATH_COLOR = (255, 150, 0)
-"""A camera path's preview: orange, unlike trajectories (agents' colours) and loops (magenta)."""
+PATH_COLOR = (0, 190, 255)
+"""A camera path's preview: sky blue, unlike trajectories (agents' colours: red-orange for the
+first), maps (their lighter hues, orange for the first) and loops (magenta)."""
 LOOP_THICKNESS = 6.0
 """Pixels of a loop edge, twice a trajectory's: the edges a loop closure adds must stand out."""
 
@@ -212,13 +215,17 @@ class SceneWriter:
         name = f"/sessions/{state.session_id}/camera/frustum" + ("" if agent == 0 else f"_{agent}")
         handle = self.handles.get(name)
         camera = state.scene.cameras.get(agent)
+        scale = frustum_scale(scene_bounds(state))
         if handle is None and camera is not None:
             fov = 2.0 * np.arctan(0.5 * camera.height / camera.K[1, 1])
             self.handles[name] = self.server.scene.add_camera_frustum(
-                name, fov=float(fov), aspect=camera.width / camera.height, scale=0.2, color=agent_color(agent), image=thumbnail,
-                wxyz=wxyz(T), position=T[:3, 3])
+                name, fov=float(fov), aspect=camera.width / camera.height, scale=scale, color=agent_color(agent),
+                image=thumbnail, wxyz=wxyz(T), position=T[:3, 3],
+                thickness=2.0, thickness_units="screen")  # lines in world units would swell with a small frustum
         elif handle is not None:
             place(handle, T)
+            if abs(float(np.mean(handle.scale)) - scale) > 0.2 * scale:  # the scene grew (or started small)
+                handle.scale = scale
             if thumbnail is not None:
                 handle.image = thumbnail
         if agent == min(state.agents):

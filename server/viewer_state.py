@@ -82,6 +82,20 @@ def framing(lo: np.ndarray, hi: np.ndarray, fov_y: float) -> tuple[np.ndarray, n
     return centre + distance * FRAME_DIRECTION, centre
 
 
+FRUSTUM_SHARE = 0.06
+"""A live camera's frustum, as a share of the diagonal of what the session shows."""
+FRUSTUM_MAX_M = 0.2
+"""Largest frustum (metres): the size it has in a room-sized scene."""
+
+
+def frustum_scale(bounds: tuple[np.ndarray, np.ndarray] | None) -> float:
+    """The live camera frustum's size for a session of these bounds: a share of the scene as
+    framed (at least MIN_FRAME_RADIUS_M across), so that a camera that barely moved (a short
+    live stream) does not fill a view framed on its few poses."""
+    diagonal = 0.0 if bounds is None else float(np.linalg.norm(np.asarray(bounds[1]) - np.asarray(bounds[0])))
+    return round(min(FRUSTUM_MAX_M, FRUSTUM_SHARE * max(diagonal, 2 * MIN_FRAME_RADIUS_M)), 3)
+
+
 def frustum_segments(T_world_cam: np.ndarray, K: np.ndarray, width: int, height: int,
                      depth: float = 0.15) -> np.ndarray:
     """Wireframe pyramids of cameras as line segments.
@@ -282,8 +296,8 @@ class ViewerSession:
         self.loops_dirty = self.loops_dirty or change.loop
         if change.stats is not None or change.phase is not None:
             self.status_dirty = True
-        if change.phase is not None:
-            self.phase = change.phase
+        if change.phase is not None:  # with the end-of-run step that runs, where one does
+            self.phase = change.phase if change.step is None else f"{change.phase}: {change.step.replace('_', ' ')}"
         if change.finished is not None:
             self.phase, self.status_dirty = change.finished.status, True
             self.framed_size = None  # framed on what it ended with

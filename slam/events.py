@@ -136,6 +136,11 @@ class StatsEvent:
 
 PHASES = ("tracking", "refining", "writing")
 
+END_STEPS = ("bundle_adjustment", "retracking", "colour_fit", "mesh", "outputs")
+"""The end-of-run steps in the order they start: the final global bundle adjustment, the
+re-tracking of the frames against the final maps, the fine colour level's fit, the checkpoint
+and mesh (these four while ``refining``), the trajectories and ``run.json`` (``writing``)."""
+
 
 @dataclass(frozen=True)
 class PhaseEvent:
@@ -143,9 +148,15 @@ class PhaseEvent:
     ``refining`` (the input ended: the final global bundle adjustment, then the final map
     and mesh), ``writing`` (trajectories and ``run.json``). The last two take minutes on a
     long run with nothing else to report, so a client can tell a run that works from one
-    that hangs."""
+    that hangs: each end-of-run step sends its own event (``step``), with how long it should
+    take where something bounds or predicts it."""
 
     phase: str
+    step: str | None = None
+    """The end-of-run step that starts now (one of END_STEPS), None for the phase's start."""
+    estimate_s: float | None = None
+    """About how many seconds the step should take (a time cap, or a forecast from the run so
+    far); None where nothing predicts it. An estimate, not a promise: a step may run over."""
 
 
 @dataclass(frozen=True)

@@ -29,7 +29,7 @@ import numpy as np
 import torch
 
 from .config import SLAMConfig, config_from_dict
-from .events import KeyframeEvent, MapUpdateEvent, PosesUpdatedEvent
+from .events import KeyframeEvent, MapUpdateEvent, PhaseEvent, PosesUpdatedEvent
 from .frames import prepare_frame
 from .mapping import Mapper, MappingStep, MapSnapshot, NewMap, TrackedFrame
 from .messages import (Done, EndOfInput, EventReply, Failed, FinalMaps, FinalRefinement, FrameMessage, FramePose,
@@ -315,6 +315,8 @@ def _finish(side: _MapperSide, refine: bool) -> Iterator[Reply]:
     statistics (the last reply)."""
     mapper = side.mapper
     if mapper.maps.maps:
+        if refine:  # each step says it starts, so a client sees which one runs (PhaseEvent)
+            yield EventReply(PhaseEvent("refining", "bundle_adjustment", _bundle_adjustment_estimate(side)))
         side.refinement, refined = _final_bundle_adjustment(side, refine)
         if refine and side.closer is not None:
             # After the bundle adjustment: its keyframe poses are the odometry the graph keeps.
@@ -324,10 +326,14 @@ def _finish(side: _MapperSide, refine: bool) -> Iterator[Reply]:
                 mapper.version += 1
         if refine and mapper.config.tracking.retrack_iterations > 0:
             yield _final_maps(side)
+        if refined and mapper.config.fine_color.final_fit_iterations > 0 and any(s.fine is not None for s in refined):
+            yield EventReply(PhaseEvent("refining", "colour_fit"))
         for submap in refined:
             t0 = time.perf_counter()
             mapper.fit_final_colour(submap)
             side.busy += time.perf_counter() - t0
+        if refine:
+            yield EventReply(PhaseEvent("refining", "mesh"))
         _write_final_map(side)
         yield EventReply(poses_event(mapper, "refinement"))
         if side.emit_meshes:
@@ -340,6 +346,16 @@ def _final_maps(side: _MapperSide) -> FinalMaps:
     """Every map's snapshot, pose and keyframe poses after the final refinement."""
     mapper = side.mapper
     return FinalMaps([side.snapshot(m) for m in mapper.maps.maps], map_poses(mapper), _keyframe_records(mapper))
+
+
+def _bundle_adjustment_estimate(side: _MapperSide) -> float | None:
+    """The final bundle adjustment's time cap in seconds (``final_budget``), None without one."""
+    mapper = side.mapper
+    if mapper.config.runtime.deterministic:
+        return None  # an iteration count, not a time cap (``_final_bundle_adjustment``)
+    elapsed = time.perf_counter() - side.started
+    seconds = final_budget(mapper.config.mapping, mapper.maps.num_keyframes(), elapsed).seconds
+    return None if seconds is None else round(seconds, 1)
 
 
 def _final_bundle_adjustment(side: _MapperSide, refine: bool) -> tuple[FinalRefinement, list["SubMap"]]:

@@ -279,6 +279,18 @@ def _retrack(side: _TrackingSide, final: FinalMaps) -> None:
     side.retracking = (moved, seconds)
 
 
+def _retrack_estimate(side: _TrackingSide) -> float | None:
+    """About how long the final re-tracking takes: its frames at the run's tracking time per
+    frame, scaled by its iterations to the tracker's; None before any frame was tracked."""
+    frames = sum(len(t.kept_rays) for t in side.agents.values())
+    tracked = sum(len(t.records) for t in side.agents.values())
+    c = side.config.tracking
+    if not tracked or c.iterations <= 0:
+        return None
+    per_frame = side.stages.totals.get("track", 0.0) / tracked
+    return round(frames * per_frame * c.retrack_iterations / c.iterations, 1)
+
+
 def _thumbnail(rgb: np.ndarray, width: int = 96) -> np.ndarray:
     import cv2
 
@@ -303,6 +315,8 @@ def _handle_replies(replies: list[Reply], side: _TrackingSide, emit: Callable[[E
             _count_event(side, reply.event)
             emit(reply.event)
         elif isinstance(reply, FinalMaps):
+            if side.retracker is not None:
+                emit(PhaseEvent("refining", "retracking", _retrack_estimate(side)))
             _retrack(side, reply)
         elif isinstance(reply, Done):
             side.mapper_stats = reply.stats
@@ -810,7 +824,7 @@ def _final_refinement(run: _Run, side: _TrackingSide, channel, progress: bool) -
 def _write_results(run: _Run, sources: list[Iterable[Frame]], use_gt_poses: bool) -> RunResult:
     """The outputs (``slam.outputs.write_outputs``) and the last events."""
     elapsed = time.perf_counter() - run.started
-    run.emit(PhaseEvent("writing"))
+    run.emit(PhaseEvent("writing", "outputs"))
     side = run.side
     if side is not None and run.tracking_ended is not None:
         side.stages.add("end_of_run", elapsed - (run.tracking_ended - run.started))

@@ -111,51 +111,21 @@ function readMatrix() {
 let sessions = [];
 let selectedId = null;
 
-const ENDED = ["finished", "failed", "cancelled"];
-const PHASES = {
-  queued: "queued",
-  tracking: "tracking",
-  refining: "refining: final bundle adjustment and mesh",
-  writing: "writing outputs",
-  done: "done",
-};
+const ENDED = StatusText.ENDED;
+const { plural, centimetres } = StatusText;
+const ateText = StatusText.ate;
+const describe = StatusText.describe;
+const phaseText = StatusText.phase;
 
-const plural = (n, word) => `${n} ${word}${n === 1 ? "" : "s"}`;
-const clock = (seconds) => `${Math.floor(seconds / 60)}:${String(Math.floor(seconds % 60)).padStart(2, "0")}`;
-const centimetres = (metres) => `${(metres * 100).toFixed(2)} cm`;
-
-function ateText(s) {
-  if (s.ate_rmse_m == null) return "";
-  return ` · ATE ${centimetres(s.ate_rmse_m)}${ENDED.includes(s.status) ? "" : " so far"}`;
-}
-
-function describe(s) {
-  const total = s.frames_total == null ? "" : ` / ${s.frames_total}`;
-  return `${s.frames_done}${total} frames · ${s.fps.toFixed(1)} frames/s · ${plural(s.keyframes, "keyframe")} · ` +
-         `${plural(s.maps, "map")} · ${plural(s.loops, "loop")} · ${plural(s.agents || 1, "agent")}${ateText(s)}`;
-}
-
-// What the session does now, with how long it has done it (the server's clock) and, while
-// refining, how long the preset lets the bundle adjustment take.
-function phaseText(s) {
-  const elapsed = s.phase_elapsed_s == null ? "" : ` · ${clock(s.phase_elapsed_s)}`;
-  const budget = s.phase === "refining" && s.phase_budget_s != null ? ` of at most ${clock(s.phase_budget_s)}, then the mesh` : "";
-  return `${PHASES[s.phase] || s.phase}${elapsed}${budget}`;
-}
-
-// Each phase has its own progress: tracking counts frames, refining its time against the
-// preset's budget; without either (a stream, an uncapped refinement, writing) the bar runs
-// (indeterminate) next to the time spent so far.
+// Each phase has its own progress (StatusText.progress): tracking counts frames, an end-of-run
+// step its time against its estimate; without either (a stream, no estimate, past it) the bar
+// runs (indeterminate) next to the time spent so far.
 function showPhaseProgress(bar, s) {
-  const frames = s.phase === "tracking" && s.frames_total;
-  const budget = s.phase === "refining" && s.phase_budget_s && s.phase_elapsed_s != null;
-  bar.hidden = !(frames || s.phase === "refining" || s.phase === "writing");
-  if (frames) {
-    bar.max = s.frames_total;
-    bar.value = s.frames_done;
-  } else if (budget) {
-    bar.max = s.phase_budget_s;
-    bar.value = Math.min(s.phase_elapsed_s, 0.99 * s.phase_budget_s);
+  const progress = StatusText.progress(s);
+  bar.hidden = progress === null;
+  if (progress && progress.max) {
+    bar.max = progress.max;
+    bar.value = progress.value;
   } else {
     bar.removeAttribute("value");
   }
