@@ -5,11 +5,13 @@
                  [--depth-scale 1000] [--mask-out mask.png] [--depth-tolerance 0.01]
 
 The scene's colour and depth come from the neural map rendered at the camera
-(``--background render``, the default). With ``--background RGB.png`` (a real frame) the
-objects are drawn over that image instead; the depth test then uses ``--background-depth``
-(a 16-bit PNG, ``--depth-scale`` units per metre; 1000 = millimetres, as ``voxfusion render
---depth`` writes) or, without it, the map's rendered depth. A depth given without a background
-image replaces the map's depth under the rendered colour.
+(``--background render``, the default). With ``--background RGB.png``
+(a real frame) the objects are drawn over that image instead; the depth test then uses
+``--background-depth`` (a 16-bit PNG registered to the colour, ``--depth-scale`` units per
+metre; 1000 = millimetres, as ``voxfusion render --depth`` writes) wherever it measured, and
+the map's rendered depth only in its holes under the objects
+(``ar.scene_depth.sensor_depth_with_map``); without it, the map's rendered depth. A depth
+given without a background image replaces the map's depth under the rendered colour.
 
 ``--mask-out`` writes an 8-bit PNG: 255 where virtual content is visible, 128 where it is
 hidden by the scene, 0 elsewhere (``CompositeResult.object_mask`` / ``occlusion_mask``).
@@ -32,6 +34,7 @@ import numpy as np
 
 from ar.composite import CompositeResult, composite
 from ar.objects import ObjectSpecError, _check_rigid, load_objects_json
+from ar.scene_depth import sensor_depth_with_map
 from slam import parse_pose as parse_pose_text
 
 PROG = "voxfusion ar"
@@ -203,9 +206,15 @@ def _run(args: argparse.Namespace) -> list[Path]:
     given_depth = None if args.background_depth is None else read_background_depth(
         args.background_depth, args.depth_scale, width, height)
     mapset = _load_map(args.checkpoint, device)
-    if given_rgb is None or given_depth is None:
-        from slam import render_view
+    from slam import render_view
 
+    if given_depth is not None:
+        def map_depth(K: np.ndarray, w: int, h: int) -> np.ndarray:
+            return np.asarray(render_view(mapset, camera.T_world_cam, K, w, h, device=device).depth)
+
+        # The sensor's depth where it measured; the map's only in its holes under the objects.
+        given_depth = sensor_depth_with_map(given_depth, objects, camera.K, camera.T_world_cam, map_depth).depth
+    if given_rgb is None or given_depth is None:
         view = render_view(mapset, camera.T_world_cam, camera.K, width, height, device=device)
         given_rgb = view.rgb if given_rgb is None else given_rgb
         given_depth = view.depth if given_depth is None else given_depth

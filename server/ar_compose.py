@@ -1,14 +1,21 @@
 """The AR composite as plain functions of arrays: objects placed, composited with a depth
 test against the scene, and each object's visibility. It runs in a render helper
-(``server.render_calls.ar_composite``), never in the API process (``server.routes_ar``)."""
+(``server.render_calls.ar_composite``), never in the API process (``server.routes_ar``).
+
+The scene depth is an input frame's sensor depth, with the map's rendered depth only in the
+holes the objects cover (``ar.scene_depth.sensor_depth_with_map``); a rendered view's is the
+map's as rendered (its colour-guided refinement, ``ar.scene_depth.refined_render_depth``, moved
+no occlusion the right way on real frames: see ``benchmarks/bench_ar_occlusion.py`` (d))."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
 
 from ar import UPRIGHT, VirtualObject, composite, rasterize_objects
+from ar.scene_depth import sensor_depth_with_map
 from server.rendering import Camera, png_from_rgb
 
 DEPTH_TOLERANCE_M = 0.01
@@ -28,6 +35,12 @@ class Background:
     depth: np.ndarray
     """(H, W) float32 metres, 0 = unknown."""
     camera: Camera
+    sensed: bool = False
+    """True: ``depth`` is a sensor's (an input frame's), kept wherever it measured; False: the
+    map's rendered depth."""
+    map_view: object | None = None
+    """For a sensed background, the ``render_calls.ViewCall`` of the session's map at this
+    camera, whose depth fills the sensor's holes under the objects; None: holes stay far."""
 
 
 def central_depth(depth: np.ndarray) -> float | None:
@@ -78,10 +91,27 @@ def visibility(objects: list[VirtualObject], background: Background) -> list[dic
     return report
 
 
-def composite_png(background: Background, objects: list[VirtualObject], posed: list[bool]) -> tuple[bytes, list[dict]]:
+WindowDepth = Callable[[np.ndarray, int, int], np.ndarray]
+"""The map's depth at the background's pose: (K (3, 3), width, height) -> (height, width) metres."""
+
+
+def scene_depth(background: Background, objects: list[VirtualObject], map_depth: WindowDepth | None) -> Background:
+    """``background`` with the depth the objects are tested against: a sensed one with
+    ``map_depth`` in its holes under the objects; a rendered one as it is."""
+    if not background.sensed:
+        return background
+    camera = background.camera
+    fused = sensor_depth_with_map(background.depth, objects, camera.K, camera.T_world_cam, map_depth)
+    return replace(background, depth=fused.depth)
+
+
+def composite_png(background: Background, objects: list[VirtualObject], posed: list[bool],
+                  map_depth: WindowDepth | None = None) -> tuple[bytes, list[dict]]:
     """The composite as PNG bytes and the visibility report; an object whose ``posed`` is
-    False is placed in front of the camera first."""
+    False is placed in front of the camera first (on the background's own depth), then the
+    scene depth is made for the objects (``scene_depth``)."""
     objects = [obj if has_pose else in_front_of_camera(obj, background) for obj, has_pose in zip(objects, posed)]
+    background = scene_depth(background, objects, map_depth)
     camera = background.camera
     result = composite(background.rgb, background.depth, objects, camera.K, camera.T_world_cam,
                        depth_tolerance=DEPTH_TOLERANCE_M)

@@ -114,13 +114,29 @@ def pick(call: ViewCall, u: float, v: float) -> PickResult | None:
 
 def ar_composite(background, objects: list, posed: list[bool]) -> tuple[bytes, list[dict]]:
     """The AR composite PNG and its visibility report (``server.ar_compose``); ``background``
-    is a ``ViewCall`` (render it here) or an ``ar_compose.Background`` (an input frame)."""
+    is a ``ViewCall`` (render it here) or an ``ar_compose.Background`` (an input frame: its
+    sensor depth, the map rendered here only for the holes under the objects)."""
+    from functools import partial
+
     from server.ar_compose import Background, composite_png
 
     if isinstance(background, ViewCall):
         view = render_view_of(background)
         background = Background(np.asarray(view.rgb), np.asarray(view.depth), background.camera)
-    return composite_png(background, objects, posed)
+    map_depth = None if background.map_view is None else partial(window_depth, background.map_view)
+    return composite_png(background, objects, posed, map_depth)
+
+
+def window_depth(call: ViewCall, K: np.ndarray, width: int, height: int) -> np.ndarray:
+    """(height, width) depth of the call's map at its pose through intrinsics ``K``; zeros when
+    the map cannot be loaded (the frame's own depth then stands alone)."""
+    from dataclasses import replace
+
+    try:
+        view = render_view_of(replace(call, camera=Camera(call.camera.T_world_cam, K, width, height)))
+    except NoMapYet:
+        return np.zeros((height, width), dtype=np.float32)
+    return np.asarray(view.depth)
 
 
 @dataclass(frozen=True)

@@ -6,7 +6,9 @@ response says of every object whether it shows (``X-AR-Objects``): a composite w
 it looked like success ("Done.") when the object lay outside the view or behind a wall.
 
 The render of the background and the composite run in a render helper (``server.ar_compose``
-through ``server.render_pools``); an input frame behind it is decoded in the decode helper."""
+through ``server.render_pools``); an input frame behind it is decoded in the decode helper and
+travels with its sensor depth, which hides the objects wherever it measured (the map's depth
+only fills its holes, in the render helper)."""
 
 from __future__ import annotations
 
@@ -113,7 +115,12 @@ def background_for(request: ARRequest, session_id: str, manager: SessionManager)
         if T is None:
             raise HTTPException(status.HTTP_409_CONFLICT,
                                 f"frame {index}{whose} has no estimated pose yet; give T_world_cam")
-    return Background(rgb, depth, Camera(T, frame_K if K is None else K, width, height))
+    camera = Camera(T, frame_K if K is None else K, width, height)
+    try:  # the map fills the sensor's holes under the objects; a session without one yet has none
+        map_view = ViewCall(map_file(manager, session_id), camera, manager.render_threads())
+    except HTTPException:
+        map_view = None
+    return Background(rgb, depth, camera, sensed=True, map_view=map_view)
 
 
 def composite_in_helpers(pools: RenderPools, request: ARRequest, session_id: str, manager: SessionManager,

@@ -81,6 +81,21 @@ function yawPose(position, yawDeg) {
   return [[c, s, 0, position[0]], [0, 0, -1, position[1]], [-s, c, 0, position[2]], [0, 0, 0, 1]];
 }
 
+// An AR object at `position` whose +z (the shapes' axis) is a picked surface's `normal`, turned
+// by yaw about it: its x is yawPose's x laid onto the surface (yawPose's y where that is the normal).
+function surfacePose(position, normal, yawDeg) {
+  const c = Math.cos(deg(yawDeg)), s = Math.sin(deg(yawDeg));
+  const length = Math.hypot(...normal);
+  const z = normal.map((v) => v / length);
+  const along = (a) => a.map((v, i) => v - (a[0] * z[0] + a[1] * z[1] + a[2] * z[2]) * z[i]);
+  let x = along([c, 0, -s]);
+  if (Math.hypot(...x) < 1e-6) x = along([s, 0, c]);
+  const xLength = Math.hypot(...x);
+  x = x.map((v) => v / xLength);
+  const y = [z[1] * x[2] - z[2] * x[1], z[2] * x[0] - z[0] * x[2], z[0] * x[1] - z[1] * x[0]];
+  return [0, 1, 2].map((i) => [x[i], y[i], z[i], position[i]]).concat([[0, 0, 0, 1]]);
+}
+
 // The inverse of poseLooking for the render panel's fields: position, and the yaw and pitch of
 // the optical axis (its roll is not shown; Set rebuilds the pose without roll).
 function lookFromPose(T) {
@@ -575,6 +590,7 @@ async function uploadAsset() {
 }
 
 const AR_POSITION = ["ar-x", "ar-y", "ar-z"];
+let arNormal = null;  // the surface normal under the last placing click; typing x, y, z drops it
 
 // The object to composite. Without x, y, z the server puts it in front of the camera.
 function arObject() {
@@ -584,7 +600,9 @@ function arObject() {
   const object = { scale: Number($("ar-scale").value) };
   if (fields.some((v) => v !== "")) {
     if (fields.some((v) => v === "")) throw new Error("x, y, z: give all three, or none to put the object in front of the camera");
-    object.T_world_obj = yawPose(fields.map(Number), Number($("ar-yaw").value));
+    const yaw = Number($("ar-yaw").value);
+    object.T_world_obj = arNormal && $("ar-normal-up").checked
+      ? surfacePose(fields.map(Number), arNormal, yaw) : yawPose(fields.map(Number), yaw);
   }
   if (assetId) object.asset = assetId;
   else { object.shape = $("ar-shape").value; object.color = color; }
@@ -646,6 +664,7 @@ async function pickSurface(event) {
     const half = Number($("ar-scale").value) / 2;
     const centre = hit.point.map((p, i) => p + hit.normal[i] * half);
     AR_POSITION.forEach((id, i) => { $(id).value = centre[i].toFixed(3); });
+    arNormal = hit.normal;
     $("ar-background").value = "render";
     say("ar-message", `Placed on the surface at ${hit.point.map((p) => p.toFixed(2)).join(", ")}.`, "ok");
     composite();
@@ -865,6 +884,7 @@ function start() {
   $("ar-asset-file").addEventListener("change", uploadAsset);
   $("ar-button").addEventListener("click", composite);
   $("ar-auto").addEventListener("click", () => { AR_POSITION.forEach((id) => { $(id).value = ""; }); composite(); });
+  AR_POSITION.forEach((id) => $(id).addEventListener("input", () => { arNormal = null; }));  // typed: world-upright
   window.addEventListener("resize", () => { plotsShown = null; refreshPlots(); });
   $("viewer-size").addEventListener("click", () => toggleViewerSize());
   $("path-add-viewer").addEventListener("click", addViewerKey);
