@@ -17,14 +17,28 @@ the figure measures occluding edges, not contact).
     (b) Replica room0: map the 10 even frames; a 0.4 m cube behind the left ottoman; views
         rendered at half resolution (600x340) at frame 10 (input) and 13 (held out) against
         the input depth resized the same way. Target IoU >= 0.90.
+    (d) Real frames with small occluders (TUM fr1/desk, 640x480): the map is a ``voxfusion run
+        --preset cpu`` of its 9 frames (tracked poses; ``--maps DIR/desk_run`` keeps it). At
+        input frames 2, 4 and 6 (their estimated poses, as ``frame:N`` takes), cubes of 8 cm
+        are put 12 cm behind the near side of the sensor's occluding edges (depth jumps of
+        >= 25 cm), one a cell of an 80 px grid, at most 8 a frame, each composited alone.
+        The figure is the count of object pixels within 3 px of an occluder's edge whose
+        hidden/shown state differs from the composite over the sensor depth (the reference),
+        for each scene depth: the map's rendered depth (a rendered view, and ``voxfusion ar``
+        without ``--background-depth``), the map's depth refined with its rendered colour
+        (``ar.scene_depth.refined_render_depth``), and the sensor's depth with the map in its
+        holes (``ar.scene_depth.sensor_depth_with_map``, ``frame:N``). Pixels in the sensor's
+        holes have no reference there; they are scored against the neighbouring frames' sensor
+        depth warped into the frame (frames +-1, +-2; hidden where any of them sees the scene in
+        front), with the sensor's depth alone (holes far) as the before.
     (c) Time of ``ar.composite`` for a 640x480 view (synthetic frame 10, the figure's objects
         plus a sphere and a cylinder) with 1 torch thread, excluding the scene render; target
         <= 200 ms. The scene render (``slam.views.render_view`` at 640x480) is timed too.
 
-    python benchmarks/bench_ar_occlusion.py [--part all|synthetic|replica|timing] [--quick]
+    python benchmarks/bench_ar_occlusion.py [--part all|synthetic|replica|real|timing] [--quick]
         [--extra-iterations N] [--maps DIR] [--json FILE]
 
-``--maps DIR`` keeps the trained maps (``DIR/synthetic.pt``, ``DIR/replica_room0.pt``) and
+``--maps DIR`` keeps the trained maps (``DIR/synthetic.pt``, ``DIR/replica_room0.pt``, ``DIR/desk_run``) and
 reuses them on the next run. Timings are taken on a shared machine: the load average is
 printed with them.
 """
@@ -33,6 +47,7 @@ from __future__ import annotations
 
 import argparse
 import statistics
+import subprocess
 import sys
 import time
 from dataclasses import dataclass, replace
@@ -44,6 +59,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import (
     REPLICA,
     Figure,
+    REPO_ROOT,
+    SHARED_DATA,
     MissingData,
     figures_payload,
     figures_table,
@@ -62,6 +79,16 @@ REPLICA_EVAL_WIDTH = 600
 """Half of Replica's 1200x680."""
 HIDDEN_RANGE = (0.3, 0.7)
 SYNTHETIC_TARGET, REPLICA_TARGET, COMPOSITE_TARGET_MS = 0.95, 0.90, 200.0
+DESK = SHARED_DATA / "rgbd_dataset_freiburg1_desk"
+DESK_FRAMES = (2, 4, 6)
+DESK_NEIGHBOURS = (-2, -1, 1, 2)
+OCCLUDER_JUMP_M = 0.25
+"""A sensor depth jump at least this large between pixels 3 px apart is an occluder's edge."""
+EDGE_JUMP_M = 0.05
+"""Depth jumps (between neighbouring pixels) that mark the edges the figure is scored along."""
+EDGE_BAND_PX = 3
+CUBE_SIDE_M, CUBE_BEHIND_M = 0.08, 0.12
+PLACEMENT_CELL_PX, PLACEMENTS_PER_FRAME = 80, 8
 TIMING_SIZE = (640, 480)
 
 
@@ -152,6 +179,141 @@ def occlusion_figures(label: str, mapset, views: dict[str, object], placements, 
     return figures
 
 
+# ------------------------------------------------------------------ real frames
+def desk_map(maps_dir: Path | None) -> tuple[Path, float | None]:
+    """(run folder, seconds): ``voxfusion run DESK --preset cpu``, reused from ``maps_dir/desk_run``."""
+    out = (maps_dir or Path("/tmp")) / "desk_run"
+    if (out / "map.pt").is_file() and (out / "trajectory.txt").is_file():
+        print(f"desk: reusing {out}", flush=True)
+        return out, None
+    t0 = time.perf_counter()
+    subprocess.run([sys.executable, "-m", "slam.cli", "run", str(require(DESK)), "--preset", "cpu", "--out", str(out),
+                    "--quiet"], check=True, cwd=REPO_ROOT)
+    return out, time.perf_counter() - t0
+
+
+def depth_edges(depth: np.ndarray, jump: float, gap: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """(near side, both sides): (H, W) bool masks of valid pixels with a valid pixel ``gap``
+    away (along a row or column) at least ``jump`` metres farther (near) or either way (both)."""
+    valid = depth > 0
+    near, both = np.zeros_like(valid), np.zeros_like(valid)
+    for axis in (0, 1):
+        a = np.take(depth, range(depth.shape[axis] - gap), axis=axis)
+        b = np.take(depth, range(gap, depth.shape[axis]), axis=axis)
+        ok = np.take(valid, range(depth.shape[axis] - gap), axis=axis) & np.take(valid, range(gap, depth.shape[axis]), axis=axis)
+        a_near, b_near = ok & (b - a >= jump), ok & (a - b >= jump)
+        lead = (slice(None, -gap), slice(None)) if axis == 0 else (slice(None), slice(None, -gap))
+        tail = (slice(gap, None), slice(None)) if axis == 0 else (slice(None), slice(gap, None))
+        near[lead] |= a_near
+        near[tail] |= b_near
+        both[lead] |= a_near | b_near
+        both[tail] |= a_near | b_near
+    return near, both
+
+
+def edge_placements(frame, T_world_cam: np.ndarray) -> list[Placement]:
+    """Cubes just behind the near side of the sensor's occluding edges (see (d))."""
+    near, _ = depth_edges(frame.depth, OCCLUDER_JUMP_M, gap=EDGE_BAND_PX)
+    placements, taken = [], set()
+    for v, u in zip(*np.nonzero(near)):
+        cell = (v // PLACEMENT_CELL_PX, u // PLACEMENT_CELL_PX)
+        if cell in taken or len(placements) == PLACEMENTS_PER_FRAME:
+            continue
+        taken.add(cell)
+        z = float(frame.depth[v, u]) + CUBE_BEHIND_M + CUBE_SIDE_M / 2
+        K = frame.K
+        cam = np.array([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z])
+        world = T_world_cam[:3, :3] @ cam + T_world_cam[:3, 3]
+        placements.append(Placement(f"cube at ({u}, {v})", "cube", tuple(float(c) for c in world), CUBE_SIDE_M))
+    return placements
+
+
+def warped_depth(frames, poses, target: int) -> np.ndarray:
+    """(H, W) nearest depth that the other frames' sensors saw along the target frame's pixels
+    (forward-warped points, z-buffered); 0 where none landed."""
+    frame = frames[target]
+    K, height, width = frame.K, frame.height, frame.width
+    out = np.full(height * width, np.inf, dtype=np.float32)
+    T_target_world = np.linalg.inv(poses[target])
+    for offset in DESK_NEIGHBOURS:
+        other = target + offset
+        if other not in frames:
+            continue
+        source = frames[other]
+        v, u = np.nonzero(source.depth > 0)
+        z = source.depth[v, u]
+        cam = np.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], 1)
+        T = T_target_world @ poses[other]
+        p = cam @ T[:3, :3].T + T[:3, 3]
+        ok = p[:, 2] > 0.1
+        x = np.rint(p[ok, 0] / p[ok, 2] * K[0, 0] + K[0, 2]).astype(int)
+        y = np.rint(p[ok, 1] / p[ok, 2] * K[1, 1] + K[1, 2]).astype(int)
+        inside = (x >= 0) & (x < width) & (y >= 0) & (y < height)
+        np.minimum.at(out, y[inside] * width + x[inside], p[ok, 2][inside].astype(np.float32))
+    return np.where(np.isfinite(out), out, 0.0).reshape(height, width)
+
+
+def part_real(maps_dir: Path | None, quick: bool) -> list[Figure]:
+    """Occlusion errors along small occluders' edges on real frames (see (d))."""
+    from functools import partial
+
+    from ar.occlusion import compare_occlusion
+    from ar.scene_depth import grow, refined_render_depth, sensor_depth_with_map, valid_depth
+    from slam import load_checkpoint, open_sequence, read_tum
+    from slam.views import render_view
+
+    run, seconds = desk_map(maps_dir)
+    sequence = open_sequence(require(DESK))
+    trajectory, mapset = read_tum(run / "trajectory.txt"), load_checkpoint(run / "map.pt")
+    targets = DESK_FRAMES[1:2] if quick else DESK_FRAMES
+    needed = sorted({t + o for t in targets for o in (0, *DESK_NEIGHBOURS) if 0 <= t + o < len(sequence)})
+    frames = {i: sequence[i] for i in needed}
+    poses = {i: trajectory.poses[int(np.argmin(np.abs(trajectory.timestamps - f.timestamp)))] for i, f in frames.items()}
+    names = ("map depth", "map depth refined with its colour", "sensor depth, holes far",
+             "sensor depth, map in its holes")
+    wrong = dict.fromkeys(names, 0)
+    scored = holes_scored = cubes = 0
+    for target in targets:
+        frame, T = frames[target], poses[target]
+        view = render_view(mapset, T, frame.K, frame.width, frame.height)
+        map_depth, map_rgb = np.asarray(view.depth), np.asarray(view.rgb)
+        sensed = valid_depth(frame.depth)
+        warped = warped_depth(frames, poses, target)
+        _, edges = depth_edges(np.where(sensed, frame.depth, 0.0), EDGE_JUMP_M)
+        # The holes' own borders are edges too: a hole beside an occluder is its depth shadow.
+        band = grow(edges | (grow(~sensed, 1) & sensed), EDGE_BAND_PX)
+        reference_depth = np.where(sensed, frame.depth, warped)
+        known = sensed | (warped > 0)
+
+        def window(K, width, height):
+            return np.asarray(render_view(mapset, T, K, width, height).depth)
+
+        for placement in edge_placements(frame, T):
+            objects = [placement.object()]
+            candidates = {
+                names[0]: map_depth,
+                names[1]: refined_render_depth(map_depth, map_rgb, objects, frame.K, T),
+                names[2]: np.where(sensed, frame.depth, 0.0),
+                names[3]: sensor_depth_with_map(frame.depth, objects, frame.K, T, partial(window)).depth,
+            }
+            cubes += 1
+            for name, depth in candidates.items():
+                result = compare_occlusion(frame.rgb, reference_depth, depth, objects, frame.K, T)
+                ref, cand = result.reference, result.candidate
+                covered = ref.object_mask | ref.occlusion_mask | cand.object_mask | cand.occlusion_mask
+                differs = (ref.occlusion_mask != cand.occlusion_mask) & covered & band & known
+                wrong[name] += int(differs.sum())
+                if name == names[0]:
+                    scored += int((covered & band & known).sum())
+                    holes_scored += int((covered & band & known & ~sensed).sum())
+    note = (f"{cubes} cubes of {100 * CUBE_SIDE_M:.0f} cm at frames {list(targets)}; {scored} object px within "
+            f"{EDGE_BAND_PX} px of an edge ({holes_scored} in sensor holes, scored against frames +-1, +-2)")
+    figures = [Figure(f"TUM fr1/desk: occlusion errors at small occluders, {name}", wrong[name], "px", "", note)
+               for name in names]
+    figures.append(Figure("TUM fr1/desk: voxfusion run --preset cpu", seconds, "s", "", str(run)))
+    return figures
+
+
 # ------------------------------------------------------------------------ parts
 def part_synthetic(config, extra: int, maps_dir: Path | None, quick: bool) -> tuple[list[Figure], object]:
     from slam.data import open_sequence
@@ -233,7 +395,7 @@ def part_timing(mapset, runs: int, render_runs: int) -> list[Figure]:
 # ------------------------------------------------------------------------- main
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--part", choices=["all", "synthetic", "replica", "timing"], default="all")
+    parser.add_argument("--part", choices=["all", "synthetic", "replica", "real", "timing"], default="all")
     parser.add_argument("--quick", action="store_true", help="smoke run: 3 frames, few iterations; its figures mean nothing")
     parser.add_argument("--extra-iterations", type=int, default=None,
                         help="windowed optimisation after the last frame (default 300, --quick 10)")
@@ -265,6 +427,11 @@ def main(argv: list[str] | None = None) -> int:
             figures += part_replica(config, extra, args.maps, args.quick)
         except MissingData as error:
             figures.append(Figure("Replica room0", None, "", f">= {REPLICA_TARGET}", f"skipped: {error}"))
+    if args.part in ("all", "real"):
+        try:
+            figures += part_real(args.maps, args.quick)
+        except MissingData as error:
+            figures.append(Figure("TUM fr1/desk", None, "", "", f"skipped: {error}"))
     if args.part in ("all", "timing"):
         figures += part_timing(synthetic_map, 3 if args.quick else args.runs, 1 if args.quick else 3)
     print()
