@@ -196,18 +196,24 @@ def test_assets_are_parsed_in_the_helper_and_work_in_ar(client, monkeypatch):
 def test_a_busy_helper_gets_503_with_retry_after(client, monkeypatch):
     from server.decoding import shared_helper
 
+    asset = post_asset(client, "cube.obj", CUBE_OBJ).json()["id"]
+    session = upload(client, replica_zip())
+    client.app.state.assets._cache.clear()
     queue = client.app.state.assets.parse_queue
     monkeypatch.setattr(queue, "wait_s", 0.2)
     monkeypatch.setattr(queue, "timeout_s", 0.3)
-    holder = threading.Thread(target=shared_helper().call, args=(time.sleep, 3.0))
+    holder = threading.Thread(target=shared_helper().call, args=(time.sleep, 4.0))
     holder.start()
     try:
         time.sleep(0.3)
-        response = post_asset(client, "cube.obj", CUBE_OBJ)
+        uploaded = post_asset(client, "cube.obj", CUBE_OBJ)
+        composited = client.post(f"/api/sessions/{session}/ar", json={
+            "background": "frame:0", "T_world_cam": np.eye(4).tolist(), "objects": [{"asset": asset}]})
     finally:
         holder.join()
-    assert response.status_code == 503, response.text
-    assert int(response.headers["Retry-After"]) > 0 and "busy" in response.json()["detail"]
+    for response in (uploaded, composited):
+        assert response.status_code == 503, response.text
+        assert int(response.headers["Retry-After"]) > 0 and "busy" in response.json()["detail"]
     time.sleep(0.5)
     assert post_asset(client, "cube.obj", CUBE_OBJ).status_code == 201
 
