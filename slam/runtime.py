@@ -172,10 +172,10 @@ class _TrackingSide:
     """Pixels each tracked frame keeps for it (``retrack_rays_per_frame``)."""
     retracking: tuple[int, float] = (0, 0.0)
     """Frames the final re-tracking moved, and its seconds."""
-    stopped: Callable[[], bool] = lambda: False
-    """Whether the run was asked to stop: ends any wait for the mapper (``_poll_mapper``)."""
     stages: StageClock = field(default_factory=StageClock)
     """Where the tracking side's wall time goes, stage by stage (``run.json``'s ``timings_s``)."""
+    stopped: Callable[[], bool] = lambda: False
+    """Whether the run was asked to stop: ends any wait for the mapper (``_poll_mapper``)."""
 
     def frozen_map(self, map_id: int) -> FrozenMap:
         """The tracker's copy of a map, rebuilt only when a newer snapshot arrived, placed
@@ -512,7 +512,13 @@ def _start_frame(side: _TrackingSide, track: AgentTrack, frame: Frame, raw: Fram
             track.features.remember(T)
     rec = FrameRecord(frame.index, float(frame.timestamp), map_id, T_mc, True, gt)
     start = MapStart(reason, map_id, T_wm.astype(np.float32))
-    return FrameMessage(track.agent, frame, map_id, T_mc.astype(np.float32), True, start, features=features), rec
+    tf = prepare_frame(frame, None, side.device, side.config.voxel.max_depth)
+    if side.retracker is not None and not use_gt_poses:
+        # Re-tracked like every other frame: the final maps no longer hold it exactly at the
+        # pose it started them with, and frames 1 onward are placed by them.
+        track.kept_rays[frame.index] = side.tracker.keep_rays(tf, side.retrack_rays, side.rays_generator)
+    return FrameMessage(track.agent, frame, map_id, T_mc.astype(np.float32), True, start, prepared=tf,
+                        features=features), rec
 
 
 def _given_pose_frame(side: _TrackingSide, track: AgentTrack, frame: Frame,
