@@ -129,14 +129,6 @@ class MappingStep:
     (``mapping.optimize_current_pose``; None: the tracked pose was held)."""
 
 
-@dataclass
-class _Timer:
-    totals: dict[str, float] = field(default_factory=dict)
-
-    def add(self, name: str, seconds: float) -> None:
-        self.totals[name] = self.totals.get(name, 0.0) + seconds
-
-
 def fit_pixels(frame: TensorFrame, which: str) -> torch.Tensor:
     """(H, W) bool: the pixels of ``frame`` the fine colour level's rendered-surface fit learns
     from (``fine_color.fit_pixels``): ``observed``, every pixel whose colour the camera saw
@@ -337,8 +329,6 @@ class Mapper:
         T_map_cam = self._T_map_cam(submap, tracked.T_world_cam)
         ta = time.perf_counter()
         points, surface = self._points(tracked.frame, T_map_cam)
-        tb = time.perf_counter()
-        self.timer.add("keyframe_decision", tb - ta)
         observed, new, codes = self._keyframe_coverage(submap, points)
         ratio = new / max(observed, 1)
         m = self.config.mapping
@@ -348,6 +338,8 @@ class Mapper:
                                          and self._moved_since_keyframe(tracked.agent, submap.map_id, T_map_cam))))
         agent = tracked.agent
         new_voxels = 0
+        tb = time.perf_counter()
+        self.timer.add("keyframe_decision", tb - ta)
         if first or tracked.tracking_ok:
             # Every successfully tracked frame allocates (paper: Voxel Allocation), so that the
             # newest frame in the window always has voxels where it looks.
