@@ -659,7 +659,7 @@ def cancel_queued_under_one_slot(data_dir: Path) -> CaseResult:
     all deleted at once; the worker processes alive at once are counted every 0.1 s until none
     is left (target: never more than 1)."""
     server = Server(data_dir, {"VOXFUSION_MAX_SESSIONS": "1", "VOXFUSION_MAX_QUEUED": str(SLOT_SESSIONS)})
-    result = CaseResult(f"11 {SLOT_SESSIONS} sessions deleted at once under MAX_SESSIONS=1")
+    result = CaseResult(f"15 {SLOT_SESSIONS} sessions deleted at once under MAX_SESSIONS=1")
     started = time.monotonic()
     baseline = worker_processes(server.process.pid)  # no session yet
     spec = {"source": "synthetic", "preset": "test", "spec": "orbit?frames=400&width=64&height=48"}
@@ -704,7 +704,7 @@ def sigterm_in_first_seconds(data_dir: Path) -> CaseResult:
     """Case 12: SIGTERM as soon as a session has reported its first frame: the server must be
     gone within 10 s with the session's trajectory.txt written and run.json's frames > 0."""
     server = Server(data_dir)
-    result = CaseResult("12 SIGTERM in a session's first seconds")
+    result = CaseResult("16 SIGTERM in a session's first seconds")
     created = server.client.post("/api/sessions", json={"source": "synthetic", "preset": "test",
                                                         "spec": "orbit?frames=60&width=64&height=48"})
     session = created.json()["id"]
