@@ -178,12 +178,21 @@ def add_ar_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--supersample", type=int, default=2, help="samples per pixel along each axis (default 2)")
     parser.add_argument("--device", default="cpu", choices=["auto", "cpu", "cuda"],
                         help="torch device for rendering and compositing (default cpu)")
+    from slam.cli import FIRST_CALL_NOTE, add_threads_argument
+
+    add_threads_argument(parser)
+    # ``voxfusion ar``'s subparser comes without a description: say what a fresh process costs.
+    parser.description = parser.description or (
+        f"Composite virtual objects into a view of a saved map, with occlusion. {FIRST_CALL_NOTE}")
 
 
 def cmd_ar(args: argparse.Namespace) -> int:
     """Run ``voxfusion ar``; 0 on success, 2 on bad input (one line on stderr says what)."""
+    from slam.cli import threads_for_views
+
     try:
-        written = _run(args)
+        with threads_for_views(args.threads):
+            written = _run(args)
     except (ARInputError, ObjectSpecError) as error:
         print(f"{PROG}: {error}", file=sys.stderr)
         return 2

@@ -15,9 +15,6 @@ from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
-import scipy.sparse
-import scipy.sparse.csgraph
-import trimesh
 
 DEFAULT_ALBEDO = (0.75, 0.75, 0.75)
 """Colour of a mesh that has neither vertex colours nor an object colour."""
@@ -112,6 +109,8 @@ def _outward_winding(vertices: np.ndarray, faces: np.ndarray) -> int:
     reverse = end * num_ids + start
     if len(np.unique(directed)) != len(directed) or not np.array_equal(np.sort(directed), np.sort(reverse)):
         return 0
+    import scipy.sparse.csgraph  # here, not at import: ``voxfusion render`` imports this module too
+
     graph = scipy.sparse.coo_matrix((np.ones(len(start)), (start, end)), shape=(num_ids, num_ids))
     _, part_of_id = scipy.sparse.csgraph.connected_components(graph, directed=False)
     a, b, c = vertices.astype(np.float64)[faces].transpose(1, 0, 2)
@@ -227,12 +226,27 @@ def _cached_shape(name: str, builder: Callable[[], ObjectMesh]) -> ObjectMesh:
     return builder()
 
 
+# trimesh.creation.box's corners (x, y, z in {0, 1}, z fastest) and outward faces, kept here
+# so that a cube or axes needs no trimesh import (seconds in a command-line run).
+_BOX_FACES = np.array([[1, 3, 0], [4, 1, 0], [0, 3, 2], [2, 4, 0], [1, 7, 3], [5, 1, 4],
+                       [5, 7, 1], [3, 7, 2], [6, 4, 2], [2, 7, 6], [6, 5, 4], [7, 5, 6]], dtype=np.int64)
+
+
+def _box(extents) -> tuple[np.ndarray, np.ndarray]:
+    """(8, 3) vertices and (12, 3) faces of a box of these extents centred at 0, as
+    ``trimesh.creation.box(extents=extents)`` makes them."""
+    corners = np.array([[(i >> 2) & 1, (i >> 1) & 1, i & 1] for i in range(8)], dtype=np.float64)
+    return (corners - 0.5) * np.asarray(extents, dtype=np.float64), _BOX_FACES.copy()
+
+
 def _make_cube() -> ObjectMesh:
-    box = trimesh.creation.box(extents=(1.0, 1.0, 1.0))
-    return ObjectMesh(vertices=box.vertices, faces=box.faces)
+    vertices, faces = _box((1.0, 1.0, 1.0))
+    return ObjectMesh(vertices=vertices, faces=faces)
 
 
 def _make_sphere(subdivisions: int = 3) -> ObjectMesh:
+    import trimesh
+
     sphere = trimesh.creation.icosphere(subdivisions=subdivisions, radius=0.5)
     vertices = np.asarray(sphere.vertices)
     return ObjectMesh(
@@ -274,11 +288,11 @@ def _make_axes(length: float = 1.0, thickness: float = 0.04) -> ObjectMesh:
         extents[axis] = length
         centre = np.zeros(3)
         centre[axis] = length / 2
-        box = trimesh.creation.box(extents=extents)
-        vertices.append(np.asarray(box.vertices) + centre)
-        faces.append(np.asarray(box.faces) + offset)
-        colors.append(np.tile(color, (len(box.vertices), 1)))
-        offset += len(box.vertices)
+        box_vertices, box_faces = _box(extents)
+        vertices.append(box_vertices + centre)
+        faces.append(box_faces + offset)
+        colors.append(np.tile(color, (len(box_vertices), 1)))
+        offset += len(box_vertices)
     return ObjectMesh(
         vertices=np.concatenate(vertices), faces=np.concatenate(faces), vertex_colors=np.concatenate(colors)
     )

@@ -2,16 +2,60 @@
 
 The installed ``voxfusion`` script is ``server.cli:main``, which adds ``serve``, ``demo`` and
 ``ar`` to this parser (imports point inward: ``slam`` never imports ``server``).
+
+Each ``voxfusion`` command is a fresh process, so building the parser imports nothing heavy
+(the eval subcommands add their arguments, and import trimesh, only when chosen:
+``DeferredParser``), and the commands that render views pick their torch threads from the
+machine's load (``view_threads``).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
-from .eval.commands import add_eval_ate_arguments, add_eval_mesh_arguments, cmd_eval_ate, cmd_eval_mesh
+
+class DeferredParser(argparse.ArgumentParser):
+    """A subcommand's parser whose arguments ``fill`` adds on its first parse or help, so that
+    building the command line imports only what the chosen subcommand needs (eval: trimesh)."""
+
+    fill: Callable[[argparse.ArgumentParser], None] | None = None
+
+    def _filled(self) -> None:
+        fill, self.fill = self.fill, None
+        if fill is not None:
+            fill(self)
+
+    def parse_known_args(self, args=None, namespace=None):
+        self._filled()
+        return super().parse_known_args(args, namespace)
+
+    def format_usage(self) -> str:
+        self._filled()
+        return super().format_usage()
+
+    def format_help(self) -> str:
+        self._filled()
+        return super().format_help()
+
+
+def _eval_ate_arguments(p: argparse.ArgumentParser) -> None:
+    from .eval.commands import add_eval_ate_arguments, cmd_eval_ate
+
+    add_eval_ate_arguments(p)
+    p.set_defaults(handler=cmd_eval_ate)
+
+
+def _eval_mesh_arguments(p: argparse.ArgumentParser) -> None:
+    from .eval.commands import add_eval_mesh_arguments, cmd_eval_mesh
+
+    add_eval_mesh_arguments(p)
+    p.set_defaults(handler=cmd_eval_mesh)
 
 
 def _floats(text: str, n: tuple[int, ...], what: str) -> tuple[float, ...]:
@@ -116,6 +160,65 @@ def _agents_summary(run_json: Path) -> str:
     return "\n".join(lines)
 
 
+FIRST_CALL_NOTE = ("A fresh process pays for importing torch and for loading the numba kernels from their disk "
+                   "cache (seconds on a slow or busy machine; compiling them instead, after an upgrade or "
+                   "without 'make setup', takes a minute once).")
+"""What a view from a fresh process costs besides the render itself (the render commands' help)."""
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
+def add_threads_argument(p: argparse.ArgumentParser) -> None:
+    """``--threads`` of the commands that render views (render, render-path, ar)."""
+    p.add_argument("--threads", type=_positive_int, default=None, metavar="N",
+                   help="torch threads (default: the cores the 1-minute load average leaves idle, at least 1; "
+                        "on a busy machine a thread that waits for a core stalls every operation it shares)")
+
+
+def idle_cores(cores: int, load: float) -> int:
+    """The cores a 1-minute load average of ``load`` leaves idle, rounded, at least 1."""
+    return max(1, min(cores, round(cores - load)))
+
+
+def view_threads(requested: int | None = None) -> int:
+    """torch threads for a command's views: ``requested``, else ``idle_cores`` of this process's
+    cores. OpenMP's threads spin while they wait, so on a loaded machine a second thread that
+    has no core of its own makes each of the render's many small operations wait for it."""
+    if requested is not None:
+        return requested
+    import torch
+
+    try:
+        cores = len(os.sched_getaffinity(0))
+        load = os.getloadavg()[0]
+    except (AttributeError, OSError):  # neither exists everywhere; without them keep torch's choice
+        return torch.get_num_threads()
+    return idle_cores(min(cores, torch.get_num_threads()), load)
+
+
+@contextmanager
+def threads_for_views(requested: int | None = None) -> Iterator[int]:
+    """torch's thread count at ``view_threads(requested)`` inside, restored after (``main`` is
+    also called in-process, by tests and scripts)."""
+    import torch
+
+    before = torch.get_num_threads()
+    threads = view_threads(requested)
+    torch.set_num_threads(threads)
+    try:
+        yield threads
+    finally:
+        torch.set_num_threads(before)
+
+
 def add_render_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("checkpoint", type=Path, help="map.pt of a run")
     p.add_argument("--pose", required=True,
@@ -125,6 +228,7 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
                    type=lambda s: _floats(s, (6,), "--intrinsics"))
     p.add_argument("--out", required=True, type=Path, help="colour PNG")
     p.add_argument("--depth", type=Path, default=None, help="16-bit depth PNG in millimetres")
+    add_threads_argument(p)
 
 
 def cmd_render(args: argparse.Namespace) -> int:
@@ -143,7 +247,8 @@ def cmd_render(args: argparse.Namespace) -> int:
         return 2
     fx, fy, cx, cy, w, h = args.intrinsics
     K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
-    view = render_view(maps, T, K, int(w), int(h))
+    with threads_for_views(args.threads):
+        view = render_view(maps, T, K, int(w), int(h))
     cv2.imwrite(str(args.out), cv2.cvtColor((view.rgb * 255).round().astype(np.uint8), cv2.COLOR_RGB2BGR))
     if args.depth:
         cv2.imwrite(str(args.depth), np.clip(view.depth * 1000, 0, 65535).round().astype(np.uint16))
@@ -165,6 +270,7 @@ def add_render_path_arguments(p: argparse.ArgumentParser) -> None:
                    type=lambda s: _floats(s, (6,), "--intrinsics"), help="each panel's camera (default 320x240, "
                                                                          "a Kinect's field of view)")
     p.add_argument("--outputs", default="color,depth,normals", help="panels side by side: color, depth, normals")
+    add_threads_argument(p)
 
 
 def cmd_render_path(args: argparse.Namespace) -> int:
@@ -194,7 +300,8 @@ def cmd_render_path(args: argparse.Namespace) -> int:
         K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
         bar = tqdm(total=path.frame_count, unit="frame")
         frames = path_frames(maps, path, K, int(w), int(h), outputs, on_frame=lambda done, total: bar.update(1))
-        write_mp4(frames, args.out, args.fps)
+        with threads_for_views(args.threads):
+            write_mp4(frames, args.out, args.fps)
         bar.close()
     except (CheckpointError, ValueError, OSError) as exc:
         print(f"voxfusion render-path: {exc}", file=sys.stderr)
@@ -206,17 +313,14 @@ def cmd_render_path(args: argparse.Namespace) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="voxfusion", description="Vox-Fusion++ neural implicit RGB-D SLAM")
-    sub = parser.add_subparsers(dest="command", required=True)
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=DeferredParser)
     p = sub.add_parser("run", help="run SLAM on a dataset and write trajectory, mesh and map")
     add_run_arguments(p)
     p.set_defaults(handler=cmd_run)
-    p = sub.add_parser("eval-ate", help="absolute trajectory error of TUM files")
-    add_eval_ate_arguments(p)
-    p.set_defaults(handler=cmd_eval_ate)
-    p = sub.add_parser("eval-mesh", help="mesh accuracy / completion against a GT mesh")
-    add_eval_mesh_arguments(p)
-    p.set_defaults(handler=cmd_eval_mesh)
-    p = sub.add_parser("render", help="render a view of a saved map")
+    sub.add_parser("eval-ate", help="absolute trajectory error of TUM files").fill = _eval_ate_arguments
+    sub.add_parser("eval-mesh", help="mesh accuracy / completion against a GT mesh").fill = _eval_mesh_arguments
+    p = sub.add_parser("render", help="render a view of a saved map",
+                       description=f"Render the colour (and depth) a camera sees of a saved map. {FIRST_CALL_NOTE}")
     add_render_arguments(p)
     p.set_defaults(handler=cmd_render)
     p = sub.add_parser("render-path", help="render a fly-through video (MP4) of a saved map along a camera path")
