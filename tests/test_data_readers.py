@@ -204,6 +204,19 @@ def test_format_names(tum_dir):
         open_sequence(tum_dir, format="replica")
 
 
+@pytest.mark.parametrize("asked", ["7scenes", "replica", "scannet"])
+def test_a_wrong_format_names_the_one_detected(tum_dir, asked):
+    with pytest.raises(DataError, match=r"looks like TUM RGB-D instead: format 'tum' \(or 'auto'\)"):
+        open_sequence(tum_dir, format=asked)
+
+
+def test_a_folder_of_no_known_format_names_none(tmp_path):
+    (tmp_path / "stuff").mkdir()
+    with pytest.raises(DataError) as err:
+        open_sequence(tmp_path, format="7scenes")
+    assert "looks like" not in str(err.value)
+
+
 # --------------------------------------------------------------------------------------------
 # TUM
 

@@ -24,6 +24,8 @@ _LAYOUTS: dict[str, Callable[..., SequenceLayout]] = {
     "7scenes": sevenscenes_layout,
 }
 
+FORMAT_NAMES = {"tum": "TUM RGB-D", "replica": "Replica", "scannet": "ScanNet", "7scenes": "7-Scenes"}
+
 _WHAT_WE_LOOK_FOR = (
     "rgb.txt + depth.txt (TUM RGB-D); results/frame*.jpg or traj.txt + results/ (Replica); "
     "color/ + depth/ + pose/ (ScanNet); seq-* folders or frame-*.color.png (7-Scenes)"
@@ -110,5 +112,20 @@ def open_sequence(
         format = detect_format(root)
     if intrinsics is not None and not isinstance(intrinsics, Intrinsics):
         intrinsics = Intrinsics.from_values(intrinsics, source="intrinsics argument")
-    layout = _LAYOUTS[format](root, intrinsics=intrinsics, depth_scale=depth_scale)
+    try:
+        layout = _LAYOUTS[format](root, intrinsics=intrinsics, depth_scale=depth_scale)
+    except DataError as error:
+        raise DataError(f"{error}{_detected_instead(root, format)}") from error
     return FileSequence(layout, width=width, stride=stride, max_frames=max_frames)
+
+
+def _detected_instead(root: Path, asked: str) -> str:
+    """'; it looks like ... (--format X)' when the folder's layout is another format than the
+    one asked for, else ''."""
+    try:
+        found = detect_format(root)
+    except DataError:
+        return ""
+    if found == asked:
+        return ""
+    return f"; the folder looks like {FORMAT_NAMES[found]} instead: format {found!r} (or 'auto')"
