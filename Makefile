@@ -22,12 +22,15 @@ setup: $(STAMP)
 # The HTTP port: `make demo PORT=8001`, or VOXFUSION_PORT in the environment (default 8000;
 # the demo moves on to the next free port when it is taken).
 PORT_FLAG := $(if $(PORT),--port $(PORT))
+# The 3D viewer's own port: `make demo VIEWER_PORT=8081`, or VOXFUSION_VIEWER_PORT (default
+# 8080; -1 turns the viewer off). The page reaches it through /viewer on the HTTP port.
+VIEWER_PORT_FLAG := $(if $(VIEWER_PORT),--viewer-port $(VIEWER_PORT))
 
 demo: $(STAMP)
-	$(BIN)/voxfusion demo $(PORT_FLAG)
+	$(BIN)/voxfusion demo $(PORT_FLAG) $(VIEWER_PORT_FLAG)
 
 serve: $(STAMP)
-	$(BIN)/voxfusion serve $(PORT_FLAG)
+	$(BIN)/voxfusion serve $(PORT_FLAG) $(VIEWER_PORT_FLAG)
 
 test: $(STAMP)
 	bash scripts/browser-deps.sh
