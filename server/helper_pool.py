@@ -125,6 +125,10 @@ def _serve(connection, kind: HelperKind) -> None:
     global _connection
     if kind.niceness:
         os.nice(kind.niceness)
+    # Before torch loads OpenMP: idle threads sleep instead of spinning, since helpers share the
+    # cores with each other, the sessions and the API (a spinning thread without a core of its
+    # own stalls every operation of a render).
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     for module in kind.preload:  # the heavy imports happen before the cap is set
         importlib.import_module(module)
     try:

@@ -180,3 +180,13 @@ def test_the_decode_helper_is_served_as_before_by_shared_helper():
     from server.helper_pool import HelperFailed
 
     assert shared_helper().call(np.add, 2, 3) == 5 and DecodeFailed is HelperFailed
+
+
+def test_helper_threads_sleep_when_idle_instead_of_spinning():
+    """Helpers share two cores with each other and the sessions: OpenMP's idle threads must not
+    spin there (a spinning thread without a core of its own stalls every operation)."""
+    import os
+
+    from server.decoding import shared_helper
+
+    assert shared_helper().call(os.environ.get, "OMP_WAIT_POLICY") == "PASSIVE"
