@@ -189,4 +189,4 @@ def test_helper_threads_sleep_when_idle_instead_of_spinning():
 
     from server.decoding import shared_helper
 
-    assert shared_helper().call(os.environ.get, "OMP_WAIT_POLICY") == "PASSIVE"
+    assert shared_helper().call(os.getenv, "OMP_WAIT_POLICY") == "PASSIVE"
