@@ -635,8 +635,8 @@ def test_the_tracker_detects_the_features_the_loop_closer_would():
 
 
 def test_a_frame_is_prepared_once_in_one_process(frames, tmp_path, monkeypatch):
-    # Single-process: the mapper integrates the tensors the tracker prepared; only a frame the
-    # tracker did not track (a map's first) is prepared by the mapper. Across processes the
+    # Single-process: the mapper integrates the tensors the tracker prepared, a map's first
+    # frame's too (the tracker keeps its pixels for the re-tracking). Across processes the
     # mapper prepares its own (cheaper than pickling tensors), so the message leaves them out.
     import slam.mapping_process as mapping_process
 
@@ -653,7 +653,7 @@ def test_a_frame_is_prepared_once_in_one_process(frames, tmp_path, monkeypatch):
     monkeypatch.setattr(mapping_process, "prepare_frame", counting("mapper"))
     done = do_run([frames], config(False), tmp_path)
     assert done.result.status == "finished", done.result.error
-    assert calls.count("mapper") == 1 and calls.count("tracker") == NUM_FRAMES - 1, calls
+    assert calls.count("mapper") == 0 and calls.count("tracker") == NUM_FRAMES, calls
     put: list = []
 
     class Queue:
