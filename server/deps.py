@@ -12,7 +12,6 @@ from starlette.requests import HTTPConnection
 from server.assets import AssetStore
 from server.path_jobs import PathJobs
 from server.render_pools import RenderPools
-from server.rendering import MapCache, MeshFiles
 from server.sessions import SessionManager
 from server.settings import Settings
 from server.viewer import ViewerAdapter
@@ -30,14 +29,6 @@ def get_manager(conn: HTTPConnection) -> SessionManager:
 
 def get_viewer(conn: HTTPConnection) -> ViewerAdapter | None:
     return conn.app.state.viewer
-
-
-def get_map_cache(conn: HTTPConnection) -> MapCache:
-    return conn.app.state.map_cache
-
-
-def get_mesh_files(conn: HTTPConnection) -> MeshFiles:
-    return conn.app.state.mesh_files
 
 
 def get_path_jobs(conn: HTTPConnection) -> PathJobs:

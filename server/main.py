@@ -25,7 +25,7 @@ from server.errors import error_text, validation_message
 from server.log_redaction import RedactTokens, redact_logs  # noqa: F401 (RedactTokens: tests)
 from server.path_jobs import PathJobs
 from server.render_pools import render_pools
-from server.rendering import MapCache, MeshFiles, NoMapYet, with_threads
+from server.rendering import MapCache, NoMapYet, with_threads
 from server.routes_pages import STATIC_DIR
 from server.sessions import SessionConflict, SessionManager, SessionNotFound, register_error_handlers
 from server.settings import Settings, settings_from_env
@@ -189,7 +189,6 @@ def create_app(settings: Settings | None = None, demo: DemoSession | None = None
         app.state.viewer = viewer
         app.state.manager = manager
         app.state.map_cache = map_cache
-        app.state.mesh_files = MeshFiles()
         app.state.assets = AssetStore(settings.assets_dir)
         app.state.render_pools = render_pools()  # renders, AR, meshes, videos: in helper processes
         app.state.path_jobs = PathJobs(app.state.render_pools.video)
