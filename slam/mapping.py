@@ -45,6 +45,7 @@ from .frames import (
 )
 from .geometry import pose_moved, se3_exp, se3_exp_compact, se3_inverse
 from .losses import LossWeights, Losses, compute_losses
+from .optimizers import adam
 from .maps import Keyframe, MapSet, SubMap
 from .padded import color_slots, grid_samples, grid_size, pack_samples, render_padded, round_up
 from .profiling import MAPPING_ITERATION, StageClock, scope
@@ -267,15 +268,13 @@ class Mapper:
         opt = self._optimizers.get(submap.map_id)
         if opt is None:
             m = self.config.mapping
-            # Static shapes: the fused step (one kernel for every parameter, its step count on
-            # the device), as a GPU wants it; else torch's default (foreach on CUDA).
             groups = [
                 {"params": [submap.voxels.embeddings], "lr": m.lr_embed},
                 {"params": list(submap.decoder.parameters()), "lr": m.lr_decoder},
             ]
             if submap.fine is not None:
                 groups.append({"params": list(submap.fine.parameters()), "lr": self.config.fine_color.lr})
-            opt = torch.optim.Adam(groups, fused=True if self.static else None)
+            opt = adam(groups)
             self._optimizers[submap.map_id] = opt
         return opt
 
@@ -480,7 +479,7 @@ class Mapper:
         if points.shape[0] == 0:
             return
         cfg = self.config.fine_color
-        optimizer = torch.optim.Adam(submap.fine.parameters(), lr=cfg.lr)
+        optimizer = adam(submap.fine.parameters(), lr=cfg.lr)
         decay = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda k: 0.5 * (1.0 + math.cos(math.pi * k / iterations)))
         draw = draw_device(self._fine_gen, self.device)
         for _ in range(iterations):
@@ -581,7 +580,7 @@ class Mapper:
         # One (P, 6) tensor for all free poses: Adam is per coordinate, so this is the same
         # update as one optimiser per keyframe, at one batched exp map per iteration.
         twists = torch.zeros(len(free), 6, device=self.device, requires_grad=True)
-        pose_opt = torch.optim.Adam([twists], lr=m.lr_pose, fused=True if self.static else None) if free else None
+        pose_opt = adam([twists], lr=m.lr_pose) if free else None
         weights = self._loss_weights()
         stack = stack_frames(sources)
         view = submap.view()  # the map does not change inside the loop (no allocation)

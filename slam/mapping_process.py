@@ -435,6 +435,19 @@ def _idle_step(side: _MapperSide, frame_waiting: Callable[[], bool]) -> list[Rep
     return out
 
 
+def _warm_up() -> None:
+    """Pay the first call's imports and compiles before the first frame comes, not inside
+    its mapping (which the tracker waits for): numba's kernels from their cache, and torch's
+    optimiser machinery, whose first Adam imports the compiler stack (decisions.md#optimizers)."""
+    from . import kernels
+    from .optimizers import adam
+
+    kernels.warm_up()
+    scratch = torch.nn.Parameter(torch.zeros(8))
+    scratch.grad = torch.ones(8)
+    adam([scratch]).step()
+
+
 def _next_batch(frames: "queue.Queue", first: Request, config: SLAMConfig) -> list[Request]:
     """``first`` and what queued up behind it while the mapper optimised (integrate all,
     optimise once). qsize counts frames still in the queue's pipe, which get_nowait would
@@ -463,6 +476,7 @@ def _mapping_process(config_dict: dict, device_name: str, out_dir: str, emit_mes
         process_threads(device, processes=True)
         side = _make_side(config, device, Path(out_dir), emit_meshes, seed)
         replies.put(Ready())
+        _warm_up()
         parent = mp.parent_process()
         while True:
             if parent is not None and not parent.is_alive():
@@ -484,13 +498,13 @@ def _mapping_process(config_dict: dict, device_name: str, out_dir: str, emit_mes
             end = batch[-1]
             if isinstance(end, EndOfInput):
                 # The tracker has no frames left: the final bundle adjustment and the mesh
-                # take every core (2 cores: 108 -> 80 ms per global-BA iteration).
+                # take every core (decisions.md#mapping.final_iterations).
                 process_threads(device, processes=False)
                 for reply in _finish(side, refine=end.refine):
                     replies.put(reply)
                     if isinstance(reply, FinalMaps):
-                        # The tracker re-tracks its frames meanwhile: share the cores again
-                        # (2 cores, both sides on both: the colour fit 6 -> 13 s).
+                        # The tracker re-tracks its frames meanwhile: share the cores again, or
+                        # the two sides slow each other (decisions.md#tracking.retrack_iterations).
                         process_threads(device, processes=True)
                 return
     except BaseException:  # noqa: BLE001 - reported to the tracking side, which fails the run
@@ -563,7 +577,7 @@ class ProcessMapper:
 
     def submit(self, msg: Request) -> None:
         if isinstance(msg, FrameMessage) and msg.prepared is not None:
-            # Tensors pickle as shared-memory files: re-preparing them there is cheaper (issue 42).
+            # Tensors pickle as shared-memory files: re-preparing them there is cheaper.
             msg = replace(msg, prepared=None)
         while True:
             try:
