@@ -186,10 +186,16 @@ class TrackingConfig:
     retrack_ray_budget: int = 0
     """When the run's length is known: pixels for the re-tracking over the whole run, shared
     among its frames, each keeping 1-4x ``retrack_rays`` (0: ``retrack_rays`` each)."""
+    retrack_frame_budget: int = 0
+    """Frames of a map the final re-tracking optimises at most, spread evenly over its frames
+    (its first and last included); the frames between take their neighbours' corrections,
+    blended by place (0: every frame). Keeps the phase's cost flat in the run's length."""
 
     def __post_init__(self) -> None:
-        if self.retrack_iterations < 0 or self.retrack_rays < 1 or self.retrack_ray_budget < 0:
-            raise ConfigError("tracking.retrack_iterations and retrack_ray_budget must be >= 0 and "
+        if (self.retrack_iterations < 0 or self.retrack_rays < 1 or self.retrack_ray_budget < 0
+                or self.retrack_frame_budget < 0 or self.retrack_frame_budget == 1):
+            raise ConfigError("tracking.retrack_iterations, retrack_ray_budget and retrack_frame_budget must be "
+                              ">= 0 (retrack_frame_budget not 1: a map's first and last frame at least), "
                               "tracking.retrack_rays >= 1")
         _check_choice("tracking.color_robust", self.color_robust, COLOR_KERNELS)
         _check_non_negative("tracking.color_adaptive", self.color_adaptive)

@@ -92,6 +92,50 @@ def refine_with_keyframes(poses: np.ndarray, frame_indices: list[int],
     return out
 
 
+def retrack_anchors(map_ids: list[int], budget: int) -> list[int]:
+    """Positions (ascending) of the frames the final re-tracking optimises among frames in
+    ``map_ids`` (each frame's map, in order): every one with ``budget`` 0; else per map at
+    most ``budget``, spread evenly over its frames, its first and last included
+    (``tracking.retrack_frame_budget``)."""
+    by_map: dict[int, list[int]] = {}
+    for i, map_id in enumerate(map_ids):
+        by_map.setdefault(map_id, []).append(i)
+    out: list[int] = []
+    for positions in by_map.values():
+        if budget <= 0 or len(positions) <= budget:
+            out += positions
+        else:
+            picks = np.unique(np.linspace(0, len(positions) - 1, budget).round().astype(int))
+            out += [positions[j] for j in picks]
+    return sorted(out)
+
+
+def spread_corrections(start: np.ndarray, map_ids: list[int], moved: dict[int, np.ndarray],
+                       targets: list[int]) -> dict[int, np.ndarray]:
+    """Poses for the ``targets`` positions of ``start`` (N, 4, 4), which the re-tracking left
+    out: each takes the corrections ``T_moved T_start^-1`` of the nearest ``moved`` frames
+    (position -> re-tracked pose) of its own map before and after it, blended by place as
+    ``refine_with_keyframes`` blends keyframes' (one side only: that side's correction; none:
+    left out)."""
+    corrections: dict[int, list[tuple[int, np.ndarray]]] = {}
+    for i in sorted(moved):
+        corrections.setdefault(map_ids[i], []).append((i, moved[i] @ np.linalg.inv(start[i])))
+    out: dict[int, np.ndarray] = {}
+    for i in targets:
+        known = corrections.get(map_ids[i], [])
+        before = [(j, c) for j, c in known if j < i]
+        after = [(j, c) for j, c in known if j > i]
+        if before and after:
+            (a, ca), (b, cb) = before[-1], after[0]
+            correction = blend_poses(ca, cb, (i - a) / (b - a))
+        elif before or after:
+            correction = (before[-1] if before else after[0])[1]
+        else:
+            continue
+        out[i] = correction @ start[i]
+    return out
+
+
 def blend_poses(a: np.ndarray, b: np.ndarray, s: float) -> np.ndarray:
     """(4, 4) rigid transforms ``a`` at s = 0 to ``b`` at s = 1: rotation by slerp, translation
     linearly."""

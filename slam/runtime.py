@@ -64,7 +64,7 @@ from .messages import (Done, EventReply, Failed, FinalMaps, FrameMessage, FrameP
                        MapStart, Reply, SnapshotReply)
 from .profiling import StageClock
 from .outputs import (PROGRESS_EVERY, FrameRecord, ProgressSample, RunResult, corrected_poses, refine_with_keyframes,
-                      running_ate, write_outputs, write_progress)
+                      retrack_anchors, running_ate, spread_corrections, write_outputs, write_progress)
 from .loop.keyframe_graph import frame_covariance
 from .tracking import FrozenMap, Tracker
 
@@ -265,14 +265,22 @@ def _retrack(side: _TrackingSide, final: FinalMaps) -> None:
             continue
         keyframes = {k.frame_index: k.T_world_cam for k in final.keyframes if k.agent == track.agent}
         start = corrected_poses(track.records, final.map_poses, keyframes, interpolate)
-        for rec, T in zip(track.records, start):
-            rays, fmap = track.kept_rays.get(rec.index), fmaps.get(rec.map_id)
-            if rays is None or fmap is None:
-                continue
-            result = side.retracker.retrack(rays, fmap, torch.from_numpy(T).float())
+        candidates = [i for i, rec in enumerate(track.records)
+                      if rec.index in track.kept_rays and rec.map_id in fmaps]
+        map_ids = [track.records[i].map_id for i in candidates]
+        chosen = {candidates[j] for j in retrack_anchors(map_ids, side.config.tracking.retrack_frame_budget)}
+        found: dict[int, np.ndarray] = {}
+        for i in sorted(chosen):
+            rec = track.records[i]
+            result = side.retracker.retrack(track.kept_rays[rec.index], fmaps[rec.map_id],
+                                            torch.from_numpy(start[i]).float())
             if result.ok:
-                track.retracked[rec.index] = result.T_world_cam.cpu().numpy().astype(np.float64)
-                moved += 1
+                found[i] = result.T_world_cam.cpu().numpy().astype(np.float64)
+        left_out = [i for i in candidates if i not in chosen]
+        spread = spread_corrections(start, [r.map_id for r in track.records], found, left_out)
+        for i, T in {**found, **spread}.items():
+            track.retracked[track.records[i].index] = T
+        moved += len(found)
         track.kept_rays.clear()
     seconds = time.perf_counter() - t0
     side.busy += seconds
@@ -282,9 +290,10 @@ def _retrack(side: _TrackingSide, final: FinalMaps) -> None:
 def _retrack_estimate(side: _TrackingSide) -> float | None:
     """About how long the final re-tracking takes: its frames at the run's tracking time per
     frame, scaled by its iterations to the tracker's; None before any frame was tracked."""
-    frames = sum(len(t.kept_rays) for t in side.agents.values())
-    tracked = sum(len(t.records) for t in side.agents.values())
     c = side.config.tracking
+    frames = sum(len(retrack_anchors([r.map_id for r in t.records if r.index in t.kept_rays], c.retrack_frame_budget))
+                 for t in side.agents.values())
+    tracked = sum(len(t.records) for t in side.agents.values())
     if not tracked or c.iterations <= 0:
         return None
     per_frame = side.stages.totals.get("track", 0.0) / tracked

@@ -19,6 +19,7 @@ import pytest
 import torch
 import trimesh
 
+import slam.outputs as outputs
 import slam.runtime as runtime
 from slam.checkpoint import load_checkpoint
 from slam.config import ConfigError, SLAMConfig, apply_overrides, preset
@@ -358,6 +359,47 @@ def test_the_final_retracking_moves_every_tracked_frame_against_the_refined_map(
     off = do_run([frames], config(processes, replace(cfg, tracking=FAST.tracking)), tmp_path / "off")
     assert off.info["frames_retracked"] == 0 and "FinalMaps" not in order[order.index("Done") + 1:]
     assert ate_on < 0.05 and off.info["ate_rmse_m"] < 0.05
+
+
+def test_the_retracking_frame_budget_spreads_its_frames_over_each_map():
+    assert outputs.retrack_anchors([0] * 5, 0) == [0, 1, 2, 3, 4]  # 0: every frame
+    assert outputs.retrack_anchors([0] * 5, 8) == [0, 1, 2, 3, 4]
+    assert outputs.retrack_anchors([0] * 9, 3) == [0, 4, 8]  # first, middle, last
+    # Two maps: each gets the budget over its own frames, its first and last included.
+    assert outputs.retrack_anchors([0, 0, 0, 0, 0, 1, 1, 1, 1, 1, 1, 1], 2) == [0, 4, 5, 11]
+
+
+def test_frames_left_out_of_the_retracking_take_their_neighbours_corrections():
+    pose = _pose
+    start = np.stack([pose(0.1 * i) for i in range(7)])
+    map_ids = [0, 0, 0, 0, 0, 1, 1]
+    # Frames 0 and 4 re-tracked: 0 did not move, 4 moved 0.4 m and 0.2 rad; frame 6 (map 1) moved.
+    moved = {0: start[0], 4: pose(0.8, 0.2), 6: pose(0.7, 0.1)}
+    spread = outputs.spread_corrections(start, map_ids, moved, [1, 2, 3, 5])
+    correction = pose(0.8, 0.2) @ np.linalg.inv(start[4])
+    for i in (1, 2, 3):  # blended by place, as bundle adjustment's keyframe corrections are
+        expected = outputs.blend_poses(np.eye(4), correction, i / 4) @ start[i]
+        np.testing.assert_allclose(spread[i], expected, atol=1e-12)
+    # Frame 5 has a re-tracked frame of its own map on one side only (frame 4 is map 0's).
+    np.testing.assert_allclose(spread[5], moved[6] @ np.linalg.inv(start[6]) @ start[5], atol=1e-12)
+    assert outputs.spread_corrections(start, map_ids, {}, [1, 2]) == {}  # nothing to spread: left out
+
+
+def test_the_retracking_frame_budget_tracks_that_many_frames_and_moves_all(frames, tmp_path, monkeypatch):
+    cfg = replace(FAST, mapping=replace(FAST.mapping, final_iterations=3),
+                  tracking=replace(FAST.tracking, retrack_iterations=2, retrack_frame_budget=3))
+    calls: list[int] = []
+    retrack = runtime.Tracker.retrack
+
+    def counting(self, rays, fmap, T_init):
+        calls.append(1)
+        return retrack(self, rays, fmap, T_init)
+
+    monkeypatch.setattr(runtime.Tracker, "retrack", counting)
+    done = do_run([frames], config(False, cfg), tmp_path / "budget")
+    assert done.result.status == "finished", done.result.error
+    assert len(calls) == 3 and done.info["frames_retracked"] == 3
+    assert done.info["ate_rmse_m"] < 0.05
 
 
 def test_a_short_run_keeps_more_pixels_a_frame_for_the_retracking():
