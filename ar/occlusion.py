@@ -1,6 +1,6 @@
 """How well a scene depth (e.g. the neural map's rendered depth) reproduces the occlusion of
 virtual objects that a reference depth (exact synthetic depth, or the sensor's input depth)
-gives: the measure of the paper's AR application and of issue 6's figures.
+gives: the measure of the paper's AR application and of the AR benchmark's figures.
 
 The objects are rasterised once and composited over both depths with the same per-sample
 test, so the only difference between the two composites is the scene depth.

@@ -1,4 +1,4 @@
-"""One browser's viewer panel (issue 44 item 4): its own controls, built when it connects.
+"""One browser's viewer panel: its own controls, built when it connects.
 
 A :class:`ClientPanel` holds a viser client's GUI handles (session, follow, surface, layers,
 colour by map, maps, status line), its :class:`~server.viewer_views.ClientView` and the

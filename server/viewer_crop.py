@@ -1,4 +1,4 @@
-"""A browser's crop box in the 3D viewer (issue 44 item 11), as plain data: no viser.
+"""A browser's crop box in the 3D viewer, as plain data: no viser.
 
 The box is axis-aligned in the world frame, as the HTTP API's (``crop=`` of the renders and
 ``GET /api/sessions/{id}/mesh?crop=``): a face is kept when its three vertices lie inside, as

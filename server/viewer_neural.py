@@ -1,4 +1,4 @@
-"""Neural views in the 3D viewer (issue 44 item 10): instead of the mesh, each browser can see
+"""Neural views in the 3D viewer: instead of the mesh, each browser can see
 the map rendered from its own camera: colour, depth, normals, or colour | depth split down the
 middle; each browser chooses its own (``server.viewer_views.ClientView.surface``).
 
@@ -8,7 +8,7 @@ frusta and loop edges still sit in front of or behind the surface where they sho
 before its image is done gets only the newest one. The map is the session's newest ``map.pt``
 (the server's map cache), so a running session's view follows its checkpoints.
 
-Views are progressive (issue 43 item 5, the best view within the latency target): a move gets
+Views are progressive (the best view within the latency target): a move gets
 a ``VIEW_WIDTH`` image at once, and once the camera has rested ``REFINE_AFTER_S`` a sharper one
 at the browser's own width (at most ``REFINED_WIDTH``) replaces it. The sharper one is rendered
 in bands of rows and dropped between bands as soon as that browser moves again, so a move

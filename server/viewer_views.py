@@ -1,4 +1,4 @@
-"""What one browser chose to see in the 3D viewer (issue 44 item 4), as plain data: no viser.
+"""What one browser chose to see in the 3D viewer, as plain data: no viser.
 
 Every browser (viser client) has its own controls and its own :class:`ClientView`: the session
 it shows, which layers, which maps, colour by map, follow the camera, the surface, a crop box. The heavy

@@ -241,7 +241,7 @@ def _test() -> SLAMConfig:
 
 
 def _gpu() -> SLAMConfig:
-    """The default with a GPU (issue 40 item 5): ``paper`` with every iteration on static shapes;
+    """The default with a GPU: ``paper`` with every iteration on static shapes;
     unmeasured on a GPU so far (decisions.md#preset.gpu)."""
     paper = _paper()
     return replace(

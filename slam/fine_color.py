@@ -1,4 +1,4 @@
-"""A finer level of appearance where the surface is (issue 43 item 2): colour detail below
+"""A finer level of appearance where the surface is: colour detail below
 the 0.2 m voxels, at no cost to tracking.
 
 The coarse map (corner embeddings of 0.2 m voxels and the decoder) holds geometry and a
