@@ -34,6 +34,7 @@ from server.upload import (
     disk_full_error,
     extract_zip,
     inspect_dataset,
+    parse_color_camera,
     parse_depth_scale,
     parse_intrinsics,
     is_disk_full,
@@ -64,6 +65,13 @@ _MULTIPART_SCHEMA = {
         "intrinsics": {"type": "string", "description": "fx,fy,cx,cy (replaces the format's camera)",
                        "example": "517.3,516.5,318.6,255.3"},
         "depth_scale": {"type": "number", "description": "raw depth units per metre", "example": 5000},
+        "color_intrinsics": {"type": "string",
+                             "description": "colour from its own camera: fx,fy,cx,cy,width,height[,k1,k2,p1,p2[,k3]] "
+                                            "of the colour images; colour is registered onto the depth camera",
+                             "example": "1050,1050,959.5,539.5,1920,1080"},
+        "depth_to_color": {"type": "string",
+                           "description": "with color_intrinsics: the depth camera's frame in the colour camera's, "
+                                          "16 numbers row-major (default identity)"},
         "stride": {"type": "integer", "minimum": 1, "maximum": MAX_STRIDE, "default": 1},
         "max_frames": {"type": "integer", "minimum": 1, "maximum": MAX_FRAMES_OPTION},
     },
@@ -150,9 +158,12 @@ def _upload_spec(form) -> tuple[SourceSpec, str]:
         raise UploadError(f"preset: expected one of {', '.join(PRESETS)}, got {preset!r}")
     intrinsics = _form_text(form, "intrinsics")
     depth_scale = _form_text(form, "depth_scale")
+    color_intrinsics, depth_to_color = parse_color_camera(_form_text(form, "color_intrinsics"),
+                                                          _form_text(form, "depth_to_color"))
     spec = SourceSpec(kind="dataset", format=fmt,
                       intrinsics=None if intrinsics is None else parse_intrinsics(intrinsics),
                       depth_scale=None if depth_scale is None else parse_depth_scale(depth_scale),
+                      color_intrinsics=color_intrinsics, depth_to_color=depth_to_color,
                       stride=_form_int(form, "stride", MAX_STRIDE) or 1,
                       max_frames=_form_int(form, "max_frames", MAX_FRAMES_OPTION))
     return spec, preset

@@ -268,7 +268,8 @@ def inspect_dataset(root: str, spec) -> str:
 
     fmt = detect_format(root) if spec.format == "auto" else spec.format
     sequence = open_sequence(root, fmt, stride=spec.stride, max_frames=spec.max_frames,
-                             intrinsics=spec.intrinsics, depth_scale=spec.depth_scale)
+                             intrinsics=spec.intrinsics, depth_scale=spec.depth_scale,
+                             color_camera=spec.color_camera())
     if len(sequence) == 0:
         raise DataError("the dataset has no frames")
     for files in getattr(sequence, "frames", ()):
@@ -324,6 +325,35 @@ def parse_agent(value: int | str, what: str = "agent") -> int:
     if not 0 <= value < MAX_AGENTS:
         raise UploadError(f"{what}: must be between 0 and {MAX_AGENTS - 1}, got {value}")
     return value
+
+
+def parse_color_camera(color_intrinsics: str | None, depth_to_color: str | None
+                       ) -> tuple[tuple[float, ...] | None, tuple[float, ...] | None]:
+    """The upload's ``color_intrinsics`` ("fx,fy,cx,cy,width,height[,k1,k2,p1,p2[,k3]]") and
+    ``depth_to_color`` (16 or 12 numbers, row-major) -> the numbers, checked as the run will
+    use them (a wrong camera is refused now, not in the worker)."""
+    if color_intrinsics is None:
+        if depth_to_color is not None:
+            raise UploadError("depth_to_color: needs color_intrinsics (the colour camera's own intrinsics)")
+        return None, None
+    from slam.data.frame import DataError
+    from slam.data.registration import color_camera_from_values
+
+    def numbers(text: str, what: str) -> tuple[float, ...]:
+        if len(text) > 400:
+            raise UploadError(f"{what}: at most 16 numbers, got {len(text)} characters")
+        try:
+            return tuple(float(v) for v in text.replace(" ", "").split(","))
+        except ValueError:
+            raise UploadError(f"{what}: expected comma-separated numbers, got {text[:80]!r}") from None
+
+    intrinsics = numbers(color_intrinsics, "color_intrinsics")
+    transform = None if depth_to_color is None else numbers(depth_to_color, "depth_to_color")
+    try:
+        color_camera_from_values(intrinsics, transform, source="color_intrinsics")
+    except DataError as error:
+        raise UploadError(str(error)) from None
+    return intrinsics, transform
 
 
 def parse_intrinsics(text: str | list | tuple, what: str = "intrinsics") -> tuple[float, float, float, float]:

@@ -53,6 +53,19 @@ class SourceSpec:
     max_frames: int | None = None
     name: str | None = None
     """An upload's file name as the client gave it (a label for the session list, never a path)."""
+    color_intrinsics: tuple[float, ...] | None = None
+    """The colour camera when colour and depth come from two cameras: fx, fy, cx, cy, width,
+    height[, distortion] (``slam.data.registration.color_camera_from_values``)."""
+    depth_to_color: tuple[float, ...] | None = None
+    """With ``color_intrinsics``: the depth camera's frame in the colour camera's, 12 or 16 numbers."""
+
+    def color_camera(self):
+        """The ``ColorCamera`` these options give, or None: colour registered to depth already."""
+        if self.color_intrinsics is None:
+            return None
+        from slam.data.registration import color_camera_from_values
+
+        return color_camera_from_values(self.color_intrinsics, self.depth_to_color, source="color_intrinsics")
 
     def describe(self) -> str:
         """A short human-readable label for the session list."""
@@ -131,7 +144,8 @@ def open_source(source: SourceSpec, frame_queue=None, stop_event=None):
 
     if source.kind == "dataset":
         return open_sequence(source.path, source.format, stride=source.stride, max_frames=source.max_frames,
-                             intrinsics=source.intrinsics, depth_scale=source.depth_scale)
+                             intrinsics=source.intrinsics, depth_scale=source.depth_scale,
+                             color_camera=source.color_camera())
     if source.kind == "synthetic":
         return open_sequence(f"synthetic:{source.path}", "synthetic", stride=source.stride,
                              max_frames=source.max_frames)

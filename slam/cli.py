@@ -72,6 +72,31 @@ def _intrinsics(text: str) -> tuple[float, ...]:
     return _floats(text, (4, 9), "--intrinsics (fx,fy,cx,cy[,k1,k2,p1,p2,k3])")
 
 
+def _color_intrinsics(text: str) -> tuple[float, ...]:
+    return _floats(text, (6, 10, 11), "--color-intrinsics (fx,fy,cx,cy,width,height[,k1,k2,p1,p2[,k3]])")
+
+
+def _depth_to_color(text: str) -> tuple[float, ...]:
+    return _floats(text, (12, 16), "--depth-to-color (4x4 or 3x4, row-major)")
+
+
+def color_camera_of(args: argparse.Namespace):
+    """The colour camera the arguments give (``--calibration``, or ``--color-intrinsics`` with
+    ``--depth-to-color``), or None: colour and depth registered already."""
+    from .data.frame import DataError
+    from .data.registration import color_camera_from_values, read_color_calibration
+
+    if args.calibration is not None:
+        if args.color_intrinsics is not None or args.depth_to_color is not None:
+            raise DataError("give either --calibration or --color-intrinsics/--depth-to-color, not both")
+        return read_color_calibration(args.calibration)
+    if args.color_intrinsics is None:
+        if args.depth_to_color is not None:
+            raise DataError("--depth-to-color needs --color-intrinsics (the colour camera's own intrinsics)")
+        return None
+    return color_camera_from_values(args.color_intrinsics, args.depth_to_color)
+
+
 def add_run_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("paths", nargs="+", metavar="PATH",
                    help="dataset folder(s), or a synthetic spec such as synthetic:orbit?frames=100")
@@ -85,6 +110,14 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--stride", type=int, default=1)
     p.add_argument("--intrinsics", type=_intrinsics, default=None, metavar="fx,fy,cx,cy")
     p.add_argument("--depth-scale", type=float, default=None)
+    p.add_argument("--color-intrinsics", type=_color_intrinsics, default=None,
+                   metavar="fx,fy,cx,cy,width,height[,k1,k2,p1,p2[,k3]]",
+                   help="colour from its own camera: its intrinsics; colour is registered onto the depth camera")
+    p.add_argument("--depth-to-color", type=_depth_to_color, default=None, metavar="16 numbers",
+                   help="with --color-intrinsics: the depth camera's frame in the colour camera's, 4x4 row-major "
+                        "(default: identity)")
+    p.add_argument("--calibration", type=Path, default=None,
+                   help='JSON with "color_intrinsics" and "T_color_depth" (instead of the two options above)')
     p.add_argument("--gt-poses", action="store_true", help="map with the dataset's poses (no tracking)")
     p.add_argument("--no-loops", action="store_true", help="multi-maps without loop closure")
     p.add_argument("--single-process", action="store_true", help="tracking and mapping in one process")
@@ -113,11 +146,13 @@ def cmd_run(args: argparse.Namespace) -> int:
         config = replace(config, runtime=runtime)
         if args.no_loops:
             config = replace(config, loop=replace(config.loop, enabled=False))
+        color_camera = color_camera_of(args)
         sources = []
         for k, path in enumerate(args.paths):
             try:
                 sources.append(open_sequence(path, args.format, stride=args.stride, max_frames=args.max_frames,
-                                             intrinsics=args.intrinsics, depth_scale=args.depth_scale))
+                                             intrinsics=args.intrinsics, depth_scale=args.depth_scale,
+                                             color_camera=color_camera))
             except (DataError, ValueError) as exc:
                 # Every PATH is opened before anything starts, and a bad one is named.
                 where = f"PATH {k + 1} ({path})" if len(args.paths) > 1 else str(path)

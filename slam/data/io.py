@@ -24,6 +24,7 @@ import numpy as np
 
 from slam.data.frame import DataError, Frame
 from slam.data.images import decode_image, read_image_bytes
+from slam.data.registration import ColorCamera, register_color
 
 
 # --------------------------------------------------------------------------------------------
@@ -279,8 +280,12 @@ class UndistortMaps:
         """
         border = dict(borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         rgb_out = cv2.remap(rgb, self.map_x, self.map_y, cv2.INTER_LINEAR, **border)
-        depth_out = cv2.remap(depth, self.map_x, self.map_y, cv2.INTER_NEAREST, **border)
-        return rgb_out, depth_out
+        return rgb_out, self.apply_depth(depth)
+
+    def apply_depth(self, depth: np.ndarray) -> np.ndarray:
+        """Undistort (H, W) depth alone, by nearest neighbour (``apply``)."""
+        return cv2.remap(depth, self.map_x, self.map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
+                         borderValue=0)
 
 
 # --------------------------------------------------------------------------------------------
@@ -397,6 +402,9 @@ class FileSequence:
     width: int | None = None
     stride: int = 1
     max_frames: int | None = None
+    color_camera: ColorCamera | None = None
+    """The colour camera when colour and depth come from two cameras: each frame's colour is
+    registered onto the depth camera at input (``slam.data.registration``)."""
     frames: tuple[FrameFiles, ...] = field(init=False)
     skipped: list["SkippedFrame"] = field(init=False, default_factory=list)
     """Frames the last iteration skipped because they could not be read."""
@@ -414,6 +422,17 @@ class FileSequence:
                 confined(path, self.layout.root, self._relative(path))
                 if not path.is_file():
                     raise DataError(f"missing file: {path}")
+        if self.color_camera is not None:
+            self._check_color_size(self.frames[0])
+
+    def _check_color_size(self, files: FrameFiles) -> None:
+        """A colour image the colour camera's intrinsics are not for: a wrong calibration,
+        which every frame would repeat, so it is refused before the run starts."""
+        rgb = read_color(files.rgb)
+        camera = self.color_camera
+        if rgb.shape[:2] != (camera.height, camera.width):
+            raise DataError(f"{files.rgb} is {rgb.shape[1]}x{rgb.shape[0]} but the colour camera's intrinsics "
+                            f"are for {camera.width}x{camera.height}")
 
     def _relative(self, path: Path) -> str:
         """``path`` as the dataset names it (relative to its folder), for messages."""
@@ -476,8 +495,11 @@ class FileSequence:
         color_valid = None
         if self.layout.intrinsics.distortion:
             maps = self._undistort_maps(K, depth.shape)
-            rgb, depth = maps.apply(rgb, depth)
+            rgb, depth = (rgb, maps.apply_depth(depth)) if self.color_camera is not None else maps.apply(rgb, depth)
             color_valid = maps.observed()
+        if self.color_camera is not None:
+            rgb, seen = register_color(rgb, depth, K, self.color_camera)
+            color_valid = seen if color_valid is None else color_valid & seen
         if self.width is not None and self.width != depth.shape[1]:
             rgb, depth, K = resize_rgbd(rgb, depth, K, self.width)
             if color_valid is not None:
@@ -490,9 +512,14 @@ class FileSequence:
         """Read one frame's images and check their sizes -> (H, W, 3) rgb, (H, W) depth."""
         rgb = read_color(files.rgb)
         depth = read_depth(files.depth, self.layout.depth_scale, self.layout.invalid_depth_raw)
-        if self.layout.color_to_depth_size:
+        if self.color_camera is not None:
+            camera = self.color_camera
+            if rgb.shape[:2] != (camera.height, camera.width):
+                raise DataError(f"{files.rgb} is {rgb.shape[1]}x{rgb.shape[0]} but the colour camera's intrinsics "
+                                f"are for {camera.width}x{camera.height}")
+        elif self.layout.color_to_depth_size:
             rgb = resize_color(rgb, depth.shape[1], depth.shape[0])
-        if rgb.shape[:2] != depth.shape:
+        if self.color_camera is None and rgb.shape[:2] != depth.shape:
             raise DataError(
                 f"rgb and depth sizes differ: {files.rgb} is {rgb.shape[1]}x{rgb.shape[0]}, "
                 f"{files.depth} is {depth.shape[1]}x{depth.shape[0]}"

@@ -8,6 +8,7 @@ from typing import Callable, Sequence
 
 from slam.data.frame import DataError, RGBDSequence
 from slam.data.io import FileSequence, Intrinsics, SequenceLayout
+from slam.data.registration import ColorCamera
 from slam.data.replica import COLOR_PATTERN as REPLICA_COLOR_PATTERN
 from slam.data.replica import replica_layout
 from slam.data.scannet import scannet_layout
@@ -82,6 +83,7 @@ def open_sequence(
     max_frames: int | None = None,
     intrinsics: Sequence[float] | Intrinsics | None = None,
     depth_scale: float | None = None,
+    color_camera: ColorCamera | None = None,
 ) -> RGBDSequence:
     """Open a dataset folder (or a ``synthetic:SPEC`` string) as a lazily loaded sequence.
 
@@ -95,6 +97,8 @@ def open_sequence(
         intrinsics: (fx, fy, cx, cy) or (fx, fy, cx, cy, k1, k2, p1, p2, k3), replacing the
             format's own camera; with distortion, frames are undistorted to the same K.
         depth_scale: raw depth units per metre, replacing the format's default.
+        color_camera: the colour camera when colour and depth come from two cameras; each
+            frame's colour is then registered onto the depth camera (``slam.data.registration``).
 
     Frame.index is the position in the selected frames; Frame.timestamp is the format's time
     (TUM seconds) or the frame number.
@@ -104,6 +108,8 @@ def open_sequence(
     text = str(path)
     if format == "synthetic" or (format == "auto" and text.startswith(SYNTHETIC_PREFIX)):
         spec = text[len(SYNTHETIC_PREFIX):] if text.startswith(SYNTHETIC_PREFIX) else text
+        if color_camera is not None:
+            raise DataError("a synthetic scene's colour and depth come from one camera: it takes no colour camera")
         return _open_synthetic(spec, width, stride, max_frames, intrinsics, depth_scale)
     root = Path(path)
     if not root.is_dir():
@@ -116,7 +122,7 @@ def open_sequence(
         layout = _LAYOUTS[format](root, intrinsics=intrinsics, depth_scale=depth_scale)
     except DataError as error:
         raise DataError(f"{error}{_detected_instead(root, format)}") from error
-    return FileSequence(layout, width=width, stride=stride, max_frames=max_frames)
+    return FileSequence(layout, width=width, stride=stride, max_frames=max_frames, color_camera=color_camera)
 
 
 def _detected_instead(root: Path, asked: str) -> str:
