@@ -44,6 +44,8 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import REPLICA, SHARED_DATA, TUM_RPY, markdown_table  # noqa: E402
 
@@ -120,6 +122,10 @@ def sequences(max_frames: int | None) -> list[RealSequence]:
         # Frames 0-149 are the shared fr1/rpy the presets were tuned on; the rest is unseen.
         make_window(full_rpy, 150, 450, "rgbd_dataset_freiburg1_rpy_150-449")
         make_window(full_rpy, 450, 723, "rgbd_dataset_freiburg1_rpy_450-722")
+    if TUM_RPY.is_dir():
+        # Colour from "another camera": what a two-camera sensor gives when nobody registers it.
+        make_misregistered(TUM_RPY, 150, MISREGISTERED_SCALE, MISREGISTERED_SHIFT_PX,
+                           "rgbd_dataset_freiburg1_rpy150_misregistered")
     if CACHE.is_dir():
         for path in sorted(p for p in CACHE.iterdir() if p.is_dir() and not p.name.endswith(".tmp")):
             if (path / "rgb.txt").is_file() or (path / "results").is_dir():
@@ -152,6 +158,73 @@ def make_window(source: Path, start: int, stop: int, name: str) -> Path:
     for kind, rows in lines.items():
         (tmp / f"{kind}.txt").write_text("".join(rows))
     (tmp / "groundtruth.txt").write_bytes((source / "groundtruth.txt").read_bytes())
+    tmp.rename(dest)
+    return dest
+
+
+MISREGISTERED_SCALE = 0.90
+MISREGISTERED_SHIFT_PX = (8.0, 0.0)
+"""The misregistered variant's colour: scaled about the image centre, then shifted (x, y), as
+a colour camera with a 10 % shorter focal length, its principal point 8 px off, would see it."""
+
+
+def misregistered_colour_camera(K: np.ndarray, width: int, height: int, scale: float,
+                                shift: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
+    """(2, 3) affine warp of a raw colour image and the colour camera's (3, 3) K that sees the
+    warped image: ``u' = scale (u - centre) + centre + shift``, so K' = scale K with its
+    principal point moved the same way (the lens distortion stays the raw camera's)."""
+    centre = np.array([(width - 1) / 2.0, (height - 1) / 2.0])
+    offset = (1.0 - scale) * centre + np.asarray(shift, np.float64)
+    warp = np.array([[scale, 0.0, offset[0]], [0.0, scale, offset[1]]])
+    K_color = np.array(K, np.float64, copy=True)
+    K_color[:2, :2] *= scale
+    K_color[:2, 2] = scale * K_color[:2, 2] + offset
+    return warp, K_color
+
+
+def make_misregistered(source: Path, frames: int, scale: float, shift: tuple[float, float], name: str) -> Path:
+    """A TUM folder in the cache holding the first ``frames`` frames of ``source`` with every
+    colour image warped by ``misregistered_colour_camera`` (depth hard-linked, ground truth
+    copied) and ``calibration.json`` naming the colour camera that would see it (for
+    ``voxfusion run --calibration``). Made once; returns its folder."""
+    import cv2
+
+    from slam.data.tum import MAX_TIME_DIFFERENCE, associate, read_tum_list, tum_layout
+
+    dest = CACHE / name
+    if (dest / "rgb.txt").is_file():
+        return dest
+    rgb = read_tum_list(source / "rgb.txt", columns=1)
+    depth = read_tum_list(source / "depth.txt", columns=1)
+    pairs = associate([t for t, _ in rgb], [t for t, _ in depth], MAX_TIME_DIFFERENCE)[:frames]
+    intrinsics = tum_layout(source).intrinsics
+    tmp = dest.with_name(dest.name + ".tmp")
+    for folder in ("rgb", "depth"):
+        (tmp / folder).mkdir(parents=True, exist_ok=True)
+    lines = {"rgb": [], "depth": []}
+    warp = K_color = None
+    for i, j in pairs:
+        (t_rgb, (rgb_name,)), (t_depth, (depth_name,)) = rgb[i], depth[j]
+        image = cv2.imread(str(source / rgb_name), cv2.IMREAD_UNCHANGED)
+        height, width = image.shape[:2]
+        if warp is None:
+            warp, K_color = misregistered_colour_camera(intrinsics.matrix, width, height, scale, shift)
+        # Reflected at the border: a colour camera with a wider view sees real colour there,
+        # not a black frame whose straight edges no real sensor has.
+        cv2.imwrite(str(tmp / rgb_name), cv2.warpAffine(image, warp, (width, height), flags=cv2.INTER_LINEAR,
+                                                        borderMode=cv2.BORDER_REFLECT_101))
+        target = tmp / depth_name
+        if not target.exists():
+            os.link(source / depth_name, target)
+        lines["rgb"].append(f"{t_rgb:.6f} {rgb_name}\n")
+        lines["depth"].append(f"{t_depth:.6f} {depth_name}\n")
+    for kind, rows in lines.items():
+        (tmp / f"{kind}.txt").write_text("".join(rows))
+    (tmp / "groundtruth.txt").write_bytes((source / "groundtruth.txt").read_bytes())
+    calibration = {"color_intrinsics": [K_color[0, 0], K_color[1, 1], K_color[0, 2], K_color[1, 2], width, height,
+                                        *intrinsics.distortion],
+                   "T_color_depth": np.eye(4).tolist()}
+    (tmp / "calibration.json").write_text(json.dumps(calibration, indent=1))
     tmp.rename(dest)
     return dest
 

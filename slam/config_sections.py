@@ -446,6 +446,9 @@ class RuntimeConfig:
     """Deterministic mode: optimise the window at every this-many-th frame, integrate the others."""
     deterministic_final_iterations: int = 12
     """Deterministic mode: the final bundle adjustment's iterations instead of its time cap."""
+    color_calibration: bool = True
+    """Find the colour camera from the data when a source was given none
+    (``slam.data.selfcalibration``: depth edges against colour edges), applied when confident."""
     checkpoint_every_keyframes: int = 10
     """Write map.pt every this many keyframes while running (0: only at the end)."""
     seed: int = 0

@@ -358,6 +358,7 @@ def write_outputs(out: Path, config: SLAMConfig, tracks: list["AgentTrack"], sta
                   status: str, error: str | None, elapsed: float, total: int | None, tracking_busy: float,
                   use_gt_poses: bool, map_poses: dict[int, np.ndarray] | None = None,
                   map_waits: tuple[int, float] = (0, 0.0), frames_skipped: list[dict] | None = None,
+                  colour_cameras: list[dict | None] | None = None,
                   progress: list[ProgressSample] | None = None,
                   retracking: tuple[int, float] = (0, 0.0),
                   tracking_stages: dict[str, float] | None = None) -> RunResult:
@@ -406,6 +407,7 @@ def write_outputs(out: Path, config: SLAMConfig, tracks: list["AgentTrack"], sta
                                     if stats and stats.refinement else None),
         "keyframe_graph": stats.keyframe_graph if stats else None,
         "tracking_failures": sum(t.tracking_failures for t in tracks),
+        "color_cameras": colour_cameras or [],
         "frames_skipped": len(frames_skipped or ()),
         "skipped_frames": (frames_skipped or [])[:MAX_LISTED_SKIPPED],
         "map_waits": map_waits[0],

@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import errno
 import sys
+import threading
 import time
 import traceback
 from collections import deque
@@ -727,7 +728,14 @@ def _track_all(run: _Run, sources: list[Iterable[Frame]], use_gt_poses: bool) ->
     config = run.config
     try:
         mapper_cls = ProcessMapper if config.runtime.processes else InlineMapper
-        run.channel = mapper_cls(config, run.device, run.out, run.thumbnails, config.runtime.seed)
+        # While the mapping process starts (seconds: it imports torch), the sources find their
+        # colour cameras (numpy and OpenCV, which let the thread run beside it).
+        calibration = _calibrate_colour(sources) if config.runtime.color_calibration else None
+        try:
+            run.channel = mapper_cls(config, run.device, run.out, run.thumbnails, config.runtime.seed)
+        finally:
+            if calibration is not None:
+                calibration.join()
         side = run.side = _TrackingSide(config, run.device, Tracker(config, run.device, seed=config.runtime.seed))
         _prepare_retracking(side, run.total)
         side.on_keyframe = lambda: _write_progress(run.out, side, run.total, run.started)
@@ -749,6 +757,38 @@ def _track_all(run: _Run, sources: list[Iterable[Frame]], use_gt_poses: bool) ->
         # A source that ends because of the stop (a live stream) is a stop, not the end of the
         # input: skip the final refinement, which would hold up the stop for minutes.
         run.status = "cancelled"
+
+
+def _calibrate_colour(sources: list[Iterable[Frame]]) -> threading.Thread:
+    """A started thread in which every source that can (``FileSequence.calibrate_colour``)
+    estimates its colour camera; a failure there leaves that source's colour as it is."""
+    def calibrate() -> None:
+        for source in sources:
+            method = getattr(source, "calibrate_colour", None)
+            if method is None:
+                continue
+            try:
+                method()
+            except Exception:  # noqa: BLE001 - a guess that failed must not fail the run
+                traceback.print_exc()
+    thread = threading.Thread(target=calibrate, name="colour-calibration", daemon=True)
+    thread.start()
+    return thread
+
+
+def _colour_cameras(sources: list[Iterable[Frame]]) -> list[dict | None]:
+    """Per source: how its colour came onto the depth camera, for ``run.json``."""
+    out: list[dict | None] = []
+    for source in sources:
+        camera, warp = getattr(source, "color_camera", None), getattr(source, "color_warp", None)
+        if camera is not None:
+            out.append({"source": "given", "K": camera.K.tolist(), "width": camera.width, "height": camera.height,
+                        "T_color_depth": camera.T_color_depth.tolist()})
+        elif warp is not None:
+            out.append({"source": "estimated", **warp.as_dict()})
+        else:
+            out.append(None)
+    return out
 
 
 def _process_frame(run: _Run, agent: int, raw: Frame, use_gt_poses: bool) -> None:
@@ -849,6 +889,7 @@ def _write_results(run: _Run, sources: list[Iterable[Frame]], use_gt_poses: bool
                            side.map_poses if side else None,
                            (side.map_waits, side.map_wait_seconds) if side else (0, 0.0),
                            frames_skipped=_skipped_frames(sources),
+                           colour_cameras=_colour_cameras(sources),
                            progress=side.progress if side else None,
                            retracking=side.retracking if side else (0, 0.0),
                            tracking_stages=side.stages.totals if side else None)

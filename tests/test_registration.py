@@ -169,3 +169,44 @@ def test_an_upload_names_what_is_wrong_with_its_colour_camera():
                                            ("60,60,40,30,80,60", ",".join(["2"] * 16), "rigid")]:
         with pytest.raises(UploadError, match=message):
             parse_color_camera(color, depth_to_color)
+
+
+def test_a_run_writes_how_each_source_got_its_colour(tmp_path):
+    # Given: the calibration's camera in run.json. Estimated: a registered folder's colour is
+    # estimated, found registered already, and left as it is (``slam.data.selfcalibration``).
+    import json
+
+    from slam.cli import main
+    from slam.data import open_sequence
+
+    root = tmp_path / "two_cameras"
+    _write_two_camera_tum(root, frames=2)
+    assert main(["run", str(root), "--out", str(tmp_path / "given"), "--preset", "test", "--quiet",
+                 "--calibration", str(root / "calibration.json")]) == 0
+    cameras = json.loads((tmp_path / "given" / "run.json").read_text())["color_cameras"]
+    assert cameras[0]["source"] == "given" and cameras[0]["width"] == 80
+    np.testing.assert_allclose(np.asarray(cameras[0]["T_color_depth"])[0, 3], -0.025)
+
+    seq = open_synthetic("synthetic:walk?frames=30&width=160&height=120")
+    registered = tmp_path / "registered"
+    (registered / "rgb").mkdir(parents=True)
+    (registered / "depth").mkdir()
+    lines = {"rgb": [], "depth": []}
+    for k in range(0, 30, 3):
+        import cv2
+
+        frame, t = seq[k], 1.0 + k / 30
+        cv2.imwrite(str(registered / "rgb" / f"{t:.6f}.png"),
+                    cv2.cvtColor((frame.rgb * 255).round().astype(np.uint8), cv2.COLOR_RGB2BGR))
+        cv2.imwrite(str(registered / "depth" / f"{t:.6f}.png"), (frame.depth * 5000).round().astype(np.uint16))
+        lines["rgb"].append(f"{t:.6f} rgb/{t:.6f}.png")
+        lines["depth"].append(f"{t:.6f} depth/{t:.6f}.png")
+    for kind, rows in lines.items():
+        (registered / f"{kind}.txt").write_text("\n".join(rows) + "\n")
+    K = seq.K
+    (registered / "intrinsics.txt").write_text(f"{K[0, 0]} {K[1, 1]} {K[0, 2]} {K[1, 2]}\n")
+    sequence = open_sequence(registered)
+    warp = sequence.calibrate_colour()
+    assert warp is not None and not warp.applied and sequence.color_warp is warp
+    before = sequence[4].rgb
+    np.testing.assert_array_equal(before, open_sequence(registered)[4].rgb)  # nothing changed

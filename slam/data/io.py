@@ -17,7 +17,7 @@ import re
 import sys
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Iterator, Sequence
+from typing import TYPE_CHECKING, Iterator, Sequence
 
 import cv2
 import numpy as np
@@ -25,6 +25,9 @@ import numpy as np
 from slam.data.frame import DataError, Frame
 from slam.data.images import decode_image, read_image_bytes
 from slam.data.registration import ColorCamera, register_color
+
+if TYPE_CHECKING:
+    from slam.data.selfcalibration import ColorWarp
 
 
 # --------------------------------------------------------------------------------------------
@@ -405,6 +408,9 @@ class FileSequence:
     color_camera: ColorCamera | None = None
     """The colour camera when colour and depth come from two cameras: each frame's colour is
     registered onto the depth camera at input (``slam.data.registration``)."""
+    color_warp: "ColorWarp | None" = None
+    """The colour camera found from the data (``calibrate_colour``); its warp is applied to
+    every frame when it was confident (``ColorWarp.applied``)."""
     frames: tuple[FrameFiles, ...] = field(init=False)
     skipped: list["SkippedFrame"] = field(init=False, default_factory=list)
     """Frames the last iteration skipped because they could not be read."""
@@ -504,9 +510,32 @@ class FileSequence:
             rgb, depth, K = resize_rgbd(rgb, depth, K, self.width)
             if color_valid is not None:
                 color_valid = resize_mask(color_valid, depth.shape[1], depth.shape[0])
+        if self.color_warp is not None and self.color_warp.applied:
+            rgb, seen = self.color_warp.apply(rgb)
+            color_valid = seen if color_valid is None else color_valid & seen
         pose = None if files.T_world_cam is None else files.T_world_cam.copy()
         return Frame(index=index, timestamp=files.timestamp, rgb=rgb, depth=depth, K=K, T_world_cam=pose,
                      color_valid=color_valid)
+
+    def calibrate_colour(self) -> "ColorWarp | None":
+        """Estimate how the colour image lies on the depth image from ``CALIBRATION_FRAMES``
+        frames spread over the sequence (``slam.data.selfcalibration``) and keep it in
+        ``color_warp`` (applied to every frame from now on when confident). None when the
+        colour camera was given (``color_camera``): nothing to find."""
+        from slam.data.selfcalibration import CALIBRATION_FRAMES, estimate_color_warp
+
+        if self.color_camera is not None:
+            return None
+        self.color_warp = None
+        picks = np.unique(np.linspace(0, len(self) - 1, min(CALIBRATION_FRAMES, len(self))).round().astype(int))
+        sample = []
+        for i in picks:
+            try:
+                sample.append(self[int(i)])
+            except DataError:
+                continue  # a frame the run will skip and report
+        self.color_warp = estimate_color_warp(sample)
+        return self.color_warp
 
     def _decode(self, files: FrameFiles) -> tuple[np.ndarray, np.ndarray]:
         """Read one frame's images and check their sizes -> (H, W, 3) rgb, (H, W) depth."""
