@@ -171,6 +171,12 @@ class SessionOut(BaseModel):
     frames_skipped: int = Field(0, examples=[0], description="input frames left out because they could not be read "
                                                            "(an upload's corrupt frames, a stream's refused ones); "
                                                            "counted once the session has ended")
+    color_camera: str | None = Field(None, examples=["estimated from the data (scale 1.000, shift +0.0, +0.0 px, "
+                                                      "confidence 0.00): not applied, registered already: identity "
+                                                      "is the best warp within a pixel"],
+                                     description="how the colour came onto the depth camera: given (a calibration) "
+                                                 "or estimated from the data, and whether it was applied; known "
+                                                 "once the session has ended")
     maps: int = Field(examples=[2], description="maps (submaps) of all agents")
     loops: int = Field(examples=[1], description="accepted loop closures")
     agents: int = Field(1, examples=[1], description="agents (cameras): an upload's file parts, or the agents "

@@ -92,6 +92,9 @@ class SessionStatus:
     frames_skipped: int = 0
     """Input frames left out because they could not be read (an upload's corrupt frames, a
     stream's refused ones); known once the session has ended."""
+    color_camera: str | None = None
+    """How the (first) source's colour came onto the depth camera, in words (``run.json``'s
+    ``color_cameras``: given, or estimated and applied or not); known once the session has ended."""
     error: str | None = None
     spec: SourceSpec = field(default_factory=lambda: SourceSpec(kind="synthetic"))
     """The (first agent's) source."""
@@ -120,8 +123,9 @@ class SessionStatus:
 
 def _spec_from_json(spec: dict) -> SourceSpec:
     spec = dict(spec)
-    if spec.get("intrinsics") is not None:
-        spec["intrinsics"] = tuple(spec["intrinsics"])
+    for key in ("intrinsics", "color_intrinsics", "depth_to_color"):
+        if spec.get(key) is not None:
+            spec[key] = tuple(spec[key])
     return SourceSpec(**spec)
 
 

@@ -86,6 +86,23 @@ def read_progress(directory: Path) -> list[tuple[float, int]]:
         return []
 
 
+def describe_color_camera(run: dict | None) -> str | None:
+    """``run.json``'s first ``color_cameras`` entry in words, or None when there is none."""
+    cameras = (run or {}).get("color_cameras") or []
+    first = cameras[0] if isinstance(cameras, list) and cameras and isinstance(cameras[0], dict) else None
+    if first is None:
+        return None
+    if first.get("source") == "given":
+        return f"given: {first.get('width')}x{first.get('height')} colour camera, registered onto depth"
+    try:
+        warp = (f"scale {float(first['scale']):.3f}, shift {float(first['shift_x']):+.1f}, "
+                f"{float(first['shift_y']):+.1f} px, confidence {float(first['confidence']):.2f}")
+    except (KeyError, TypeError, ValueError):
+        return None
+    verdict = "applied" if first.get("applied") else "not applied"
+    return f"estimated from the data ({warp}): {verdict}, {first.get('reason', '')}".rstrip(", ")
+
+
 def settle_outputs(directory: Path, state: SessionStatus, frames_refused: int | None = None) -> SessionStatus:
     """An ended session's status against its folder (module doc): ``frames_done`` the poses
     in its trajectory files, ``keyframes``/``maps``/``loops`` from ``run.json``, whose
@@ -106,7 +123,8 @@ def settle_outputs(directory: Path, state: SessionStatus, frames_refused: int | 
     else:
         counts = {"keyframes": 0, "maps": 0, "loops": 0}
     skipped = frames_refused if frames_refused is not None else int((run or {}).get("frames_skipped") or 0)
-    settled = replace(state, frames_done=frames, frames_skipped=skipped, **counts)
+    settled = replace(state, frames_done=frames, frames_skipped=skipped, **counts,
+                      color_camera=describe_color_camera(run) or state.color_camera)
     wanted = {"status": state.status, "error": state.error, "frames": frames}
     if run is not None and all(run.get(k) == v for k, v in wanted.items()):
         return settled

@@ -75,9 +75,18 @@ const StatusText = (() => {
     return `${s.frames_done}${total} frames`;
   }
 
+  // Colour from another camera: said when it was registered (given, or estimated and applied).
+  function colour(s) {
+    const text = s.color_camera || "";
+    if (text.startsWith("given")) return " · colour registered (given camera)";
+    if (text.includes(": applied")) return " · colour registered (camera estimated from the data)";
+    return "";
+  }
+
   function describe(s) {
     return `${frames(s)} · ${s.fps.toFixed(1)} frames/s · ${plural(s.keyframes, "keyframe")} · ` +
-           `${plural(s.maps, "map")} · ${plural(s.loops, "loop")} · ${plural(s.agents || 1, "agent")}${ate(s)}`;
+           `${plural(s.maps, "map")} · ${plural(s.loops, "loop")} · ${plural(s.agents || 1, "agent")}${ate(s)}` +
+           colour(s);
   }
 
   return { ENDED, phase, progress, ate, describe, clock, plural, centimetres };

@@ -133,6 +133,24 @@ def test_the_page_shows_a_streams_sent_dropped_and_tracked_frames():
     assert upload["describe"].startswith("290 / 400 frames")
 
 
+@pytest.mark.skipif(NODE is None, reason="node is not installed")
+def test_the_page_says_when_colour_was_registered():
+    from server.session_store import describe_color_camera
+
+    estimated = {"source": "estimated", "scale": 0.9, "shift_x": 4.2, "shift_y": -0.8, "confidence": 0.67,
+                 "applied": True, "reason": "edges 44% closer than identity"}
+    texts = [describe_color_camera({"color_cameras": [c]}) for c in
+             (estimated, {**estimated, "applied": False}, {"source": "given", "width": 640, "height": 480})]
+    assert texts[0].startswith("estimated from the data (scale 0.900, shift +4.2, -0.8 px") and ": applied" in texts[0]
+    assert ": not applied" in texts[1] and texts[2].startswith("given: 640x480")
+    assert describe_color_camera({}) is None and describe_color_camera({"color_cameras": [None]}) is None
+    applied, left, given, none = page_text([{**PAGE_BASE, "phase": "done", "color_camera": t}
+                                            for t in (*texts, None)])
+    assert applied["describe"].endswith("colour registered (camera estimated from the data)")
+    assert "colour" not in left["describe"] and "colour" not in none["describe"]
+    assert given["describe"].endswith("colour registered (given camera)")
+
+
 # ------------------------------------------------------------ a stream's counts
 class FakeStream:
     frames_received, frames_dropped, frames_refused = 290, 10, 1
