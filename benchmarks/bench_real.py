@@ -10,7 +10,9 @@ Variants alternate run by run (A B A B ..., the order rotated each round), so a 
 hits them alike. With ``--deterministic LAG`` the runs use the deterministic mode
 (``runtime.deterministic_lag``), whose trajectory does not depend on load, and run r uses
 seed r: the spread is then that of the ray sampling alone. A variant is a preset and optional JSON overrides of it, e.g.
-``ray=cpu:{"loss": {"normalisation": "ray"}}``; the first variant is the baseline. ``--peer``
+``ray=cpu:{"loss": {"normalisation": "ray"}}``, and ``+calibration`` after the preset
+(``cal=cpu+calibration``) runs with the sequence's ``calibration.json`` where it has one; the
+first variant is the baseline. ``--peer``
 adds the classical peer (Open3D's tensor SLAM at 1 cm voxels, ``benchmarks/peer_open3d.py``)
 as one more variant.
 
@@ -18,7 +20,10 @@ Sequences: ``../shared/data`` (TUM fr1/rpy 150 frames, fr1/desk, Replica room0, 
 dataset folder in the cache ``$VOXFUSION_DATA_CACHE`` (default ``~/.cache/voxfusion/data``;
 how it was filled: ``benchmarks/README.md``, "Real data"). With the whole fr1/rpy there, its
 frames 150-449 and 450-722 (which no setting was tuned on) become two more sequences, made
-once as folders of hard links. Benchmarks may read the cache; tests never need it.
+once as folders of hard links. With the shared fr1/rpy, ``freiburg1_rpy150_misregistered``: its
+150 frames with colour from "another camera" (scaled 0.90 about the centre, shifted 8 px; its
+``calibration.json`` names that camera), so that colour settings are judged where colour and
+depth disagree too. Benchmarks may read the cache; tests never need it.
 
 Per sequence and variant: ATE RMSE (cm) mean, sample standard deviation, min-max; frames/s
 mean, and its ratio to the baseline's and (with ``--peer``) to Open3D's in the same sitting. Per
@@ -71,6 +76,9 @@ class Variant:
     name: str
     preset: str
     overrides: dict = field(default_factory=dict)
+    calibrated: bool = False
+    """``voxfusion run --calibration`` with the sequence's ``calibration.json`` where it has one
+    (the misregistered sequences: their colour camera)."""
 
     @property
     def is_peer(self) -> bool:
@@ -230,16 +238,19 @@ def make_misregistered(source: Path, frames: int, scale: float, shift: tuple[flo
 
 
 def parse_variant(text: str) -> Variant:
-    """``NAME=PRESET[:JSON]`` -> Variant."""
+    """``NAME=PRESET[+calibration][:JSON]`` -> Variant (``+calibration``: ``Variant.calibrated``)."""
     name, sep, rest = text.partition("=")
     if not sep or not name:
-        raise argparse.ArgumentTypeError(f"variant {text!r}: expected NAME=PRESET[:JSON]")
+        raise argparse.ArgumentTypeError(f"variant {text!r}: expected NAME=PRESET[+calibration][:JSON]")
     preset, _, overrides = rest.partition(":")
+    preset, plus, flag = preset.partition("+")
+    if plus and flag != "calibration":
+        raise argparse.ArgumentTypeError(f"variant {name}: after '+' only 'calibration', got {flag!r}")
     try:
         parsed = json.loads(overrides) if overrides else {}
     except json.JSONDecodeError as error:
         raise argparse.ArgumentTypeError(f"variant {name}: overrides are not JSON ({error})") from None
-    return Variant(name, preset, parsed)
+    return Variant(name, preset, parsed, calibrated=bool(plus))
 
 
 def run_voxfusion(seq: RealSequence, variant: Variant, out: Path, extra: list[str], timeout: float,
@@ -250,6 +261,8 @@ def run_voxfusion(seq: RealSequence, variant: Variant, out: Path, extra: list[st
                "--quiet", *extra]
     if seq.max_frames:
         command += ["--max-frames", str(seq.max_frames)]
+    if variant.calibrated and (seq.path / "calibration.json").is_file():
+        command += ["--calibration", str(seq.path / "calibration.json")]
     overrides = json.loads(json.dumps(variant.overrides))
     if seed is not None:
         overrides.setdefault("runtime", {})["seed"] = seed
