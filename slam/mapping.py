@@ -61,8 +61,7 @@ FIT_KEYFRAMES_FINAL = 1 << 30
 
 FIT_KEYFRAMES_RENDERED = 16
 """Keyframes the rendered-surface fit renders at most (evenly spread): the renders are its
-cost, and 16 of fr1/rpy's 45-61 keyframes give views within 0.07 dB of all of them
-(decisions.md#fine_color)."""
+cost (decisions.md#fine_color)."""
 
 
 @dataclass(frozen=True)

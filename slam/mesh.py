@@ -254,7 +254,7 @@ def extract_submap_mesh(submap, resolution: int, *, block_voxels: int = 8,
     surface: a voxel allocated but never sampled holds its random initial embeddings. With
     ``surface_only`` also only voxels that held an observed depth point: the voxels allocated
     for the truncation band in front of and behind a surface have no supervised zero level
-    and grow spurious sheets there (Replica office0: accuracy 2.4 -> 1.5 cm).
+    and grow spurious sheets there (decisions.md#mesh.surface_only).
     Returns a trimesh with (V, 4) uint8 vertex colours; empty when the map holds no surface.
     """
     if int(resolution) < 1:

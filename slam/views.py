@@ -29,14 +29,13 @@ farthest, widened on both sides by ``BAND_WEIGHT_WIDTHS`` widths of the SDF weig
 they are found by lookup rather than by traversal (``slam.render.sample_points_in_band``), so
 a pixel gets the full render's samples near its surface, and drops only those whose weight is
 too small to colour it: its depth moves by a few millimetres at most and its colour by a few
-levels (10 held-out 640-wide views: Replica room0 0.08 dB of PSNR, fr1/rpy 0.01 dB), for
-about a third of the time. A pixel none of whose coarse neighbours (the 4 x 4 coarse cells
+levels, for about a third of the time (decisions.md#views.BAND_WEIGHT_WIDTHS). A pixel none of whose coarse neighbours (the 4 x 4 coarse cells
 around it) saw a surface stays empty: only a surface narrower than about ``coarse_stride``
 pixels, or one hidden behind the first surface at every neighbour, can differ more. Where
 the coarse samples around a pixel lie on one plane (``planar_depths``: within
 ``PLANAR_TOLERANCE``), its band centres on the depth interpolated between them instead of
-spanning their range: a floor seen at a grazing angle then costs fewer samples (Replica
-room0: 7.5 -> 6.5 a ray, 5-8 % of the view's time, the same PSNR). The banded pixels render
+spanning their range: a floor seen at a grazing angle then costs fewer samples
+(decisions.md#views.PLANAR_TOLERANCE). The banded pixels render
 in runs of similar sample counts (``band_chunks``), not of similar pixel counts.
 
 Views need no gradients, so on a CPU that multiplies bfloat16 natively (AVX512-BF16 or AMX)

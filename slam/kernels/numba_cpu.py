@@ -6,7 +6,7 @@ caller allocates, and runs its outer loop over ``prange`` (the caller sets numba
 count to torch's). Each kernel is compiled twice: parallel, and serial for a process that
 has one thread (``_TwoWays``), so that such a process never starts numba's OpenMP pool,
 whose idle workers spin: the tracking and mapping processes on two cores ran at half speed
-(fr1/rpy, 40 frames: 0.58 frames/s with the pool, 1.56 with the serial copies). Samples
+(decisions.md#kernels.serial_copies). Samples
 are processed in contiguous chunks, one per thread, so that a kernel that scatters into
 embedding rows can give each chunk its own accumulator: no atomics, and the sum is the same
 for the same thread count.
