@@ -256,7 +256,9 @@ def _json_spec(body: SessionCreateJSON) -> tuple[list[SourceSpec], str]:
         raise UploadError("spec: a list of specs is for synthetic sessions; a stream's frames name their agent")
     intrinsics = None if body.intrinsics is None else parse_intrinsics(body.intrinsics)
     depth_scale = None if body.depth_scale is None else parse_depth_scale(body.depth_scale)
-    return [SourceSpec(kind="stream", format="stream", intrinsics=intrinsics, depth_scale=depth_scale)], preset
+    color_intrinsics, depth_to_color = parse_color_camera(body.color_intrinsics, body.depth_to_color)
+    return [SourceSpec(kind="stream", format="stream", intrinsics=intrinsics, depth_scale=depth_scale,
+                       color_intrinsics=color_intrinsics, depth_to_color=depth_to_color)], preset
 
 
 @router.post("", status_code=status.HTTP_201_CREATED, response_model=SessionCreated,

@@ -117,6 +117,14 @@ class SessionCreateJSON(Strict):
                                    examples=["525,525,319.5,239.5"])
     depth_scale: float | None = Field(None, ge=DEPTH_SCALE_RANGE[0], le=DEPTH_SCALE_RANGE[1],
                                       description="stream: raw depth units per metre (default 1000)")
+    color_intrinsics: str | None = Field(None, max_length=400,
+                                         description="stream: colour from its own camera, "
+                                                     "'fx,fy,cx,cy,width,height[,k1,k2,p1,p2[,k3]]' of the colour "
+                                                     "images, which are then registered onto the depth camera",
+                                         examples=["615,615,320,240,640,480"])
+    depth_to_color: str | None = Field(None, max_length=400,
+                                       description="stream, with color_intrinsics: the depth camera's frame in the "
+                                                   "colour camera's, 16 numbers row-major (default identity)")
     max_frames: int | None = Field(None, ge=1, le=MAX_FRAMES_OPTION)
 
     @field_validator("spec")

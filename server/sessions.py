@@ -306,7 +306,7 @@ class SessionManager:
         if spec.kind == "stream":
             # No worker queue yet: frames wait in the input's buffer until the session starts.
             session.stream = StreamInput(None, directory / "input", intrinsics=spec.intrinsics,
-                                         depth_scale=spec.depth_scale,
+                                         depth_scale=spec.depth_scale, color_camera=spec.color_camera(),
                                          put_timeout_s=self.settings.stream_put_timeout_s,
                                          buffer_frames=self.settings.stream_queue_frames)
         with self._lock:

@@ -46,6 +46,7 @@ from server.upload import (
     decode_color,
     decode_depth,
     decode_stream_frame,
+    encode_png_rgb,
     intrinsics_matrix,
     parse_agent,
     parse_depth_scale,
@@ -109,7 +110,8 @@ class StreamInput:
     in a buffer of ``buffer_frames`` until ``attach``; module doc)."""
 
     def __init__(self, frame_queue, input_dir: Path, *, intrinsics: tuple[float, ...] | None,
-                 depth_scale: float | None, put_timeout_s: float, buffer_frames: int = 16) -> None:
+                 depth_scale: float | None, put_timeout_s: float, buffer_frames: int = 16,
+                 color_camera=None) -> None:
         self._queue = frame_queue if frame_queue is not None else queue.Queue(maxsize=max(1, buffer_frames))
         self._buffer_frames = max(1, buffer_frames)
         self._queue_lock = threading.Lock()
@@ -118,6 +120,9 @@ class StreamInput:
         self._input_dir = input_dir
         self._session_K = None if intrinsics is None else intrinsics_matrix(*intrinsics[:4])
         self._session_depth_scale = depth_scale
+        self._color_camera = color_camera
+        """The session's colour camera (``slam.data.registration.ColorCamera``), or None: every
+        frame's colour is registered to its depth already."""
         self._K: dict[int, np.ndarray] = {}
         """agent -> the camera its first frame (or the session) gave."""
         self._depth_scale: dict[int, float] = {}
@@ -219,7 +224,8 @@ class StreamInput:
                 scale = self._resolve_depth_scale(depth_scale, agent)
                 index = self._agent_counts.get(agent, 0)
                 stamp = index / DEFAULT_FPS if timestamp in (None, "") else _parse_timestamp(timestamp)
-                frame = decode_stream_frame(color, depth, stamp, scale, K, agent=agent)
+                frame = decode_stream_frame(color, depth, stamp, scale, K, agent=agent,
+                                            color_camera=self._color_camera)
             except UploadError:
                 self._refused += 1  # the frame is skipped; the stream goes on
                 raise
@@ -402,6 +408,8 @@ class StreamInput:
         return self._session_depth_scale if self._session_depth_scale is not None else DEFAULT_DEPTH_SCALE
 
     def _record(self, agent: int, index: int, frame: StreamFrame, color: bytes, depth: bytes) -> None:
+        if frame.color_valid is not None:
+            color = encode_png_rgb(frame.rgb)  # the colour registered onto depth, as replays read it
         extension = "png" if color.startswith(PNG_SIGNATURE) else "jpg"
         stem = f"{index:06d}" if agent == 0 else f"agent{agent}_{index:06d}"
         color_name = f"color/{stem}.{extension}"

@@ -309,6 +309,16 @@ class StreamFrame:
     K: np.ndarray
     agent: int = 0
     T_world_cam: np.ndarray | None = None
+    color_valid: np.ndarray | None = None
+    """(H, W) bool where colour came from another camera and was registered: the pixels it saw."""
+
+
+def encode_png_rgb(rgb: np.ndarray) -> bytes:
+    """(H, W, 3) uint8 RGB -> PNG bytes."""
+    ok, data = cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+    if not ok:
+        raise UploadError("could not encode the registered colour image", status=500)
+    return data.tobytes()
 
 
 def parse_agent(value: int | str, what: str = "agent") -> int:
@@ -435,12 +445,25 @@ def decode_depth(data: bytes, what: str = "depth") -> np.ndarray:
 
 
 def decode_stream_frame(color: bytes, depth: bytes, timestamp: float, depth_scale: float,
-                        K: np.ndarray, agent: int = 0) -> StreamFrame:
-    """Decode and cross-check one streamed frame (see :class:`StreamFrame`)."""
+                        K: np.ndarray, agent: int = 0, color_camera=None) -> StreamFrame:
+    """Decode and cross-check one streamed frame (see :class:`StreamFrame`); with
+    ``color_camera`` (``slam.data.registration.ColorCamera``) its colour, of that camera's
+    size, is registered onto the depth camera."""
     if not np.isfinite(timestamp):
         raise UploadError(f"timestamp: must be a finite number, got {timestamp!r}")
     rgb = decode_color(color)
     depth_raw = decode_depth(depth)
+    if color_camera is not None:
+        from slam.data.registration import register_color
+
+        if rgb.shape[:2] != (color_camera.height, color_camera.width):
+            raise UploadError(f"color is {rgb.shape[1]}x{rgb.shape[0]} but the session's colour camera is "
+                              f"{color_camera.width}x{color_camera.height}")
+        depth_m = depth_raw.astype(np.float32) / np.float32(depth_scale)
+        registered, seen = register_color(rgb.astype(np.float32) / 255.0, depth_m, K, color_camera)
+        rgb = np.round(np.clip(registered, 0.0, 1.0) * 255).astype(np.uint8)
+        return StreamFrame(timestamp=float(timestamp), rgb=rgb, depth_raw=depth_raw, depth_scale=depth_scale, K=K,
+                           agent=agent, color_valid=seen)
     if rgb.shape[:2] != depth_raw.shape:
         raise UploadError(
             f"color is {rgb.shape[1]}x{rgb.shape[0]} but depth is {depth_raw.shape[1]}x{depth_raw.shape[0]}: "

@@ -169,6 +169,7 @@ def frame_from_stream(index: int, item) -> Frame:
         depth=item.depth_raw.astype(np.float32) / np.float32(item.depth_scale),
         K=np.asarray(item.K, dtype=np.float64),
         T_world_cam=getattr(item, "T_world_cam", None),  # the client's ground truth: the run's ATE
+        color_valid=getattr(item, "color_valid", None),
     )
 
 

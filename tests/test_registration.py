@@ -210,3 +210,27 @@ def test_a_run_writes_how_each_source_got_its_colour(tmp_path):
     assert warp is not None and not warp.applied and sequence.color_warp is warp
     before = sequence[4].rgb
     np.testing.assert_array_equal(before, open_sequence(registered)[4].rgb)  # nothing changed
+
+
+def test_a_stream_with_its_colour_camera_gets_registered_frames(tmp_path):
+    import cv2
+
+    from server.stream import StreamInput
+    from server.upload import UploadError
+
+    rgb_true, depth, K_depth, rgb_color, camera = _two_cameras()
+    stream = StreamInput(None, tmp_path / "input", intrinsics=(K_depth[0, 0], K_depth[1, 1], K_depth[0, 2], K_depth[1, 2]),
+                         depth_scale=5000.0, put_timeout_s=1.0, color_camera=camera)
+    color_png = cv2.imencode(".png", cv2.cvtColor((rgb_color * 255).round().astype(np.uint8), cv2.COLOR_RGB2BGR))[1]
+    depth_png = cv2.imencode(".png", (depth * 5000).round().astype(np.uint16))[1]
+    assert stream.add_frame(color_png.tobytes(), depth_png.tobytes(), timestamp=1.0) == 0
+    frame = stream.frame_queue.get_nowait()
+    assert frame.rgb.shape == (48, 64, 3) and frame.color_valid is not None
+    error = np.abs(frame.rgb / 255.0 - rgb_true).mean(-1)[frame.color_valid]
+    assert np.median(error) < 0.03
+    recorded = cv2.imread(str(next((tmp_path / "input" / "color").iterdir())))
+    assert recorded.shape[:2] == (48, 64)  # what replays read: the registered colour
+    wrong = cv2.imencode(".png", np.zeros((60, 81, 3), np.uint8))[1]
+    with pytest.raises(UploadError, match="colour camera is 64x48"):
+        stream.add_frame(wrong.tobytes(), depth_png.tobytes(), timestamp=2.0)
+    assert stream.frames_refused == 1
