@@ -371,6 +371,30 @@ def lands(rows: list[dict], variant: str) -> tuple[bool, str]:
     return True, "no sequence worse or slower beyond what it gains, one better"
 
 
+SPEED_GAIN = 1.05
+"""A change made for speed must be at least this much faster (geometric mean of its frames/s
+ratios over the sequences) to land (benchmarks/README.md, "The rule for speed")."""
+
+
+def lands_for_speed(rows: list[dict], variant: str) -> tuple[bool, str]:
+    """benchmarks/README.md's rule for a change made for speed: no sequence worse beyond
+    spread, none slower (below SPEED_TOLERANCE), and frames/s at least SPEED_GAIN x the
+    baseline's over the sequences (geometric mean). Returns (lands, why)."""
+    mine = [r for r in rows if r["variant"] == variant]
+    if not mine or any(r["verdict"] == "no data" or r.get("fps_ratio") is None for r in mine):
+        return False, "not every sequence has data"
+    worse = [r["sequence"] for r in mine if r["verdict"] == "worse"]
+    if worse:
+        return False, f"worse beyond spread on {', '.join(worse)}"
+    slower = [f"{r['sequence']} ({r['fps_ratio']:.2f}x)" for r in mine if r["speed"] == "slower"]
+    if slower:
+        return False, f"slower on {', '.join(slower)}"
+    gain = float(statistics.geometric_mean([r["fps_ratio"] for r in mine]))
+    if gain < SPEED_GAIN:
+        return False, f"{gain:.2f}x the frames/s over the sequences (needs {SPEED_GAIN:.2f}x)"
+    return True, f"no sequence worse or slower, {gain:.2f}x the frames/s over the sequences"
+
+
 def verdict(base: dict, other: dict) -> str:
     """The decision rule of benchmarks/README.md ("Real data") for lower-is-better ATE."""
     if base["ate_mean"] is None or other["ate_mean"] is None:
@@ -406,7 +430,13 @@ def rule_lines(rows: list[dict], variants: list[Variant]) -> list[str]:
     for variant in variants[1:]:
         if not variant.is_peer:
             ok, why = lands(rows, variant.name)
-            lines.append(f"{variant.name}: {'lands' if ok else 'does not land'} ({why})")
+            fast, fast_why = lands_for_speed(rows, variant.name)
+            if ok:
+                lines.append(f"{variant.name}: lands for accuracy ({why})")
+            elif fast:
+                lines.append(f"{variant.name}: lands for speed ({fast_why})")
+            else:
+                lines.append(f"{variant.name}: does not land (for accuracy: {why}; for speed: {fast_why})")
     return lines
 
 

@@ -4,7 +4,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from bench_real import Run, Variant, lands, summary  # noqa: E402
+from bench_real import Run, Variant, lands, lands_for_speed, summary  # noqa: E402
 
 BASE, OTHER, PEER = Variant("cpu", "cpu"), Variant("other", "cpu"), Variant("open3d-1cm", "open3d")
 
@@ -47,3 +47,14 @@ def test_slower_lands_only_when_the_accuracy_pays_for_it():
 def test_worse_anywhere_does_not_land():
     ok, why = lands(rows_for(1.2, 2.0), "other")
     assert not ok and "worse" in why
+
+
+def test_a_speed_change_lands_when_faster_and_no_worse():
+    ok, why = lands_for_speed(rows_for(1.0, 1.2), "other")
+    assert ok and "1.20x" in why
+    ok, why = lands_for_speed(rows_for(1.0, 1.02), "other")  # within spread but no faster
+    assert not ok and "needs 1.05x" in why
+    ok, why = lands_for_speed(rows_for(1.5, 1.5), "other")  # faster but worse
+    assert not ok and "worse beyond spread" in why
+    ok, why = lands_for_speed(rows_for(1.0, 0.9), "other")
+    assert not ok and "slower" in why
