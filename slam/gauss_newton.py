@@ -64,12 +64,14 @@ class Linearisation:
 @dataclass(frozen=True)
 class FieldValues:
     """sdf (S,) in units of tr and grad_sdf (S, 3) per metre (map frame), plus what the
-    colour pass needs: the features (S, D) and their spatial derivative (S, 3, D)."""
+    colour pass needs: the features (S, D), their spatial derivative (S, 3, D) and each
+    trunk layer's output after its ReLU (S, H)."""
 
     sdf: torch.Tensor
     grad_sdf: torch.Tensor
     feats: torch.Tensor
     dfeats: torch.Tensor
+    hidden: tuple[torch.Tensor, ...] = ()
 
 
 def field_with_gradients(points: torch.Tensor, voxel_index: torch.Tensor, view: MapView, decoder,
@@ -78,10 +80,34 @@ def field_with_gradients(points: torch.Tensor, voxel_index: torch.Tensor, view: 
 
     The trilinear features and their spatial derivative are exact
     (``interpolate_with_gradient``); the SDF's derivative in feature space comes from one
-    reverse pass through the trunk (the SDF is one number per sample, so reverse mode costs
-    a third of differencing the three axes forward), and the chain rule gives its spatial
-    gradient.
+    reverse pass through the trunk, written out (the SDF is one number per sample, so
+    reverse mode costs a third of differencing the three axes forward; by hand it needs no
+    autograd graph: each layer's ReLU mask and one product), and the chain rule gives its
+    spatial gradient. ``field_with_gradients_autograd`` is the same through autograd.
     """
+    feats, dfeats = interpolate_with_gradient(points, voxel_index, view, segments)
+    layers = decoder.trunk_linears()
+    hidden, h = [], feats
+    for layer in layers:
+        h = torch.addmm(layer.bias, h, layer.weight.t()).relu_()
+        hidden.append(h)
+    w0, b0 = decoder.sdf_head.weight[0], decoder.sdf_head.bias[0]
+    sdf = torch.mv(h, w0) + b0
+    # d sdf / d (last layer's pre-activation), (S, H): the ReLU's mask in one pass (the op
+    # autograd runs for a ReLU's backward), then back layer by layer.
+    g = torch.ops.aten.threshold_backward(w0.expand_as(h), h, 0)
+    for k in range(len(layers) - 1, -1, -1):
+        g = g @ layers[k].weight  # d sdf / d (layer k's input)
+        if k > 0:
+            g = torch.ops.aten.threshold_backward(g, hidden[k - 1], 0)
+    grad_sdf = (dfeats @ g[:, :, None])[..., 0]
+    return FieldValues(sdf, grad_sdf, feats, dfeats, tuple(hidden))
+
+
+def field_with_gradients_autograd(points: torch.Tensor, voxel_index: torch.Tensor, view: MapView, decoder,
+                                  segments: Segments | None = None) -> FieldValues:
+    """``field_with_gradients`` with the SDF's feature-space derivative from autograd: the
+    plain twin it is tested against (no trunk outputs kept: the colour pass recomputes them)."""
     feats, dfeats = interpolate_with_gradient(points, voxel_index, view, segments)
     with torch.enable_grad():
         f = feats.detach().requires_grad_(True)
@@ -98,8 +124,9 @@ def _linear_with_tangents(x: torch.Tensor, dx: torch.Tensor, weight: torch.Tenso
 
 
 def _relu_with_tangents(x: torch.Tensor, dx: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    keep = x > 0
-    return x * keep, dx * keep
+    """ReLU of x (A, n) and its tangents dx (3, A, n): each masked where x <= 0, in one pass
+    each (``threshold_backward`` masks by another tensor's sign without a bool temporary)."""
+    return torch.relu(x), torch.ops.aten.threshold_backward(dx, x.expand_as(dx), 0)
 
 
 def color_with_gradients(field: FieldValues, decoder, active: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -109,8 +136,16 @@ def color_with_gradients(field: FieldValues, decoder, active: torch.Tensor) -> t
     own activations. The feature rows of the SDF head and the colour head's first layer have
     no activation between them and run as one product, as ``Decoder.color_from_hidden``."""
     x, dx = field.feats[active], field.dfeats[active].transpose(0, 1)  # (A, D), (3, A, D)
-    for layer in decoder.trunk_linears():
-        x, dx = _relu_with_tangents(*_linear_with_tangents(x, dx, layer.weight, layer.bias))
+    layers = decoder.trunk_linears()
+    if len(field.hidden) == len(layers):
+        # The trunk's outputs are known (``field_with_gradients``): only the tangents go through.
+        for layer, h in zip(layers, field.hidden):
+            x = h[active]
+            dx = dx @ layer.weight.T
+            dx = torch.ops.aten.threshold_backward(dx, x.expand_as(dx), 0)
+    else:
+        for layer in layers:
+            x, dx = _relu_with_tangents(*_linear_with_tangents(x, dx, layer.weight, layer.bias))
     head = [m for m in decoder.color_head if isinstance(m, torch.nn.Linear)]
     w, b = decoder.sdf_head.weight[1:], decoder.sdf_head.bias[1:]
     x, dx = _linear_with_tangents(x, dx, head[0].weight @ w, head[0].weight @ b + head[0].bias)

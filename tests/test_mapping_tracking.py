@@ -547,6 +547,34 @@ def test_colour_jacobian_matches_autograd_through_render_rays(trained, frames, r
     assert float(err) < 1e-3, float(err)
 
 
+def test_the_hand_written_reverse_pass_matches_autograd(trained, frames):
+    """``field_with_gradients`` (the trunk's reverse pass by hand, its outputs kept for the
+    colour pass) against its autograd twin, and the colour pass with and without them."""
+    from slam.gauss_newton import color_with_gradients, field_with_gradients, field_with_gradients_autograd
+    from slam.render import ray_voxel_intersections, sample_points_from_hits
+
+    fmap, batch, kwargs, _ = _linearisation_inputs(trained, frames, n=96)
+    T = gt_pose(frames[0])
+    dirs = batch.dirs_cam @ T[:3, :3].T
+    origins = T[:3, 3].expand(dirs.shape[0], 3)
+    hits = ray_voxel_intersections(origins, dirs, kwargs["near"], kwargs["far"], fmap.view.voxel_codes,
+                                   fmap.view.voxel_size, kwargs["max_hits"])
+    samples = sample_points_from_hits(hits, kwargs["step"], torch.full((dirs.shape[0],), 0.5))
+    points = origins[samples.ray_index] + samples.t[:, None] * dirs[samples.ray_index]
+    with torch.no_grad():
+        fast = field_with_gradients(points, samples.voxel_index, fmap.view, fmap.decoder, samples.segments)
+    plain = field_with_gradients_autograd(points, samples.voxel_index, fmap.view, fmap.decoder, samples.segments)
+    assert points.shape[0] > 500 and len(fast.hidden) == len(fmap.decoder.trunk_linears())
+    torch.testing.assert_close(fast.sdf, plain.sdf, rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(fast.grad_sdf, plain.grad_sdf, rtol=1e-4, atol=1e-4)
+    active = torch.arange(0, points.shape[0], 3)
+    with torch.no_grad():
+        rgb_fast, grad_fast = color_with_gradients(fast, fmap.decoder, active)
+        rgb_plain, grad_plain = color_with_gradients(plain, fmap.decoder, active)
+    torch.testing.assert_close(rgb_fast, rgb_plain, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(grad_fast, grad_plain, rtol=1e-4, atol=1e-5)
+
+
 def test_one_render_serves_several_ray_weightings(trained, frames):
     """The tracker renders its first pose once and weighs it twice (all rays, then without
     the outliers): the same model as linearising from scratch each time."""
