@@ -43,6 +43,9 @@ MIN_GAIN = 0.15
 MAX_SPREAD_PX = 2.5
 """The warps found from either half of the frames (every other one) must agree within this
 many pixels (the median distance between where they put the image's corners)."""
+WORK_WIDTH = 320
+"""Frames are compared at most this wide (the cost grows with the square of the width; the
+thresholds below are in pixels at this width)."""
 CALIBRATION_FRAMES = 20
 """Frames a sequence's colour camera is estimated from, spread over it."""
 MIN_EDGE_PIXELS = 200
@@ -56,7 +59,7 @@ class ColorWarp:
 
     chamfer_px / identity_chamfer_px: mean truncated distance of the frames' depth edges to
     the colour edges with this warp and with none; frames: frames used; spread_px: how far
-    apart the answers of either half of the frames lie; confidence in [0, 1]; applied:
+    apart the answers of either half of the frames lie (all in the frames' own pixels); confidence in [0, 1]; applied:
     confident enough; reason: why, in words."""
 
     scale: float
@@ -159,14 +162,31 @@ class _FrameEdges:
     distance: np.ndarray  # (H, W) colour edges' distance transform
 
 
+def _working_size(frame: Frame) -> tuple[int, int]:
+    """(width, height) the estimate works at: the frame's, shrunk to ``WORK_WIDTH`` wide."""
+    height, width = frame.depth.shape
+    if width <= WORK_WIDTH:
+        return width, height
+    return WORK_WIDTH, max(1, int(round(height * WORK_WIDTH / width)))
+
+
 def _frame_edges(frame: Frame) -> _FrameEdges | None:
-    edges = depth_edges(frame.depth)
-    if frame.color_valid is not None:
-        edges &= frame.color_valid
+    import cv2
+
+    size = _working_size(frame)
+    depth, rgb, valid = frame.depth, frame.rgb, frame.color_valid
+    if size != (depth.shape[1], depth.shape[0]):
+        depth = cv2.resize(depth, size, interpolation=cv2.INTER_NEAREST)
+        rgb = cv2.resize(np.ascontiguousarray(rgb, np.float32), size, interpolation=cv2.INTER_AREA)
+        valid = None if valid is None else cv2.resize(valid.astype(np.uint8), size,
+                                                      interpolation=cv2.INTER_NEAREST).astype(bool)
+    edges = depth_edges(depth)
+    if valid is not None:
+        edges &= valid
     ys, xs = np.nonzero(edges)
     if len(xs) < MIN_EDGE_PIXELS:
         return None
-    return _FrameEdges(np.stack([xs, ys], 1).astype(np.float64), color_edge_distance(frame.rgb))
+    return _FrameEdges(np.stack([xs, ys], 1).astype(np.float64), color_edge_distance(rgb))
 
 
 def _best(cost: np.ndarray, max_shift: int) -> tuple[int, float, float, float]:
@@ -215,6 +235,8 @@ def estimate_color_warp(frames: list[Frame]) -> ColorWarp:
     applied when either half of the frames finds about the same and it beats identity clearly
     (module doc); fewer than 4 usable frames are never confident."""
     usable = [e for e in (_frame_edges(f) for f in frames) if e is not None]
+    # Shifts are found in working pixels and reported in the frames' own.
+    to_native = frames[0].depth.shape[1] / _working_size(frames[0])[0] if frames else 1.0
     if not usable:
         return ColorWarp(1.0, 0.0, 0.0, float("nan"), float("nan"), 0, float("nan"), 0.0, False,
                          "no frame has enough depth edges to compare with colour")
@@ -252,7 +274,8 @@ def estimate_color_warp(frames: list[Frame]) -> ColorWarp:
     elif gain < MIN_GAIN:
         reason, applied = f"the warp brings edges only {gain:.0%} closer than identity (needs {MIN_GAIN:.0%})", False
     elif spread > MAX_SPREAD_PX:
-        reason, applied = f"the frames disagree by {spread:.1f} px (at most {MAX_SPREAD_PX} px)", False
+        reason, applied = f"the frames disagree by {spread:.1f} px at {W} px wide (at most {MAX_SPREAD_PX})", False
     else:
-        reason, applied = f"edges {gain:.0%} closer than identity, the frames within {spread:.1f} px", True
-    return ColorWarp(answer[0], dx, dy, best, identity, len(usable), spread, confidence, applied, reason)
+        reason, applied = f"edges {gain:.0%} closer than identity, the frames within {spread:.1f} px at {W} px wide", True
+    return ColorWarp(answer[0], dx * to_native, dy * to_native, best * to_native, identity * to_native, len(usable),
+                     spread * to_native, confidence, applied, reason)
