@@ -149,7 +149,7 @@ def _cpu() -> SLAMConfig:
         ),
         mapping=MappingConfig(
             num_rays=192,                  # many small steps beat few large (decisions.md#mapping.num_rays)
-            iterations=12,                 # with num_rays (decisions.md#mapping.num_rays)
+            iterations=8,                  # 12 no better, 1.2-1.3x slower on real data (decisions.md#mapping.iterations)
             window_size=4,                 # 6 no better on fr1/rpy and fr1/desk (decisions.md#preset.cpu)
             keyframe_max_interval=10,      # 450-722 2.90 -> 2.58 cm, its views +0.3 dB (decisions.md#mapping.keyframe_max_interval)
             keyframe_interval_min_metres=0.01,  # a still camera adds no keyframes (decisions.md#mapping.keyframe_max_interval)
