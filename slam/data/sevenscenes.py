@@ -4,7 +4,11 @@
   after the other in name order (their poses share the scene's world frame, and the jump
   between them is a relocalisation / new-map case for the SLAM).
 - Depth is 16-bit millimetres; 0 and 65535 are invalid. Depth is not registered to colour
-  in this dataset; both use one pinhole K, fx = fy = 585, cx = 320, cy = 240 by default.
+  in this dataset (its documentation says so) and its colour camera is not published: the
+  reader takes one pinhole K for both, fx = fy = 585, cx = 320, cy = 240 by default. Give the
+  colour camera if you know it (``voxfusion run --color-intrinsics/--depth-to-color`` or
+  ``--calibration``); otherwise the run estimates how colour lies on depth from the frames
+  (``slam.data.selfcalibration``) and registers it when it is confident.
 - ``pose.txt`` is a 4x4 camera-to-world matrix; a missing or non-finite one gives None.
 - Frame.timestamp is the frame number; in a multi-sequence scene each sequence continues
   after the previous one's last number so that timestamps stay unique.
