@@ -405,6 +405,27 @@ def test_scannet_numeric_order_invalid_pose_and_colour_resized(scannet_dir):
         open_sequence(scannet_dir)
 
 
+def test_scannet_colour_camera_registers_colour_onto_depth(scannet_dir):
+    # The fixture's colour is the depth image's size doubled: its own intrinsics (2x, pixel
+    # centres aligned) registered through depth sample each 2x2 block at its centre, which is
+    # what resizing it by area gives.
+    resized = open_sequence(scannet_dir)[3]
+    K_color = np.array([[14.0, 0, 7.5, 0], [0, 15.0, 5.5, 0], [0, 0, 1, 0], [0, 0, 0, 1]])
+    np.savetxt(scannet_dir / "intrinsic" / "intrinsic_color.txt", K_color)
+    seq = open_sequence(scannet_dir)
+    assert seq.color_camera is not None and (seq.color_camera.width, seq.color_camera.height) == (2 * W, 2 * H)
+    frame = seq[3]
+    assert frame.rgb.shape == (H, W, 3) and frame.color_valid is not None and frame.color_valid.all()
+    np.testing.assert_allclose(frame.rgb, resized.rgb, atol=2e-3)
+    # Both extrinsics exported: the colour camera sits where they say.
+    shift = np.eye(4)
+    shift[0, 3] = 0.05
+    np.savetxt(scannet_dir / "intrinsic" / "extrinsic_color.txt", shift)
+    np.savetxt(scannet_dir / "intrinsic" / "extrinsic_depth.txt", np.eye(4))
+    camera = open_sequence(scannet_dir).color_camera
+    np.testing.assert_allclose(camera.T_color_depth[:3, 3], [-0.05, 0, 0])
+
+
 def test_sevenscenes_scene_and_single_sequence(sevenscenes_dir):
     seq = open_sequence(sevenscenes_dir, intrinsics=(5, 5, 3.5, 2.5))
     assert len(seq) == 5 and seq.name == "chess"

@@ -11,7 +11,7 @@ from slam.data.io import FileSequence, Intrinsics, SequenceLayout
 from slam.data.registration import ColorCamera
 from slam.data.replica import COLOR_PATTERN as REPLICA_COLOR_PATTERN
 from slam.data.replica import replica_layout
-from slam.data.scannet import scannet_layout
+from slam.data.scannet import scannet_color_camera, scannet_layout
 from slam.data.sevenscenes import sevenscenes_layout
 from slam.data.tum import tum_layout
 
@@ -122,6 +122,9 @@ def open_sequence(
         layout = _LAYOUTS[format](root, intrinsics=intrinsics, depth_scale=depth_scale)
     except DataError as error:
         raise DataError(f"{error}{_detected_instead(root, format)}") from error
+    if format == "scannet" and color_camera is None and intrinsics is None and layout.frames:
+        # ScanNet exports its colour camera: register colour to depth rather than resize it.
+        color_camera = scannet_color_camera(root, layout.frames[0].rgb)
     return FileSequence(layout, width=width, stride=stride, max_frames=max_frames, color_camera=color_camera)
 
 
