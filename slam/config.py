@@ -146,6 +146,7 @@ def _cpu() -> SLAMConfig:
             border_margin=0.1,             # no pull back into a lagging map (decisions.md#tracking.border_margin)
             retrack_iterations=2,          # every frame again on the final map: 5 real sequences better (decisions.md#tracking.retrack_iterations)
             retrack_ray_budget=76_800,     # 150 frames' 512 pixels: short runs get up to 2048 (decisions.md#tracking.retrack_iterations)
+            retrack_frame_budget=300,      # whole fr1/rpy within spread at 1.17x; 150 lost on 450-722 (decisions.md#tracking.retrack_frame_budget)
         ),
         mapping=MappingConfig(
             num_rays=192,                  # many small steps beat few large (decisions.md#mapping.num_rays)
