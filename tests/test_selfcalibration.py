@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from slam.data.selfcalibration import ColorWarp, estimate_color_warp
+from slam.data.selfcalibration import estimate_color_warp
 from slam.data.synthetic import open_synthetic
 
 
@@ -55,15 +55,3 @@ def test_frames_without_edges_are_never_trusted():
     flat = replace(frame, depth=np.full_like(frame.depth, 2.0))  # a wall: no occlusion edge
     warp = estimate_color_warp([flat, flat])
     assert not warp.applied and warp.frames == 0
-
-
-def test_a_warp_describes_the_colour_camera_that_sees_it():
-    warp = ColorWarp(0.9, 4.0, -1.0, 1.0, 2.0, 10, 0.5, 1.0, True, "")
-    K = np.array([[200.0, 0, 160], [0, 200.0, 120], [0, 0, 1]])
-    camera = warp.camera(K, 320, 240)
-    # A depth pixel u lands, in the colour camera, at scale (u - centre) + centre + shift.
-    u = np.array([50.0, 70.0])
-    ray = np.linalg.inv(K) @ [u[0], u[1], 1.0]
-    projected = (camera.K @ ray)[:2]
-    centre = np.array([159.5, 119.5])
-    np.testing.assert_allclose(projected, 0.9 * (u - centre) + centre + [4.0, -1.0], atol=1e-9)

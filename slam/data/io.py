@@ -429,15 +429,15 @@ class FileSequence:
                 if not path.is_file():
                     raise DataError(f"missing file: {path}")
         if self.color_camera is not None:
-            self._check_color_size(self.frames[0])
+            # A wrong calibration would fail every frame: refused before the run starts.
+            self._check_color_size(read_color(self.frames[0].rgb), self.frames[0].rgb)
 
-    def _check_color_size(self, files: FrameFiles) -> None:
-        """A colour image the colour camera's intrinsics are not for: a wrong calibration,
-        which every frame would repeat, so it is refused before the run starts."""
-        rgb = read_color(files.rgb)
+    def _check_color_size(self, rgb: np.ndarray, path: Path) -> None:
+        """DataError when colour image ``rgb`` (read from ``path``) is not of the size the
+        colour camera's intrinsics are for."""
         camera = self.color_camera
         if rgb.shape[:2] != (camera.height, camera.width):
-            raise DataError(f"{files.rgb} is {rgb.shape[1]}x{rgb.shape[0]} but the colour camera's intrinsics "
+            raise DataError(f"{path} is {rgb.shape[1]}x{rgb.shape[0]} but the colour camera's intrinsics "
                             f"are for {camera.width}x{camera.height}")
 
     def _relative(self, path: Path) -> str:
@@ -542,10 +542,7 @@ class FileSequence:
         rgb = read_color(files.rgb)
         depth = read_depth(files.depth, self.layout.depth_scale, self.layout.invalid_depth_raw)
         if self.color_camera is not None:
-            camera = self.color_camera
-            if rgb.shape[:2] != (camera.height, camera.width):
-                raise DataError(f"{files.rgb} is {rgb.shape[1]}x{rgb.shape[0]} but the colour camera's intrinsics "
-                                f"are for {camera.width}x{camera.height}")
+            self._check_color_size(rgb, files.rgb)
         elif self.layout.color_to_depth_size:
             rgb = resize_color(rgb, depth.shape[1], depth.shape[0])
         if self.color_camera is None and rgb.shape[:2] != depth.shape:

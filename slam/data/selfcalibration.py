@@ -11,8 +11,7 @@ and a shift t. ``estimate_color_warp`` finds s and t that bring the depth edges 
 frames onto the colour edges, scored by the chamfer distance (the mean distance from each
 depth edge pixel to the nearest colour edge, truncated), every shift at once per scale
 (OpenCV's template correlation of the warped depth edges with the colour edges' distance
-transform). ``ColorWarp.camera`` turns the answer into a ``ColorCamera`` for
-``slam.data.registration``.
+transform). ``ColorWarp.apply`` resamples each frame's colour with it.
 
 It is applied only when it is confident: the frames agree on it (their own best warps lie
 close together), it beats identity clearly, and it is not at the edge of the search. On data
@@ -26,7 +25,6 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from slam.data.frame import Frame
-from slam.data.registration import ColorCamera
 
 SCALES = np.round(np.arange(0.80, 1.2001, 0.01), 4)
 """Scales searched (colour focal length over depth's)."""
@@ -72,15 +70,6 @@ class ColorWarp:
     confidence: float
     applied: bool
     reason: str
-
-    def camera(self, K_depth: np.ndarray, width: int, height: int) -> ColorCamera:
-        """The colour camera that sees the colour image of a ``width`` x ``height`` frame
-        with depth intrinsics ``K_depth``: its centres and axes the depth camera's."""
-        centre = np.array([(width - 1) / 2.0, (height - 1) / 2.0])
-        K = np.array(K_depth, np.float64, copy=True)
-        K[:2, :2] *= self.scale
-        K[:2, 2] = self.scale * (K[:2, 2] - centre) + centre + [self.shift_x, self.shift_y]
-        return ColorCamera(K, width, height, np.eye(4))
 
     def apply(self, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Colour (H, W, 3) resampled onto the depth image's pixels: each takes the colour at
