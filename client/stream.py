@@ -60,6 +60,9 @@ RETRY_AFTER_S = (0.05, 0.5, 5.0)
 START_TIMEOUT_S = 600.0
 """Longest wait for a new session to start tracking (it may be queued behind others)."""
 STATUS_EVERY_S = 0.25
+LIVE_STATUS_EVERY_S = 0.1
+"""Keep-the-newest mode: the sender waits on the tracked count (``MAX_AHEAD``), so it is read
+more often: a count a quarter second old left the tracker without frames."""
 MAX_AHEAD = 2
 """Keep-the-newest mode: frames acknowledged but not yet tracked by the server, at most. The
 server itself buffers up to 16 frames (``stream_queue_frames``) before it holds an ack back, so
@@ -220,11 +223,14 @@ class Server:
         return self.url.rstrip("/") + "/" + query
 
 
-def create_session(server: Server, info: CameraInfo, preset: str | None) -> str:
-    """POST a stream session with the source's camera; its id."""
+def create_session(server: Server, info: CameraInfo, preset: str | None, live: bool = False) -> str:
+    """POST a stream session with the source's camera; its id. ``live``: frames come at a
+    camera's pace, which does not wait (the session's ``live``)."""
     body: dict = {"source": "stream", "intrinsics": info.intrinsics_text(), "depth_scale": info.depth_scale}
     if preset:
         body["preset"] = preset
+    if live:
+        body["live"] = True
     return str(server.api("POST", "/api/sessions", body)["id"])
 
 
@@ -252,6 +258,10 @@ class Progress:
     not have taken them, so they are not sent twice)."""
     server_fps: float | None = None
     server_frames_done: int | None = None
+    server_handled: int | None = None
+    """Frames the server is done with, in the order sent: the ones tracked, and in a live
+    session also those it passed over for a newer one (its newest tracked frame + 1); None
+    while the status cannot be read. The sender waits on it (``MAX_AHEAD``)."""
     ack_latency_s: deque = field(default_factory=lambda: deque(maxlen=LATENCY_SAMPLES))
     """Seconds from a frame's arrival from the source to its ack."""
     track_latency_s: deque = field(default_factory=lambda: deque(maxlen=LATENCY_SAMPLES))
@@ -259,11 +269,22 @@ class Progress:
     status poll, ``STATUS_EVERY_S``)."""
     sent_at: dict = field(default_factory=dict)
     """Ack index -> ``time.monotonic()`` when it was sent, until the server has tracked it."""
+    first_track_latency_s: float | None = None
+    """Seconds from the first frame timed (the first frame sent, unless a live session passed
+    it over) leaving the client to the server counting it tracked: the session's first pose
+    (to within a status poll)."""
 
-    def note_tracked(self, frames_done: int, now: float) -> None:
-        """The server has tracked ``frames_done`` frames: time the ones that were waiting."""
-        for index in [i for i in self.sent_at if i < frames_done]:
-            self.track_latency_s.append(now - self.sent_at.pop(index))
+    def note_tracked(self, handled: int, now: float, newest_only: bool = False) -> None:
+        """The server is done with the first ``handled`` frames sent: time the ones that were
+        waiting; ``newest_only`` (a live session, which passes over frames): only the newest
+        of them is known to be tracked."""
+        for index in sorted(i for i in self.sent_at if i < handled):
+            latency = now - self.sent_at.pop(index)
+            if newest_only and index != handled - 1:
+                continue
+            self.track_latency_s.append(latency)
+            if self.first_track_latency_s is None:
+                self.first_track_latency_s = latency
 
     def line(self) -> str:
         fps = "-" if self.server_fps is None else f"{self.server_fps:.1f}"
@@ -297,14 +318,17 @@ class Progress:
                 values = sorted(samples)
                 parts.append(f"{what}: median {values[len(values) // 2] * 1000:.0f} ms, "
                              f"max {values[-1] * 1000:.0f} ms")
+        if self.first_track_latency_s is not None:
+            parts.append(f"first frame tracked {self.first_track_latency_s * 1000:.0f} ms after it was sent")
         return "; ".join(parts) or "no acks"
 
 
 class StatusPoller:
     """Reads the session's status now and then in a thread (frames/s, frames tracked)."""
 
-    def __init__(self, server: Server, session_id: str, progress: Progress) -> None:
-        self.server, self.session_id, self.progress = server, session_id, progress
+    def __init__(self, server: Server, session_id: str, progress: Progress, live: bool = False) -> None:
+        self.server, self.session_id, self.progress, self.live = server, session_id, progress, live
+        self.every_s = LIVE_STATUS_EVERY_S if live else STATUS_EVERY_S
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True, name="stream-status")
 
@@ -321,16 +345,25 @@ class StatusPoller:
             try:
                 state = self.server.api("GET", f"/api/sessions/{self.session_id}", timeout=5)
             except StreamError:
-                self.progress.server_frames_done = None  # unknown: the sender stops waiting on it
-                if self._stop.wait(STATUS_EVERY_S):
+                self.progress.server_handled = None  # unknown: the sender stops waiting on it
+                if self._stop.wait(self.every_s):
                     return
                 continue
             self.progress.server_fps = state.get("fps")
             self.progress.server_frames_done = state.get("frames_done")
-            if state.get("frames_done") is not None:
-                self.progress.note_tracked(int(state["frames_done"]), time.monotonic())
-            if self._stop.wait(STATUS_EVERY_S):
+            self.progress.server_handled = self._handled(state)
+            if self.progress.server_handled is not None:
+                self.progress.note_tracked(self.progress.server_handled, time.monotonic(), newest_only=self.live)
+            if self._stop.wait(self.every_s):
                 return
+
+
+    def _handled(self, state: dict) -> int | None:
+        """``Progress.server_handled`` from a status (``latest_frame`` is agent 0's)."""
+        if not self.live:
+            return state.get("frames_done")
+        latest = state.get("latest_frame")
+        return 0 if latest is None else int(latest) + 1
 
 
 # --------------------------------------------------------------------------------------------
@@ -609,13 +642,13 @@ def stream(source: FrameSource, server: Server, options: StreamOptions, out: Tex
     out = out or sys.stdout
     progress = Progress()
     try:
-        session_id = create_session(server, source.info, options.preset)
+        session_id = create_session(server, source.info, options.preset, live=not options.all_frames)
     except StreamError as error:
         print(f"voxfusion stream: {error}", file=sys.stderr)
         return StreamResult(error.code, None, progress)
     print(f"voxfusion stream: session {session_id} from {source.info.name}", file=out)
     print(f"voxfusion stream: open {server.page_url(session_id)} to watch it", file=out, flush=True)
-    with StatusPoller(server, session_id, progress):  # to the end: frames are tracked after finishing too
+    with StatusPoller(server, session_id, progress, live=not options.all_frames):  # to the end: frames are tracked after finishing too
         result = _stream_session(source, server, session_id, options, progress, out)
     if progress.track_latency_s or progress.ack_latency_s:
         print(f"voxfusion stream: latency ({len(progress.track_latency_s)} of {progress.acked} frames tracked "
@@ -705,12 +738,12 @@ def _wait_for_result(server: Server, session_id: str, wait_s: float, code: int, 
 def wait_for_server(progress: Progress, max_ahead: int, timeout_s: float = ACK_TIMEOUT_S,
                     tick: Callable[[], None] = lambda: None) -> None:
     """Wait (bounded) until the server has tracked all but ``max_ahead`` of the acknowledged
-    frames (``progress.server_frames_done`` comes from the ``StatusPoller``); ``tick`` runs
+    frames (``progress.server_handled`` comes from the ``StatusPoller``); ``tick`` runs
     while waiting (the progress line)."""
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         tick()
-        done = progress.server_frames_done
+        done = progress.server_handled
         if done is None or progress.acked - done <= max_ahead:
             return  # caught up, or the server's status cannot be read (the send will tell)
         time.sleep(0.02)

@@ -238,6 +238,8 @@ def _unpack_datasets(settings: Settings, session_dir: Path, uploads: list[Upload
 def _json_spec(body: SessionCreateJSON) -> tuple[list[SourceSpec], str]:
     """The sources of a JSON request: synthetic (one, or one per listed spec) or a stream."""
     preset = body.preset or _default_preset()
+    if body.live and body.source != "stream":
+        raise UploadError("live: only a stream comes from a camera at its own rate")
     if body.source == "synthetic":
         from slam.data.synthetic import parse_synthetic_spec
 
@@ -258,7 +260,7 @@ def _json_spec(body: SessionCreateJSON) -> tuple[list[SourceSpec], str]:
     depth_scale = None if body.depth_scale is None else parse_depth_scale(body.depth_scale)
     color_intrinsics, depth_to_color = parse_color_camera(body.color_intrinsics, body.depth_to_color)
     return [SourceSpec(kind="stream", format="stream", intrinsics=intrinsics, depth_scale=depth_scale,
-                       color_intrinsics=color_intrinsics, depth_to_color=depth_to_color)], preset
+                       color_intrinsics=color_intrinsics, depth_to_color=depth_to_color, live=body.live)], preset
 
 
 @router.post("", status_code=status.HTTP_201_CREATED, response_model=SessionCreated,

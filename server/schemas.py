@@ -126,6 +126,9 @@ class SessionCreateJSON(Strict):
                                        description="stream, with color_intrinsics: the depth camera's frame in the "
                                                    "colour camera's, 16 numbers row-major (default identity)")
     max_frames: int | None = Field(None, ge=1, le=MAX_FRAMES_OPTION)
+    live: bool = Field(False, description="stream: frames come from a camera at its own rate, which does not "
+                                          "wait: the tracker never waits for the mapper, which maps the newest "
+                                          "frames it has time for (runtime.live)")
 
     @field_validator("spec")
     @classmethod
@@ -172,6 +175,9 @@ class SessionOut(BaseModel):
     id: str = Field(examples=["3f2a9c0d1b7e"])
     status: Literal["queued", "running", "finished", "failed", "cancelled"]
     frames_done: int = Field(examples=[42])
+    latest_frame: int | None = Field(None, examples=[41], description="the first agent's newest tracked frame, "
+                                                                       "its index in the input (a stream: in the "
+                                                                       "order sent); null before the first")
     frames_total: int | None = Field(examples=[120], description="None for streams")
     fps: float = Field(examples=[3.5], description="frames tracked (all agents) per second of the tracking phase; "
                                                   "fixed once tracking ends (run.json's fps counts the whole run)")
@@ -189,9 +195,9 @@ class SessionOut(BaseModel):
     loops: int = Field(examples=[1], description="accepted loop closures")
     agents: int = Field(1, examples=[1], description="agents (cameras): an upload's file parts, or the agents "
                                                       "a stream has seen")
-    phase: Literal["queued", "tracking", "refining", "writing", "done"] = Field(
+    phase: Literal["queued", "starting", "tracking", "refining", "writing", "done"] = Field(
         examples=["tracking"],
-        description="what a session does now: queued; tracking (frames are read and tracked, maps grow); refining "
+        description="what a session does now: queued; starting (its worker loads, the mapper starts: seconds; a stream's frames sent now wait); tracking (frames are read and tracked, maps grow); refining "
                     "(the input ended: final global bundle adjustment and mesh, minutes on a long run); writing "
                     "(trajectories and run.json); done (ended, however: see status)")
     phase_started: str | None = Field(None, examples=["2025-01-01T12:03:10+00:00"],

@@ -44,7 +44,7 @@ from slam import FinishedEvent
 
 STATUSES = ("queued", "running", "finished", "failed", "cancelled")
 ENDED = ("finished", "failed", "cancelled")
-PHASES = ("queued", "tracking", "refining", "writing", "done")
+PHASES = ("queued", "starting", "tracking", "refining", "writing", "done")
 FPS_SAMPLE_S = 0.5
 """Shortest time between two samples of the frames/s history."""
 MIN_FPS_SPAN_S = 0.25
@@ -66,6 +66,9 @@ class SessionStatus:
     source: str
     preset: str
     frames_done: int = 0
+    latest_frame: int | None = None
+    """Agent 0's newest tracked frame (its index in the input); None before the first. A live
+    stream tracks only the newest frames, so its client waits on this, not ``frames_done``."""
     frames_total: int | None = None
     fps: float = 0.0
     keyframes: int = 0
@@ -175,7 +178,9 @@ class StatusFold:
         elif change.frame is not None:
             # Stats come every few frames; poses give the progress in between.
             frames = len(self.scene.tracks)
-            status = replace(status, frames_done=max(frames, status.frames_done),
+            agent, index = change.frame
+            latest = status.latest_frame if agent != 0 else max(index, status.latest_frame or 0)
+            status = replace(status, frames_done=max(frames, status.frames_done), latest_frame=latest,
                              agents=max(status.agents, change.frame[0] + 1), fps=self._tracking_fps(frames, now))
             step = StatusStep(status, dirty=True, event=event)
         elif change.submap is not None:

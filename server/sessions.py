@@ -635,7 +635,9 @@ class SessionManager:
         """Set and persist the status; a session that ends now is settled against its folder."""
         phase = "done" if status in ENDED else session.status.phase
         if status == "running" and phase == "queued":
-            phase = "tracking"
+            # Until the worker's runtime says it tracks (its processes spawned, the mapper
+            # ready: seconds), frames sent would only wait in its queue.
+            phase = "starting"
         same = phase == session.status.phase
         ends = status in ENDED and session.status.status not in ENDED
         session.status = replace(session.status, status=status, error=error, phase=phase,

@@ -27,13 +27,14 @@ import sys
 import threading
 import time
 import traceback
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Iterator
 
 import numpy as np
 
 from slam import DataError, Frame
+from slam.data.io import SkippedFrame
 
 
 @dataclass(frozen=True)
@@ -58,6 +59,9 @@ class SourceSpec:
     height[, distortion] (``slam.data.registration.color_camera_from_values``)."""
     depth_to_color: tuple[float, ...] | None = None
     """With ``color_intrinsics``: the depth camera's frame in the colour camera's, 12 or 16 numbers."""
+    live: bool = False
+    """A stream from a camera at its own rate: the run does not hold its frames back
+    (``runtime.live``)."""
 
     def color_camera(self):
         """The ``ColorCamera`` these options give, or None: colour registered to depth already."""
@@ -150,7 +154,7 @@ def open_source(source: SourceSpec, frame_queue=None, stop_event=None):
         return open_sequence(f"synthetic:{source.path}", "synthetic", stride=source.stride,
                              max_frames=source.max_frames)
     if source.kind == "stream":
-        return stream_source(frame_queue, stop_event)
+        return stream_source(frame_queue, stop_event, live=source.live)
     raise ValueError(f"unknown source kind {source.kind!r}")
 
 
@@ -173,32 +177,62 @@ def frame_from_stream(index: int, item) -> Frame:
     )
 
 
-def stream_frames(frame_queue, stop_event, poll_s: float = 0.25) -> Iterator[tuple[int, Frame]]:
+LIVE_SKIP_REASON = "live: a newer frame of the camera had arrived before it was tracked"
+
+
+def stream_frames(frame_queue, stop_event, poll_s: float = 0.25,
+                  skipped: list | None = None) -> Iterator[tuple[int, Frame]]:
     """(agent, frame) as the API process hands them over, until END_OF_STREAM or a stop
-    request. Frame indices count from 0 for each agent."""
+    request. Frame indices count from 0 for each agent, every frame received counted.
+
+    ``skipped`` (a live camera's stream): of the frames waiting, only each agent's newest is
+    tracked; the others are appended there (``SkippedFrame``) and left out."""
     counts: dict[int, int] = {}
     while not stop_event.is_set():
         try:
-            item = frame_queue.get(timeout=poll_s)
+            items = [frame_queue.get(timeout=poll_s)]
         except queue.Empty:
             continue
-        if item is END_OF_STREAM:
+        if skipped is not None:
+            items += _waiting(frame_queue)
+        ended = END_OF_STREAM in items
+        received = [(int(getattr(item, "agent", 0)), item) for item in items if item is not END_OF_STREAM]
+        newest = {agent: position for position, (agent, _) in enumerate(received)}
+        for position, (agent, item) in enumerate(received):
+            index = counts.get(agent, 0)
+            counts[agent] = index + 1
+            if skipped is not None and newest[agent] != position:
+                skipped.append(SkippedFrame(index, LIVE_SKIP_REASON, agent))
+                continue
+            yield agent, frame_from_stream(index, item)
+        if ended:
             return
-        agent = int(getattr(item, "agent", 0))
-        index = counts.get(agent, 0)
-        counts[agent] = index + 1
-        yield agent, frame_from_stream(index, item)
 
 
-def stream_source(frame_queue, stop_event, poll_s: float = 0.25):
-    """The stream as ``run_slam`` wants it: an ``AgentStream`` yielding (agent, Frame)."""
+def _waiting(frame_queue) -> list:
+    """What the queue holds now, taken without waiting."""
+    out = []
+    while True:
+        try:
+            out.append(frame_queue.get_nowait())
+        except queue.Empty:
+            return out
+
+
+def stream_source(frame_queue, stop_event, poll_s: float = 0.25, live: bool = False):
+    """The stream as ``run_slam`` wants it: an ``AgentStream`` yielding (agent, Frame);
+    ``live``: only the newest frames (``stream_frames``), the others in its ``skipped``."""
     from slam import AgentStream
 
     class AgentFrames(AgentStream):
         """A live stream whose frames name their agent (``slam.runtime.AgentStream``)."""
 
+        def __init__(self) -> None:
+            self.skipped: list = []
+            """Frames left out (``run.json``'s ``skipped_frames``)."""
+
         def __iter__(self) -> Iterator[tuple[int, Frame]]:
-            return stream_frames(frame_queue, stop_event, poll_s)
+            return stream_frames(frame_queue, stop_event, poll_s, self.skipped if live else None)
 
     return AgentFrames()
 
@@ -313,6 +347,8 @@ def run_worker(job: WorkerJob, stop_event, event_queue, frame_queue) -> None:
         from slam import load_config, run_slam
 
         config = load_config(job.preset)
+        if any(source.live for source in job.sources):
+            config = replace(config, runtime=replace(config.runtime, live=True))
         if stop_event.is_set():  # cancelled while this process was starting
             done = WorkerDone(status="cancelled", error=None)
         else:

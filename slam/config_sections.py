@@ -451,11 +451,19 @@ class RuntimeConfig:
     (``slam.data.selfcalibration``: depth edges against colour edges), applied when confident."""
     checkpoint_every_keyframes: int = 10
     """Write map.pt every this many keyframes while running (0: only at the end)."""
+    live: bool = False
+    """A live camera, which does not wait: the tracker never waits for room in the mapper's
+    queue. A frame that finds it full waits in one slot, where the next frame replaces it (the
+    mapper maps the newest frames it can take; a frame that starts a map always goes), and the
+    mapping process runs at a lower CPU priority, so that tracking keeps the camera's rate."""
     seed: int = 0
 
     def __post_init__(self) -> None:
         if self.deterministic_lag < -1:
             raise ConfigError(f"runtime.deterministic_lag must be -1 (off) or >= 0, got {self.deterministic_lag}")
+        if self.live and self.deterministic_lag >= 0:
+            raise ConfigError("runtime.live and runtime.deterministic_lag exclude each other: a live run maps "
+                              "what the mapper has time for, a deterministic one every frame in order")
         if self.deterministic_every < 1:
             raise ConfigError(f"runtime.deterministic_every must be >= 1, got {self.deterministic_every}")
 

@@ -309,9 +309,12 @@ class Mapper:
         self._frames_since_keyframe[agent] = 0
         return submap
 
-    def process(self, tracked: TrackedFrame, optimize: bool = True) -> MappingStep:
+    def process(self, tracked: TrackedFrame, optimize: bool = True,
+                first_iterations: int | None = None) -> MappingStep:
         """Keyframe test, allocation and (optionally) one round of windowed optimisation of
-        the frame's agent's active map (a new one first when ``tracked.new_map`` says so)."""
+        the frame's agent's active map (a new one first when ``tracked.new_map`` says so);
+        ``first_iterations``: that round's iterations for a map's first frame (default
+        ``mapping.first_frame_iterations``)."""
         t0 = time.perf_counter()
         self.agent = tracked.agent
         started = None
@@ -355,7 +358,7 @@ class Mapper:
         self.timer.add("voxel_allocation", time.perf_counter() - tb)
         losses: dict[str, float] = {}
         if optimize:
-            iters = m.first_frame_iterations if first else m.iterations
+            iters = (m.first_frame_iterations if first_iterations is None else first_iterations) if first else m.iterations
             current = None if is_kf or not tracked.tracking_ok else (tracked.frame, T_map_cam)
             losses, T_current = self._optimize_window(submap, iters, current)
             self.fit_fine(submap, self.config.fine_color.fit_iterations)

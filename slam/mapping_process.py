@@ -93,6 +93,8 @@ class _MapperSide:
     odometry_covariance: dict[int, np.ndarray] = field(default_factory=dict)
     """agent -> covariances of its frames tracked since its last keyframe, summed."""
     frames_integrated: int = 0
+    first_frame_debt: dict[int, int] = field(default_factory=dict)
+    """``runtime.live``: map id -> iterations its first frame is still owed (``_pay_first_frames``)."""
 
     def snapshot(self, submap) -> MapSnapshot:
         """The tracker's copy of ``submap``, stamped with the frames integrated so far."""
@@ -162,7 +164,13 @@ def _integrate(side: _MapperSide, msg: FrameMessage, optimize: bool) -> list[Rep
     loops; then the map's updates for the viewers and the checkpoint when one is due."""
     t0 = time.perf_counter()
     mapper = side.mapper
-    step = mapper.process(_tracked_frame(mapper, msg), optimize=optimize)
+    m = mapper.config.mapping
+    # Live: a map's first frame gets a window's iterations now, so that the tracker has a
+    # map at once; the rest follow in steps, each one published (_pay_first_frames).
+    first_iterations = min(m.iterations, m.first_frame_iterations) if mapper.config.runtime.live else None
+    step = mapper.process(_tracked_frame(mapper, msg), optimize=optimize, first_iterations=first_iterations)
+    if step.started_map is not None and first_iterations is not None and optimize:
+        side.first_frame_debt[step.map_id] = m.first_frame_iterations - first_iterations
     out: list[Reply] = []
     if step.T_map_cam is not None:
         out.append(FramePose(msg.agent, step.frame_index, step.map_id,
@@ -418,6 +426,24 @@ def _integrate_batch(side: _MapperSide, work: list[FrameMessage]) -> list[Reply]
     return out
 
 
+def _pay_first_frames(side: _MapperSide) -> list[Reply]:
+    """Live mode: one more step of a map's first-frame iterations (a window's worth), and its
+    snapshot; nothing when no map is owed any."""
+    for map_id, owed in list(side.first_frame_debt.items()):
+        submap = next((s for s in side.mapper.active.values() if s.map_id == map_id), None)
+        step = min(owed, side.mapper.config.mapping.iterations)
+        if submap is None or step <= 0:
+            del side.first_frame_debt[map_id]
+            continue
+        t0 = time.perf_counter()
+        side.mapper.optimize(submap, step)
+        side.mapper.version += 1
+        side.first_frame_debt[map_id] = owed - step
+        side.busy += time.perf_counter() - t0
+        return [SnapshotReply(side.snapshot(submap))]
+    return []
+
+
 def _idle_step(side: _MapperSide, frame_waiting: Callable[[], bool]) -> list[Reply]:
     """Nothing queued: keep optimising the active maps (the paper's mapper never idles), so
     the tracker gets a better map by the time the next frame arrives; a frame that arrives
@@ -433,6 +459,18 @@ def _idle_step(side: _MapperSide, frame_waiting: Callable[[], bool]) -> list[Rep
     side.busy += seconds
     mapper.timer.add("idle_optimisation", seconds)
     return out
+
+
+LIVE_NICENESS = 10
+"""``runtime.live``: the mapping process's niceness (Linux: 0 normal, 19 lowest): the tracker and
+the server, which take frames at the camera's rate, come first; the mapper takes what is left."""
+
+
+def _lower_priority() -> None:
+    try:
+        os.nice(LIVE_NICENESS)
+    except (AttributeError, OSError):  # no os.nice (Windows), or not allowed: mapping as usual
+        pass
 
 
 def _warm_up() -> None:
@@ -474,6 +512,8 @@ def _mapping_process(config_dict: dict, device_name: str, out_dir: str, emit_mes
         config = config_from_dict(config_dict)
         device = torch.device(device_name)
         process_threads(device, processes=True)
+        if config.runtime.live:
+            _lower_priority()
         side = _make_side(config, device, Path(out_dir), emit_meshes, seed)
         replies.put(Ready())
         _warm_up()
@@ -484,6 +524,10 @@ def _mapping_process(config_dict: dict, device_name: str, out_dir: str, emit_mes
                 # the reply pipe at exit would block this process forever.
                 replies.cancel_join_thread()
                 return
+            owed = _pay_first_frames(side) if side.first_frame_debt else []
+            if owed:
+                replies.put(owed[0])
+                continue
             idle_steps = side.mapper.active and not config.runtime.deterministic
             try:
                 first = frames.get(timeout=0 if idle_steps else _POLL_SECONDS)
@@ -521,6 +565,11 @@ class InlineMapper:
 
     def submit(self, msg: FrameMessage) -> None:
         self.pending += _integrate_batch(self.side, [msg])
+
+    def offer(self, msg: FrameMessage) -> bool:
+        """``submit`` without waiting: in this process there is always room."""
+        self.submit(msg)
+        return True
 
     def poll(self, block: bool = False) -> list[Reply]:
         out, self.pending = self.pending, []
@@ -576,9 +625,7 @@ class ProcessMapper:
         raise MapperFailed(f"the mapping process did not answer 'ready' within {timeout:.0f} s")
 
     def submit(self, msg: Request) -> None:
-        if isinstance(msg, FrameMessage) and msg.prepared is not None:
-            # Tensors pickle as shared-memory files: re-preparing them there is cheaper.
-            msg = replace(msg, prepared=None)
+        msg = self._portable(msg)
         while True:
             try:
                 self.frames.put(msg, timeout=_POLL_SECONDS)
@@ -592,6 +639,23 @@ class ProcessMapper:
                 for reply in self._early:
                     if isinstance(reply, Failed):
                         raise MapperFailed(reply.traceback)
+
+    def offer(self, msg: FrameMessage) -> bool:
+        """``submit`` if the queue has room now; False (nothing sent) if it has none."""
+        if not self.process.is_alive():
+            self._raise_dead()
+        try:
+            self.frames.put_nowait(self._portable(msg))
+            return True
+        except queue.Full:
+            return False
+
+    @staticmethod
+    def _portable(msg: Request) -> Request:
+        if isinstance(msg, FrameMessage) and msg.prepared is not None:
+            # Tensors pickle as shared-memory files: re-preparing them there is cheaper.
+            return replace(msg, prepared=None)
+        return msg
 
     def _raise_dead(self) -> None:
         """The mapping process is gone: raise with its traceback if it sent one."""

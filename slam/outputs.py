@@ -361,7 +361,7 @@ def write_outputs(out: Path, config: SLAMConfig, tracks: list["AgentTrack"], sta
                   colour_cameras: list[dict | None] | None = None,
                   progress: list[ProgressSample] | None = None,
                   retracking: tuple[int, float] = (0, 0.0),
-                  tracking_stages: dict[str, float] | None = None) -> RunResult:
+                  tracking_stages: dict[str, float] | None = None, frames_unmapped: int = 0) -> RunResult:
     interpolate = config.mapping.frame_correction == "interpolated"
     trajectories = [agent_trajectory(t, stats, map_poses or {}, use_gt_poses, interpolate) for t in tracks if t.records]
     _write_trajectories(out, trajectories, len(tracks) > 1)
@@ -411,6 +411,7 @@ def write_outputs(out: Path, config: SLAMConfig, tracks: list["AgentTrack"], sta
         "frames_skipped": len(frames_skipped or ()),
         "skipped_frames": (frames_skipped or [])[:MAX_LISTED_SKIPPED],
         "map_waits": map_waits[0],
+        "frames_unmapped": frames_unmapped,
         "frames_interpolated": sum(t.interpolated for t in trajectories),
         "frames_retracked": retracking[0],
         "timings_s": {

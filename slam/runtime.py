@@ -165,6 +165,10 @@ class _TrackingSide:
     held: deque[FrameMessage] = field(default_factory=deque)
     """Deterministic mode (``runtime.deterministic_lag``): tracked frames not yet handed to the
     mapper, newest last."""
+    waiting: FrameMessage | None = None
+    """Live mode (``runtime.live``): the newest tracked frame that found the mapper's queue full."""
+    frames_unmapped: int = 0
+    """Live mode: tracked frames the mapper never got (a newer frame took their place)."""
     retracker: Tracker | None = None
     """The final re-tracking's tracker (``tracking.retrack_iterations`` > 0), else None."""
     rays_generator: torch.Generator | None = None
@@ -403,8 +407,40 @@ def _hand_over(side: _TrackingSide, msg: FrameMessage, channel) -> None:
         optimize = msg.new_map is not None or (handed + 1) % runtime.deterministic_every == 0
         side.held.append(replace(msg, optimize=optimize))
         return
+    if runtime.live:
+        _offer_newest(side, msg, channel)
+        return
     channel.submit(msg)
     side.frames_sent += 1
+
+
+def _offer_newest(side: _TrackingSide, msg: FrameMessage, channel) -> None:
+    """Live mode: hand the mapper the newest frames it has room for, never waiting, except
+    for a frame that starts a map (the map exists only once the mapper has it). The frame that
+    waited since the last call goes first if there is room now; if not, it is left out."""
+    waiting, side.waiting = side.waiting, None
+    if waiting is not None and not _offer(side, waiting, channel):
+        side.frames_unmapped += 1
+    if msg.new_map is not None:
+        channel.submit(msg)
+        side.frames_sent += 1
+    elif not _offer(side, msg, channel):
+        side.waiting = msg
+
+
+def _offer(side: _TrackingSide, msg: FrameMessage, channel) -> bool:
+    """``msg`` to the mapper if its queue has room now (counted); whether it went."""
+    sent = channel.offer(msg)
+    side.frames_sent += sent
+    return sent
+
+
+def _send_waiting(side: _TrackingSide, channel) -> None:
+    """Live mode, at the end of the input: the frame still waiting goes to the mapper."""
+    if side.waiting is not None:
+        channel.submit(side.waiting)
+        side.frames_sent += 1
+        side.waiting = None
 
 
 def _send_held(side: _TrackingSide, channel, count: int) -> None:
@@ -635,7 +671,8 @@ def _timed(items: Iterable, clock: StageClock, name: str) -> Iterator:
 def _skipped_frames(sources: list[Iterable[Frame]]) -> list[dict]:
     """Frames the sources left out because they could not be read (``FileSequence.skipped``):
     agent, index and why, for ``run.json``."""
-    return [{"agent": agent, "index": skipped.index, "reason": skipped.reason}
+    return [{"agent": agent if getattr(skipped, "agent", None) is None else skipped.agent, "index": skipped.index,
+             "reason": skipped.reason}
             for agent, source in enumerate(sources) for skipped in getattr(source, "skipped", ())]
 
 
@@ -850,6 +887,7 @@ def _finish_mapping(run: _Run, progress: bool) -> None:
     try:
         if side is not None and run.status != "failed":
             _send_held(side, channel, len(side.held))  # deterministic mode's last frames
+            _send_waiting(side, channel)  # live mode's
         if side is not None and (run.status != "failed" or side.snapshots):
             _final_refinement(run, side, channel, progress)
     except KeyboardInterrupt:
@@ -892,7 +930,8 @@ def _write_results(run: _Run, sources: list[Iterable[Frame]], use_gt_poses: bool
                            colour_cameras=_colour_cameras(sources),
                            progress=side.progress if side else None,
                            retracking=side.retracking if side else (0, 0.0),
-                           tracking_stages=side.stages.totals if side else None)
+                           tracking_stages=side.stages.totals if side else None,
+                           frames_unmapped=side.frames_unmapped if side else 0)
     if side is not None:
         run.emit(_stats_event(side, run.total, result.fps, run.started, run.done, ate=result.ate_rmse))
     run.emit(FinishedEvent(run.status, run.error))

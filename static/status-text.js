@@ -7,6 +7,7 @@ const StatusText = (() => {
   const ENDED = ["finished", "failed", "cancelled"];
   const PHASES = {
     queued: "queued",
+    starting: "starting: the worker loads the mapper",
     tracking: "tracking",
     refining: "refining: the mapper takes in the last frames",
     writing: "writing outputs",

@@ -31,7 +31,7 @@ FRAMES = 60
 """Long enough that the page is read several times while tracking: under CI's load one read
 of the page took seconds (the embedded viewer's software WebGL shares the renderer), and a
 24-frame session went by with the page seen only before its first statistics."""
-PHASE_ORDER = ["queued", "tracking", "refining", "writing", "done"]
+PHASE_ORDER = ["queued", "starting", "tracking", "refining", "writing", "done"]
 
 
 @dataclass

@@ -709,3 +709,87 @@ def test_a_frame_is_prepared_once_in_one_process(frames, tmp_path, monkeypatch):
     tf = prepare(frames[0], None, torch.device("cpu"), 4.0)
     channel.submit(FrameMessage(0, frames[0], 0, np.eye(4, dtype=np.float32), True, prepared=tf))
     assert put[0].prepared is None and put[0].frame is frames[0]
+
+
+# ------------------------------------------------------------ live mode
+class _FullQueue:
+    """A mapper channel whose queue takes ``room`` frames, then is full until ``drain``."""
+
+    def __init__(self, room: int) -> None:
+        self.room, self.got = room, []
+
+    def offer(self, msg) -> bool:
+        if self.room <= 0:
+            return False
+        self.room -= 1
+        self.got.append(msg.frame.index)
+        return True
+
+    def submit(self, msg) -> None:  # waits for room in the real channel
+        self.got.append(msg.frame.index)
+
+
+def test_live_hand_over_never_waits_and_gives_the_mapper_the_newest_frames(frames):
+    """runtime.live: a frame that finds the queue full waits in one slot, where the next frame
+    replaces it; a frame that starts a map always goes; the end of the input sends the last."""
+    from slam.messages import FrameMessage, MapStart
+
+    cfg = replace(FAST, runtime=replace(FAST.runtime, live=True))
+    side = runtime._TrackingSide(cfg, torch.device("cpu"), None)
+    channel = _FullQueue(room=1)
+
+    def message(i: int, starts_map: bool = False) -> FrameMessage:
+        start = MapStart("start", i, np.eye(4)) if starts_map else None
+        return FrameMessage(0, replace(frames[0], index=i), 0, np.eye(4, dtype=np.float32), True, start)
+
+    runtime._hand_over(side, message(0, starts_map=True), channel)  # a map's first frame: sent
+    runtime._hand_over(side, message(1), channel)  # room for one
+    runtime._hand_over(side, message(2), channel)  # full: waits
+    runtime._hand_over(side, message(3), channel)  # still full: 2 is left out, 3 waits
+    assert channel.got == [0, 1] and side.waiting.frame.index == 3 and side.frames_unmapped == 1
+    channel.room = 1
+    runtime._hand_over(side, message(4), channel)  # room again: 3 goes first, 4 waits
+    runtime._hand_over(side, message(5, starts_map=True), channel)  # 4 left out; 5 must go
+    assert channel.got == [0, 1, 3, 5] and side.waiting is None and side.frames_unmapped == 2
+    runtime._hand_over(side, message(6), channel)
+    runtime._send_waiting(side, channel)
+    assert channel.got == [0, 1, 3, 5, 6] and side.frames_sent == 5
+
+
+def test_live_and_deterministic_modes_exclude_each_other():
+    with pytest.raises(ConfigError, match="runtime.live and runtime.deterministic_lag exclude each other"):
+        replace(FAST.runtime, live=True, deterministic_lag=0)
+
+
+def test_a_live_run_maps_its_first_frame_in_published_steps(tmp_path, monkeypatch):
+    """runtime.live, in processes: the run finishes with every frame tracked, says how many the
+    mapper never got, and the mapping process publishes its first frame's map after a window's
+    iterations, then again after each further step until the first frame's iterations are done."""
+    import slam.mapping_process as mapping_process
+
+    cfg = replace(FAST, runtime=replace(FAST.runtime, processes=False, live=True),
+                  mapping=replace(FAST.mapping, iterations=2, first_frame_iterations=7))
+    steps: list[int] = []
+    optimize = mapping_process.Mapper.optimize
+
+    def spy(self, submap, iterations, *args, **kwargs):
+        steps.append(iterations)
+        return optimize(self, submap, iterations, *args, **kwargs)
+
+    monkeypatch.setattr(mapping_process.Mapper, "optimize", spy)
+    side = mapping_process._make_side(cfg, torch.device("cpu"), tmp_path, False, 0)
+    first = list(open_sequence(SPEC, max_frames=1))[0]
+    from slam.messages import FrameMessage, MapStart
+
+    msg = FrameMessage(0, first, 0, np.eye(4, dtype=np.float32), True, MapStart("start", 0, np.eye(4)))
+    replies = mapping_process._integrate_batch(side, [msg])
+    assert side.first_frame_debt == {0: 5}, "a window's iterations now, the other 5 owed"
+    paid = []
+    while side.first_frame_debt:
+        paid += mapping_process._pay_first_frames(side)
+    assert steps == [2, 2, 1] and len(paid) == 3 and all(isinstance(r, type(replies[-1])) for r in paid)
+
+    frames8 = list(open_sequence(SPEC, max_frames=8))
+    done = do_run([frames8], replace(cfg, runtime=replace(cfg.runtime, processes=True)), tmp_path / "run")
+    assert done.result.status == "finished", done.result.error
+    assert done.info["frames"] == 8 and 0 <= done.info["frames_unmapped"] <= 6

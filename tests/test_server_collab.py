@@ -236,6 +236,25 @@ def test_worker_feeds_a_stream_as_one_agent_stream():
     assert len(two) == 2 and len(two[1]) == 2
 
 
+def test_a_live_stream_tracks_each_agents_newest_waiting_frame():
+    """A camera's stream (``live``): of the frames waiting when the tracker reads, each agent's
+    newest is tracked and the others are listed as passed over; indices still count every frame."""
+    from server.upload import StreamFrame
+    from server.worker import LIVE_SKIP_REASON
+
+    frame_queue, stop = queue.Queue(), threading.Event()
+    rgb, depth = np.zeros((4, 5, 3), np.uint8), np.full((4, 5), 1000, np.uint16)
+    for agent, stamp in ((0, 0.0), (0, 0.1), (1, 0.2), (0, 0.3), (1, 0.4)):
+        frame_queue.put(StreamFrame(stamp, rgb, depth, 1000.0, np.eye(3), agent=agent))
+    frame_queue.put(END_OF_STREAM)
+    source = slam_sources(WorkerJob("000000000000", (SourceSpec(kind="stream", live=True),), "test", "/tmp"),
+                          frame_queue, stop)[0]
+    got = [(agent, frame.index, frame.timestamp) for agent, frame in source]
+    assert got == [(0, 2, 0.3), (1, 1, 0.4)]
+    assert [(s.agent, s.index, s.reason) for s in source.skipped] == [
+        (0, 0, LIVE_SKIP_REASON), (0, 1, LIVE_SKIP_REASON), (1, 0, LIVE_SKIP_REASON)]
+
+
 # -- per-agent trajectories and status -----------------------------------------------------------
 
 TUM_0 = "# timestamp tx ty tz qx qy qz qw\n0.000000 0 0 1 0 0 0 1\n0.033333 0.05 0 1 0 0 0 1\n"
@@ -420,3 +439,13 @@ def test_two_agent_stream_runs_to_the_end(tmp_path):
             trajectory = parse_tum(client.get(f"/api/sessions/{session_id}/trajectory", params={"agent": agent}).text)
             assert np.allclose(trajectory.timestamps, [100 * agent + f.timestamp for f in sequence], atol=1e-6)
         assert client.get(f"/api/sessions/{session_id}/trajectory", params={"agent": 2}).status_code == 404
+
+
+def test_only_a_stream_can_be_live_and_its_job_says_so(idle):
+    refused = idle.post("/api/sessions", json={"source": "synthetic", "live": True, "preset": "test"})
+    assert refused.status_code == 422 and "only a stream" in detail(refused)
+    session_id = idle.post("/api/sessions", json={"source": "stream", "live": True, "preset": "test"}).json()["id"]
+    state = idle.app.state.manager._get(session_id).status
+    assert state.spec.kind == "stream" and state.spec.live
+    plain = idle.post("/api/sessions", json={"source": "stream", "preset": "test"}).json()["id"]
+    assert not idle.app.state.manager._get(plain).status.spec.live

@@ -113,6 +113,8 @@ def test_status_follows_the_runs_phase_ate_and_keyframes(tmp_path):
     manager._apply(session, KeyframeEvent(0, 0, 0, np.eye(4)))
     manager._apply(session, StatsEvent(10, 20, 2.0, keyframes=0, maps=1, loops=0, voxels=5, ate_rmse=0.0123))
     assert manager.get("cccccccccccc").keyframes == 1, "keyframes count as they are taken"
+    manager._set_status(session, "running", None)
+    assert manager.get("cccccccccccc").phase == "starting", "running, not yet tracking: the worker starts"
     for phase in ("tracking", "refining", "writing"):
         manager._apply(session, PhaseEvent(phase))
         assert manager.get("cccccccccccc").phase == phase

@@ -150,17 +150,30 @@ def test_server_going_away_mid_stream_exits_non_zero(tmp_path, monkeypatch, caps
     reconnect window): a clear message, exit 1, within seconds."""
     from client import stream as stream_client
 
+    import httpx
+
     monkeypatch.setattr(stream_client, "RECONNECT_S", 3.0)
     live = start_server(tmp_path / "data")
     url = live.url
-    stopper = threading.Timer(2.0, lambda: setattr(live.server, "should_exit", True))
+
+    def stop_once_streaming() -> None:
+        """The server goes once the session has taken frames (its worker starts first)."""
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            sessions = httpx.get(f"{url}/api/sessions", timeout=5).json()
+            if any((s.get("frames_received") or 0) >= 3 for s in sessions):
+                break
+            time.sleep(0.1)
+        live.server.should_exit = True
+
+    stopper = threading.Thread(target=stop_once_streaming, daemon=True)
     stopper.start()
     started = time.monotonic()
     try:
         code = main(["stream", "synthetic:orbit?frames=200&width=40&height=30", "--url", url, "--preset", "test",
                      "--fps", "10", "--quiet"])
     finally:
-        stopper.cancel()
+        stopper.join(timeout=70)
         live.stop()
     err = capsys.readouterr().err
     assert code == 1, err
@@ -629,12 +642,12 @@ def test_keep_newest_waits_for_the_server_to_catch_up():
     from client.stream import wait_for_server
 
     progress = Progress(acked=6)
-    progress.server_frames_done = 1
-    threading.Timer(0.3, lambda: setattr(progress, "server_frames_done", 4)).start()
+    progress.server_handled = 1
+    threading.Timer(0.3, lambda: setattr(progress, "server_handled", 4)).start()
     started = time.monotonic()
     wait_for_server(progress, max_ahead=2, timeout_s=5)
     assert 0.25 < time.monotonic() - started < 2
-    progress.server_frames_done = None  # the status cannot be read: no wait
+    progress.server_handled = None  # the status cannot be read: no wait
     started = time.monotonic()
     wait_for_server(progress, max_ahead=2, timeout_s=5)
     assert time.monotonic() - started < 0.1
@@ -646,6 +659,17 @@ def test_sent_to_tracked_latency_is_timed_per_frame():
     progress.note_tracked(2, 12.0)
     assert list(progress.track_latency_s) == [2.0, 1.5] and list(progress.sent_at) == [2]
     assert "sent to tracked: median" in progress.latency_summary()
+    assert progress.first_track_latency_s == 2.0 and "first frame tracked 2000 ms" in progress.latency_summary()
+
+
+def test_a_live_session_times_only_its_newest_tracked_frame():
+    """A live session passes over frames for newer ones: of those it is done with, only the
+    newest is known to be tracked, and only its latency is a sample."""
+    progress = Progress()
+    progress.sent_at.update({0: 10.0, 1: 10.5, 2: 11.0, 3: 11.5})
+    progress.note_tracked(3, 12.0, newest_only=True)
+    assert list(progress.track_latency_s) == [1.0] and list(progress.sent_at) == [3]
+    assert progress.first_track_latency_s == 1.0
 
 
 class UnpluggedCamera:
@@ -864,4 +888,5 @@ def test_record3d_phone_unplugged_mid_stream_end_to_end(server_url, tmp_path, mo
     on_server = frames_on_server(out)
     assert on_server >= 3
     state = wait_until_ended(server_url, session_id, SESSION_END_S)
-    assert state["status"] == "finished" and state["frames_done"] == on_server
+    # A camera's session is live: frames that waited while a newer one came are passed over.
+    assert state["status"] == "finished" and 3 <= state["frames_done"] <= on_server

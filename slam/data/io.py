@@ -386,10 +386,12 @@ def select_frames(frames: Sequence[FrameFiles], stride: int, max_frames: int | N
 
 @dataclass(frozen=True)
 class SkippedFrame:
-    """A frame left out of an iteration: its index and why."""
+    """A frame left out of an iteration: its index and why (and its agent in a stream
+    whose frames name theirs)."""
 
     index: int
     reason: str
+    agent: int | None = None
 
 
 @dataclass(repr=False)
