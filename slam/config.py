@@ -316,6 +316,8 @@ RETIRED_FIELDS = {
     ("mapping", "exposure"): _rejected("mapping.exposure", "a86dcd1"),
     ("mapping", "exposure_prior"): _rejected("mapping.exposure", "a86dcd1"),
     ("mapping", "exposure_lr"): _rejected("mapping.exposure", "a86dcd1"),
+    ("tracking", "color_robust"): _rejected("tracking.color_robust", "1c8d5fb"),
+    ("tracking", "color_adaptive"): _rejected("tracking.color_adaptive", "1c8d5fb"),
 }
 """Fields that configs written by earlier versions (checkpoints, run.json) may still hold."""
 

@@ -42,7 +42,6 @@ class DecoderConfig:
 
 
 STATIC_SHAPES = ("auto", "on", "off")
-COLOR_KERNELS = ("none", "huber", "cauchy")
 
 
 def _check_choice(name: str, value, choices: tuple[str, ...]) -> None:
@@ -173,10 +172,6 @@ class TrackingConfig:
     """Fewer PnP inliers than this: the frame is tracked without features."""
     feature_dense_check: bool = False
     """Gauss-Newton only: drop the features when the dense loss prefers the guess to their PnP pose."""
-    color_robust: str = "none"
-    """Kernel on the colour residual: ``none`` (the paper's L1), ``huber`` or ``cauchy``, at a scale from its MAD."""
-    color_adaptive: float = 0.0
-    """Scale the frame's colour weight by (this / its robust colour residual sigma)^2, at most 1 (0: off)."""
     retrack_iterations: int = 0
     """Levenberg-Marquardt steps of the final re-tracking: once the final bundle adjustment has
     refined the maps, every tracked frame's pose is optimised again against its map, from its
@@ -197,8 +192,6 @@ class TrackingConfig:
             raise ConfigError("tracking.retrack_iterations, retrack_ray_budget and retrack_frame_budget must be "
                               ">= 0 (retrack_frame_budget not 1: a map's first and last frame at least), "
                               "tracking.retrack_rays >= 1")
-        _check_choice("tracking.color_robust", self.color_robust, COLOR_KERNELS)
-        _check_non_negative("tracking.color_adaptive", self.color_adaptive)
         if self.feature_count < 0 or self.feature_weight < 0 or self.feature_huber_px <= 0:
             raise ConfigError("tracking.feature_count and feature_weight must be >= 0 and feature_huber_px > 0")
         if self.motion_prior < 0:

@@ -28,7 +28,6 @@ from dataclasses import dataclass, replace
 import torch
 
 from .losses import LossWeights
-from .photometric import ColourModel
 from .padded import PaddedSamples, color_window, grid_samples, pack_samples, sdf_weights_padded
 from .render import (
     MapView,
@@ -346,23 +345,18 @@ def render_with_jacobians_padded(T: torch.Tensor, dirs_cam: torch.Tensor, view: 
 def linearise_rendered(rendered: RenderedJacobians, rgb_gt: torch.Tensor, depth_gt: torch.Tensor,
                        ray_weight: torch.Tensor | None, *, weights: LossWeights, max_depth: float = 10.0,
                        eps_depth: float = 5e-3, eps_color: float = 1e-2,
-                       miss_cost: float | None = None, colour: ColourModel | None = None) -> Linearisation:
+                       miss_cost: float | None = None) -> Linearisation:
     """``linearise`` from a render at its pose: the loss against rgb_gt (R, 3), depth_gt (R,)
-    over the rays ray_weight (R,) keeps (None: all), and its Gauss-Newton model.
-
-    ``colour`` (``slam.photometric``): robust kernel and colour weight of the colour term;
-    None or inactive: the paper's L1 term."""
-    colour = colour if colour is not None and colour.active else None
+    over the rays ray_weight (R,) keeps (None: all), and its Gauss-Newton model."""
     with torch.no_grad():
         if rendered.valid is not None:
             return _assemble_padded(rendered, rgb_gt, depth_gt, ray_weight, weights, max_depth, eps_depth,
-                                    eps_color, miss_cost, colour)
-        return _assemble(rendered, rgb_gt, depth_gt, ray_weight, weights, max_depth, eps_depth, eps_color, miss_cost,
-                         colour)
+                                    eps_color, miss_cost)
+        return _assemble(rendered, rgb_gt, depth_gt, ray_weight, weights, max_depth, eps_depth, eps_color, miss_cost)
 
 
 def _assemble(rendered: RenderedJacobians, rgb_gt, depth_gt, ray_weight, lw: LossWeights, max_depth,
-              eps_depth, eps_color, miss_cost, colour: ColourModel | None = None) -> Linearisation:
+              eps_depth, eps_color, miss_cost) -> Linearisation:
     T, depth, W, color, hit = rendered.T, rendered.depth, rendered.W, rendered.color, rendered.hit
     J_depth, J_color, r, t, s, J_s = (rendered.J_depth, rendered.J_color, rendered.r, rendered.t,
                                       rendered.s, rendered.J_s)
@@ -390,12 +384,7 @@ def _assemble(rendered: RenderedJacobians, rgb_gt, depth_gt, ray_weight, lw: Los
         H = H + (J * omega[:, None]).T @ J
         g = g + (J * (omega * res)[:, None]).sum(0)
 
-    if n_use and colour is not None:
-        res, rho, unit, factor = colour.terms(color[use], rgb_gt[use], color.new_ones(n_use), eps_color)
-        cost += lw.rgb * float(rho.sum() * factor) / (3 * den_use)
-        add(J_color[use].reshape(-1, 6), res.reshape(-1),
-            (lw.rgb * factor / (3 * den_use) * unit).reshape(-1))
-    elif n_use:
+    if n_use:
         res_c = (color[use] - rgb_gt[use]).reshape(-1)
         cost += lw.rgb * float(res_c.abs().sum()) / (3 * den_use)
         omega = lw.rgb / (3 * den_use * 2.0 * res_c.abs().clamp(min=eps_color))
@@ -424,7 +413,7 @@ def _assemble(rendered: RenderedJacobians, rgb_gt, depth_gt, ray_weight, lw: Los
 
 
 def _assemble_padded(rendered: RenderedJacobians, rgb_gt, depth_gt, ray_weight, lw: LossWeights, max_depth,
-                     eps_depth, eps_color, miss_cost, colour: ColourModel | None = None) -> Linearisation:
+                     eps_depth, eps_color, miss_cost) -> Linearisation:
     """``_assemble`` with masks instead of boolean indexing and every count and the cost kept
     as tensors (the cost in float64, as ``_assemble`` sums it in Python floats): the same
     numbers up to the order of float32 sums, and nothing read back from the device."""
@@ -455,17 +444,10 @@ def _assemble_padded(rendered: RenderedJacobians, rgb_gt, depth_gt, ray_weight, 
         g = g + (J * (omega * res)[:, None]).sum(0)
 
     use_f = use.to(depth.dtype)
-    if colour is not None:
-        res, rho, unit, factor = colour.terms(color, rgb_gt, use_f, eps_color)
-        res_c = res * use_f[:, None]
-        cost = cost + lw.rgb * (rho * use_f[:, None]).sum().to(f64) * factor / (3 * den_use_c)
-        omega = (lw.rgb * factor / (3 * den_use_c)).to(depth.dtype) * unit * use_f[:, None]
-        add(J_color.reshape(-1, 6), res_c.reshape(-1), omega.reshape(-1))
-    else:
-        res_c = (color - rgb_gt) * use_f[:, None]                                 # (R, 3)
-        cost = cost + lw.rgb * res_c.abs().sum().to(f64) / (3 * den_use_c)
-        omega = (lw.rgb / (3 * den_use_c * 2.0 * res_c.abs().clamp(min=eps_color))).to(depth.dtype) * use_f[:, None]
-        add(J_color.reshape(-1, 6), res_c.reshape(-1), omega.reshape(-1))
+    res_c = (color - rgb_gt) * use_f[:, None]                                     # (R, 3)
+    cost = cost + lw.rgb * res_c.abs().sum().to(f64) / (3 * den_use_c)
+    omega = (lw.rgb / (3 * den_use_c * 2.0 * res_c.abs().clamp(min=eps_color))).to(depth.dtype) * use_f[:, None]
+    add(J_color.reshape(-1, 6), res_c.reshape(-1), omega.reshape(-1))
     valid_f = valid.to(depth.dtype)
     res_d = (depth - depth_gt) * valid_f
     cost = cost + lw.depth * res_d.abs().sum().to(f64) / den_valid_c

@@ -14,12 +14,7 @@ from dataclasses import dataclass
 
 import torch
 
-from .photometric import ColourModel
 from .render import RenderOutput
-
-
-COLOR_EPS = 1e-2
-"""Floor of the colour residuals' robust scale (colour units, of 1)."""
 
 
 @dataclass(frozen=True)
@@ -95,26 +90,19 @@ def _slot_means(fs_values: torch.Tensor, front: torch.Tensor, sdf_values: torch.
 
 def compute_losses(out: RenderOutput, rgb_gt: torch.Tensor, depth_gt: torch.Tensor, truncation: float,
                    weights: LossWeights, ray_weight: torch.Tensor | None = None,
-                   max_depth: float = 10.0, normalisation: str = "ray",
-                   colour: ColourModel | None = None) -> Losses:
+                   max_depth: float = 10.0, normalisation: str = "ray") -> Losses:
     """Losses of R rendered rays against rgb_gt (R, 3) and depth_gt (R,) (0 = invalid).
 
     ``ray_weight`` (R,) in {0, 1} drops rays (tracking's outliers) from every term.
     ``normalisation``: ``ray`` (per-ray means, the paper) or ``slots`` (the release's padded
-    slot means, ``_slot_means``) for the free-space and SDF terms. ``colour``
-    (``slam.photometric``): the colour term is ``factor * mean rho(C - C_gt)``; None or
-    inactive: mean L1.
+    slot means, ``_slot_means``) for the free-space and SDF terms.
     """
     num_rays = rgb_gt.shape[0]
     use = out.hit if ray_weight is None else out.hit & (ray_weight > 0)
     valid_depth = use & (depth_gt > 0.01) & (depth_gt < max_depth)
     # Means over the rays kept, as masked sums: no count is read back from the device.
     use_f, depth_f = use.to(out.depth.dtype), valid_depth.to(out.depth.dtype)
-    if colour is not None and colour.active:
-        _, rho, _, factor = colour.terms(out.color, rgb_gt, use_f, COLOR_EPS)
-        rgb = factor * (rho * use_f[:, None]).sum() / (3.0 * use_f.sum()).clamp(min=1.0)
-    else:
-        rgb = ((out.color - rgb_gt).abs() * use_f[:, None]).sum() / (3.0 * use_f.sum()).clamp(min=1.0)
+    rgb = ((out.color - rgb_gt).abs() * use_f[:, None]).sum() / (3.0 * use_f.sum()).clamp(min=1.0)
     depth = ((out.depth - depth_gt).abs() * depth_f).sum() / depth_f.sum().clamp(min=1.0)
 
     r = out.samples.ray_index

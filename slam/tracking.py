@@ -39,9 +39,8 @@ from .gauss_newton import (Linearisation, MotionPrior, RenderedJacobians, damped
                            limit_step_tensor, linearise_rendered, render_with_jacobians,
                            render_with_jacobians_padded)
 from .geometry import se3_exp, se3_exp_compact, se3_inverse, se3_log
-from .losses import COLOR_EPS, LossWeights, compute_losses
+from .losses import LossWeights, compute_losses
 from .mapping import MapSnapshot, training_far
-from .photometric import ColourModel, masked_median
 from .profiling import TRACKING_ITERATION, scope
 from .padded import band_grid_size, color_slots, grid_samples, grid_size, pack_samples, render_padded, round_up
 from .render import MapView, render_rays
@@ -155,6 +154,17 @@ def tracking_bounds(depth: torch.Tensor, truncation: float, band: float,
     return near, torch.clamp(depth + band * truncation, max=max_distance)
 
 
+def masked_median(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """``values[mask].median()`` (the lower median, as torch's) over the last dimension of
+    values (..., N) and mask (..., N) bool -> (...), inf where the mask is empty: nothing read
+    back from the device. Example: values [3., 1., 2., 9.], mask [T, T, T, F] -> 2."""
+    inf = torch.full_like(values, float("inf"))
+    ordered = torch.sort(torch.where(mask, values, inf), dim=-1).values
+    n = mask.sum(-1)
+    k = torch.div((n - 1).clamp(min=0), 2, rounding_mode="floor")
+    return torch.where(n > 0, ordered.gather(-1, k[..., None])[..., 0], inf[..., 0])
+
+
 def interior_rays(T_map_cam: torch.Tensor, dirs_cam: torch.Tensor, depth: torch.Tensor, view: MapView,
                   margin: float) -> torch.Tensor:
     """Rays whose observed surface point lies at least ``margin`` (metres, along each axis)
@@ -186,7 +196,7 @@ def _select(take: torch.Tensor, a: Linearisation, b: Linearisation) -> Linearisa
 class _LMProblem:
     """One frame's damped Gauss-Newton problem: its rays (``batch``), the render at a pose
     (``render_at(T, jacobians=True)``, plain or padded), the loss's weights, depth limit and
-    miss cost, and what the start fixes: the colour model, the features (None without, or
+    miss cost, and what the start fixes: the features (None without, or
     once the dense check dropped them), the start pose T0_map (4, 4) and the motion prior."""
 
     batch: PixelBatch
@@ -194,14 +204,13 @@ class _LMProblem:
     weights: LossWeights
     max_depth: float
     miss_cost: float
-    colour: ColourModel
     sparse: _SparseTerm | None
     T0_map: torch.Tensor
     prior: MotionPrior | None = None
 
     def dense_of(self, rendered: RenderedJacobians, ray_weight: torch.Tensor | None) -> Linearisation:
         return linearise_rendered(rendered, self.batch.rgb, self.batch.depth, ray_weight, weights=self.weights,
-                                  max_depth=self.max_depth, miss_cost=self.miss_cost, colour=self.colour)
+                                  max_depth=self.max_depth, miss_cost=self.miss_cost)
 
     def linearise_at(self, T: torch.Tensor, ray_weight: torch.Tensor | None,
                      rendered: RenderedJacobians | None = None) -> Linearisation:
@@ -244,9 +253,6 @@ class Tracker:
         self.static = config.render.uses_static_shapes(device)
         c = config.tracking
         self.weights = LossWeights(c.rgb_weight, c.depth_weight, c.sdf_weight, c.fs_weight)
-        self.colour = ColourModel(c.color_robust, c.color_adaptive)
-        """The colour term's kernel and weight (``slam.photometric``); its scale and weight are
-        fixed per frame at the first render with the outliers dropped."""
 
     def track(self, frame: TensorFrame, fmap: FrozenMap, T_init: torch.Tensor,
               matches: Correspondences | None = None) -> TrackingResult:
@@ -363,7 +369,7 @@ class Tracker:
         r = self.config.render
         # A ray that leaves the map costs as much as one off by the truncation in depth and SDF.
         miss_cost = self.weights.depth * r.truncation + self.weights.sdf * r.truncation ** 2
-        return _LMProblem(batch, render_at, self.weights, r.max_distance, miss_cost, self.colour, sparse, T0_map)
+        return _LMProblem(batch, render_at, self.weights, r.max_distance, miss_cost, sparse, T0_map)
 
     def _lm_first(self, lm: "_LMProblem", T_guess_map: torch.Tensor | None
                   ) -> tuple[RenderedJacobians, Linearisation]:
@@ -382,10 +388,9 @@ class Tracker:
 
     def _lm_start(self, lm: "_LMProblem", rendered0: RenderedJacobians, inlier: torch.Tensor) -> Linearisation:
         """The linearisation the iterations start from: the first render weighed by ``inlier``
-        (R,) float, with the frame's colour fit fixed there and the motion prior (when
-        ``tracking.motion_prior`` > 0) scaled to it and set in ``lm.prior``."""
+        (R,) float, with the motion prior (when ``tracking.motion_prior`` > 0) scaled to it
+        and set in ``lm.prior``."""
         c = self.config.tracking
-        lm.colour = self.colour.fixed_at(rendered0.color, lm.batch.rgb, rendered0.hit * inlier, COLOR_EPS)
         start = lm.linearise_at(lm.T0_map, inlier, rendered0)
         if c.motion_prior > 0:
             lm.prior = MotionPrior.scaled_to(start, c.motion_prior)
@@ -436,7 +441,6 @@ class Tracker:
         it = 0
         batch = sample_pixels(frame, c.num_rays, self._gen)
         near, far = tracking_bounds(batch.depth, r.truncation, c.sample_band, r.max_distance)
-        colour = self.colour
         for it in range(1, c.iterations + 1):
             with scope(TRACKING_ITERATION):
                 T = T0_map @ se3_exp(torch.cat([rho, phi]))
@@ -457,10 +461,8 @@ class Tracker:
                     break
                 med = residual[hit].median()
                 inlier = hit & (residual <= c.outlier_factor * med + 1e-6)
-                if colour.scale is None:  # the frame's first render fixes the colour scale and weight
-                    colour = self.colour.fixed_at(out.color.detach(), batch.rgb, inlier.float(), COLOR_EPS)
                 losses = compute_losses(out, batch.rgb, batch.depth, r.truncation, self.weights,
-                                        ray_weight=inlier.float(), max_depth=r.max_distance, colour=colour)
+                                        ray_weight=inlier.float(), max_depth=r.max_distance)
                 total = losses.total if sparse is None else losses.total + sparse.cost(T)
                 loss = float(total.detach())
                 if loss < best[0]:
@@ -586,7 +588,6 @@ class Tracker:
         sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma)
         batch, near, far = self._tracking_batch(frame)
         shape = self._sample_shape(frame.depth_max, fmap, batch.dirs_cam, near, far, T0_map)
-        colour = self.colour
         # (loss, hit ratio, median residual) of the lowest-loss and of the last live iterate
         inf = float("inf")
         best = torch.full((3,), inf, dtype=torch.float64, device=device)
@@ -606,7 +607,7 @@ class Tracker:
                 if c.resample_rays and it > 1:
                     batch, near, far = self._tracking_batch(frame)
                 out = self._render_padded(fmap, T, batch, near, far, shape)
-                total, now, live, colour = self._adam_static_loss(out, batch, T, sparse, colour, alive)
+                total, now, live = self._adam_static_loss(out, batch, T, sparse, alive)
                 better = live & (now[0] < best[0])
                 best = torch.where(better, now, best)
                 best_T = torch.where(better, T.detach(), best_T)
@@ -639,10 +640,9 @@ class Tracker:
                              mask_in_front=r.mask_in_front, renormalise_color=True)
 
     def _adam_static_loss(self, out, batch: PixelBatch, T: torch.Tensor, sparse: _SparseTerm | None,
-                          colour: ColourModel, alive: torch.Tensor):
+                          alive: torch.Tensor):
         """The loss of one static Adam iterate: (its total, (3,) float64 of its value, hit
-        ratio and median depth residual, whether the iterate is live (alive with a hit),
-        the colour model (fixed at the frame's first render))."""
+        ratio and median depth residual, whether the iterate is live (alive with a hit))."""
         c, r = self.config.tracking, self.config.render
         residual = (out.depth.detach() - batch.depth).abs()
         hit = out.hit & (out.weight_sum.detach() > 1e-3)
@@ -650,13 +650,11 @@ class Tracker:
         live = alive & hit.any()
         med = masked_median(residual, hit)
         inlier = hit & (residual <= c.outlier_factor * med + 1e-6)
-        if colour.scale is None:  # the frame's first render fixes the colour scale and weight
-            colour = self.colour.fixed_at(out.color.detach(), batch.rgb, inlier.float(), COLOR_EPS)
         losses = compute_losses(out, batch.rgb, batch.depth, r.truncation, self.weights,
-                                ray_weight=inlier.float(), max_depth=r.max_distance, colour=colour)
+                                ray_weight=inlier.float(), max_depth=r.max_distance)
         total = losses.total if sparse is None else losses.total + sparse.cost(T)
         now = torch.stack([total.detach(), hit_ratio, med]).to(torch.float64)
-        return total, now, live, colour
+        return total, now, live
 
     def _result(self, fmap: FrozenMap, T0_map: torch.Tensor, T_best_map: torch.Tensor, it: int,
                 loss: float, hit_ratio: float, residual_med: float,

@@ -98,6 +98,8 @@ REJECTED = [  # (section, field, its decisions.md entry): off in every preset, t
     ("mapping", "exposure", "mapping.exposure"),
     ("mapping", "exposure_prior", "mapping.exposure"),
     ("mapping", "exposure_lr", "mapping.exposure"),
+    ("tracking", "color_robust", "tracking.color_robust"),
+    ("tracking", "color_adaptive", "tracking.color_adaptive"),
 ]
 
 

@@ -767,3 +767,12 @@ def test_dense_check_drops_features_whose_pose_the_depth_does_not_support(traine
     right = _exact_matches(frames[0], _offset(T_gt, 0.005, 0.2))
     kept = Tracker(config, CPU).track(frames[0], fmap, _offset(T_gt, 0.15, 6.0), right)
     assert kept.ok and pose_error(kept.T_world_cam, T_gt)[0] < 0.01
+
+
+def test_masked_median_on_worked_values():
+    from slam.tracking import masked_median
+
+    v = torch.tensor([[3.0, 1.0, 2.0, 9.0], [5.0, 4.0, 0.0, 0.0]])
+    m = torch.tensor([[True, True, True, False], [True, False, False, False]])
+    assert masked_median(v, m).tolist() == [2.0, 5.0]
+    assert float(masked_median(v[0], torch.zeros(4, dtype=torch.bool))) == float("inf")

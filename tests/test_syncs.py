@@ -40,10 +40,6 @@ def torch_kernels(monkeypatch):
     torch.set_num_threads(threads)
 
 
-PHOTOMETRIC = dict(color_robust="cauchy", color_adaptive=0.05)
-"""Issue 41 item 4's colour term, all of it on (``slam.photometric``)."""
-
-
 def _config(**tracking):
     base = preset("test")
     return replace(base, render=replace(base.render, static_shapes="on"),
@@ -72,9 +68,7 @@ def _assert_quiet(counts, checker, name):
     dict(optimizer="adam", iterations=3, resample_rays=True, keep_best_iterate=False, sample_band=0.0,
          check_every=0),
     dict(optimizer="adam", iterations=3, convergence_tol=1e-5, check_every=0),
-    dict(optimizer="gauss_newton", check_every=0, **PHOTOMETRIC),
-    dict(optimizer="adam", iterations=3, check_every=0, **PHOTOMETRIC),
-], ids=["gauss_newton", "adam_whole_ray", "adam_band", "gauss_newton_photometric", "adam_photometric"])
+], ids=["gauss_newton", "adam_whole_ray", "adam_band"])
 def test_tracking_and_mapping_iterations_read_nothing_back(tracking):
     config = _config(**tracking)
     frames = list(open_sequence(SPEC, max_frames=4))

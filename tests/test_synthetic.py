@@ -785,3 +785,41 @@ def test_bad_loss_options_raise_data_error(spec, words):
 def test_drop_with_stride_leaving_nothing_raises():
     with pytest.raises(DataError, match="no frames"):
         open_synthetic("orbit?frames=10&drop=0-8", stride=2)
+
+
+# The synthetic camera's colour: exposure changes and a colour-depth offset.
+def test_synthetic_exposure_and_colour_shift_change_the_colour_as_specified():
+    from slam.data.synthetic import camera_colour, open_synthetic, parse_synthetic_spec
+
+    plain = open_synthetic("synthetic:walk?frames=20&width=64&height=48")
+    exposed = open_synthetic("synthetic:walk?frames=20&width=64&height=48&exposure=0.3")
+    shifted = open_synthetic("synthetic:walk?frames=20&width=64&height=48&color_shift=3")
+    for i in (0, 7):
+        gain, bias = exposed.exposure_of(i)
+        assert np.all((gain > 0.7 * 0.94) & (gain < 1.3 * 1.06)) and abs(bias[0]) <= 0.06 and np.all(bias == bias[0])
+        assert np.allclose(exposed[i].rgb, np.clip(plain[i].rgb * gain + bias, 0, 1), atol=1e-6)
+        assert np.array_equal(exposed[i].depth, plain[i].depth) and np.array_equal(shifted[i].depth, plain[i].depth)
+        assert np.array_equal(shifted[i].rgb[:, 3:], plain[i].rgb[:, :-3])
+        assert np.array_equal(shifted[i].rgb[:, :3], np.repeat(plain[i].rgb[:, :1], 3, axis=1))
+    assert not np.allclose(exposed.exposure_of(0)[0], exposed.exposure_of(1)[0])
+    assert np.array_equal(camera_colour(plain[0].rgb, np.ones(3), np.zeros(3), 0), plain[0].rgb)
+    spec = parse_synthetic_spec("laps?width=160&height=120&exposure=0.25&color_shift=2")
+    assert spec.name.endswith("&exposure=0.25&color_shift=2") and parse_synthetic_spec(spec.name) == spec
+    assert "exposure" not in parse_synthetic_spec("laps?width=160").name
+
+
+@pytest.mark.parametrize("spec,words", [
+    ("walk?exposure=1.5", "exposure=1.5 must be in [0, 0.9]"),
+    ("walk?exposure=-0.1", "must be in"),
+    ("walk?exposure=nan", "must be in"),
+    ("walk?exposure=bright", "is not a number"),
+    ("walk?color_shift=-1", "color_shift=-1 must be in 0..64"),
+    ("walk?color_shift=65&width=1024", "must be in 0..64"),
+    ("walk?color_shift=40&width=160", "below a quarter of the width"),
+    ("walk?color_shift=1.5", "not an integer"),
+])
+def test_bad_camera_colour_options_raise(spec, words):
+    from slam.data.synthetic import parse_synthetic_spec
+
+    with pytest.raises(DataError, match=words.replace("[", r"\[").replace("]", r"\]").replace(".", r"\.")):
+        parse_synthetic_spec(spec)
