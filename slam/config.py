@@ -318,6 +318,7 @@ RETIRED_FIELDS = {
     ("mapping", "exposure_lr"): _rejected("mapping.exposure", "a86dcd1"),
     ("tracking", "color_robust"): _rejected("tracking.color_robust", "1c8d5fb"),
     ("tracking", "color_adaptive"): _rejected("tracking.color_adaptive", "1c8d5fb"),
+    ("runtime", "color_to_depth_time"): _rejected("runtime.color_to_depth_time", "2f559e5"),
 }
 """Fields that configs written by earlier versions (checkpoints, run.json) may still hold."""
 

@@ -444,10 +444,6 @@ class RuntimeConfig:
     (``slam.data.selfcalibration``: depth edges against colour edges), applied when confident."""
     checkpoint_every_keyframes: int = 10
     """Write map.pt every this many keyframes while running (0: only at the end)."""
-    color_to_depth_time: bool = False
-    """Where colour and depth were taken at different instants (TUM: ``Frame.depth_offset_s``),
-    move the colour to the depth's instant before tracking, with the camera's motion between its
-    last two tracked frames (``slam.data.registration.color_at_depth_instant``)."""
     live: bool = False
     """A live camera, which does not wait: the tracker never waits for room in the mapper's
     queue. A frame that finds it full waits in one slot, where the next frame replaces it (the

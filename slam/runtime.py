@@ -55,10 +55,8 @@ import torch
 from .config import SLAMConfig
 from .data.frame import Frame
 from .data.io import resize_frame
-from .data.registration import color_at_depth_instant
 from .events import Event, FinishedEvent, KeyframeEvent, LoopEvent, PhaseEvent, PoseEvent, StatsEvent, SubmapEvent
 from .features import FeatureOdometry, tracking_features_serve_loops
-from .geometry import se3_exp, se3_log
 from .frames import PixelBatch, prepare_frame
 from .mapping import MapSnapshot
 from .mapping_process import InlineMapper, MapperFailed, ProcessMapper
@@ -837,8 +835,6 @@ def _process_frame(run: _Run, agent: int, raw: Frame, use_gt_poses: bool) -> Non
     track = side.agents.setdefault(agent, AgentTrack(agent))
     with side.stages.stage("prepare"):
         frame = resize_frame(raw, run.config.runtime.input_width)  # once: tracker and mapper share it
-        if run.config.runtime.color_to_depth_time:
-            frame = color_at_depth_time(track, frame)
     # Track it against the agent's active map; lost, or out of the map's region: a new map.
     msg, rec = _estimate_pose(side, track, frame, raw, channel, use_gt_poses, run.emit)
     track.records.append(rec)
@@ -853,24 +849,6 @@ def _process_frame(run: _Run, agent: int, raw: Frame, use_gt_poses: bool) -> Non
     with side.stages.stage("replies"):
         _handle_replies(channel.poll(), side, run.emit)
     _count_frame(run)
-
-
-def color_at_depth_time(track: AgentTrack, frame: Frame) -> Frame:
-    """``runtime.color_to_depth_time``: ``frame`` with its colour moved to its depth's instant
-    (``Frame.depth_offset_s`` later) by the camera's velocity over the agent's last two good
-    poses; ``frame`` itself without an offset or before two good poses. The pose at time t is
-    taken as T_b exp(xi (t - t_b)), so the depth camera lies at exp(xi * offset) in the colour's."""
-    if frame.depth_offset_s == 0.0 or len(track.good_poses) < 2:
-        return frame
-    times = {rec.index: rec.timestamp for rec in track.records[-8:]}
-    t_a, t_b = (times.get(i) for i in track.good_frames[-2:])
-    if t_a is None or t_b is None or t_b <= t_a:
-        return frame
-    motion = np.linalg.inv(track.good_poses[-2]) @ track.good_poses[-1]
-    xi = se3_log(torch.from_numpy(motion)) / (t_b - t_a)
-    T_color_depth = se3_exp(xi * frame.depth_offset_s).numpy()
-    rgb, seen = color_at_depth_instant(frame.rgb, frame.depth, frame.K, frame.color_valid, T_color_depth)
-    return replace(frame, rgb=rgb, color_valid=seen)
 
 
 def _publish_pose(run: _Run, agent: int, frame: Frame, msg: FrameMessage | None, rec: FrameRecord) -> None:

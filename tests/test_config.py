@@ -100,6 +100,7 @@ REJECTED = [  # (section, field, its decisions.md entry): off in every preset, t
     ("mapping", "exposure_lr", "mapping.exposure"),
     ("tracking", "color_robust", "tracking.color_robust"),
     ("tracking", "color_adaptive", "tracking.color_adaptive"),
+    ("runtime", "color_to_depth_time", "runtime.color_to_depth_time"),
 ]
 
 

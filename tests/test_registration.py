@@ -235,34 +235,3 @@ def test_a_stream_with_its_colour_camera_gets_registered_frames(tmp_path):
         stream.add_frame(wrong.tobytes(), depth_png.tobytes(), timestamp=2.0)
     assert stream.frames_refused == 1
 
-
-def _plane_texture(u: np.ndarray) -> np.ndarray:
-    return 0.5 + 0.4 * np.sin(0.3 * u)
-
-
-def test_colour_taken_later_moves_back_to_the_depths_instant():
-    """A wall 2 m ahead, the camera sliding sideways between depth and colour: the colour image
-    is the wall's texture shifted by f * b / z pixels; moved to the depth's instant it is the
-    texture where the depth image sees it (known answer), and the pixels whose colour lay
-    outside the image, or where the input says the colour was not observed, are not seen."""
-    from slam.data.registration import color_at_depth_instant
-
-    H, W, f, z, b = 48, 64, 50.0, 2.0, 0.08  # b: the camera's slide to the colour's instant (2 px)
-    K = np.array([[f, 0, W / 2], [0, f, H / 2], [0, 0, 1.0]])
-    u = np.arange(W, dtype=np.float64)[None, :].repeat(H, 0)
-    shift = f * b / z
-    rgb = np.repeat(_plane_texture(u + shift)[..., None], 3, 2).astype(np.float32)  # seen from x = +b
-    depth = np.full((H, W), z, np.float32)
-    T_color_depth = np.eye(4)
-    T_color_depth[0, 3] = -b  # a depth-camera point in the colour camera's frame, b to its left
-    observed = np.ones((H, W), bool)
-    observed[:, 10] = False
-    moved, seen = color_at_depth_instant(rgb, depth, K, observed, T_color_depth)
-    expected = _plane_texture(u)
-    # Depth pixel u took its colour from colour pixel u - 2.
-    assert not seen[:, :2].any(), "their colour lay beyond the image's left edge"
-    assert not seen[:, 12].any(), "colour from the unobserved column 10 is not seen"
-    inside = np.ones((H, W), bool)
-    inside[:, :3] = inside[:, 11:14] = False
-    assert seen[inside].all()
-    np.testing.assert_allclose(moved[..., 0][inside], expected[inside], atol=2e-3)

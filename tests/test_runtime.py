@@ -794,26 +794,3 @@ def test_a_live_run_maps_its_first_frame_in_published_steps(tmp_path, monkeypatc
     assert done.result.status == "finished", done.result.error
     assert done.info["frames"] == 8 and 0 <= done.info["frames_unmapped"] <= 6
 
-
-def test_colour_moves_to_the_depths_instant_with_the_cameras_velocity(monkeypatch, frames):
-    """runtime.color_to_depth_time: the depth taken 20 ms after the colour, the camera moving
-    at 0.1 m/s along x (its last two good poses, 0.1 s apart): the colour is moved by the
-    2 mm the camera went in between; without an offset, or before two good poses, nothing."""
-    from slam.outputs import FrameRecord
-
-    seen = []
-    monkeypatch.setattr(runtime, "color_at_depth_instant",
-                        lambda rgb, depth, K, valid, T: seen.append(T) or (rgb, np.ones(depth.shape, bool)))
-    track = runtime.AgentTrack(0)
-    frame = replace(frames[0], index=2, depth_offset_s=0.02)
-    assert runtime.color_at_depth_time(track, frame) is frame and not seen
-    T_b = np.eye(4)
-    T_b[0, 3] = 0.01
-    track.good_poses, track.good_frames = [np.eye(4), T_b], [0, 1]
-    track.records = [FrameRecord(0, 5.0, 0, np.eye(4), True, None), FrameRecord(1, 5.1, 0, T_b, True, None)]
-    moved = runtime.color_at_depth_time(track, frame)
-    expected = np.eye(4)
-    expected[0, 3] = 0.002
-    np.testing.assert_allclose(seen[0], expected, atol=1e-9)
-    assert moved.color_valid is not None and moved.depth_offset_s == 0.02
-    assert runtime.color_at_depth_time(track, replace(frame, depth_offset_s=0.0)) is not None and len(seen) == 1

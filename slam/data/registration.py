@@ -251,18 +251,3 @@ def register_color_reference(rgb: np.ndarray, depth: np.ndarray, K_depth: np.nda
                          + (1 - ax) * ay * rgb[y1, x0] + ax * ay * rgb[y1, x1])
     return out, valid
 
-
-def color_at_depth_instant(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, color_valid: np.ndarray | None,
-                           T_color_depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Colour taken at another instant than depth by the same (registered) camera, moved to
-    the depth's instant: the camera moved by ``T_color_depth`` (4, 4) (from where it was when
-    the depth was taken to where it was for the colour) in between, so each depth pixel takes
-    the colour where its point was seen (``register_color`` with the colour camera = the depth
-    camera, moved). rgb (H, W, 3), depth (H, W) metres, K (3, 3), color_valid (H, W) bool or
-    None -> rgb (H, W, 3) float32 and color_valid (H, W) bool (pixels whose colour was seen:
-    not hidden, inside the image, and observed where the input says so)."""
-    H, W = depth.shape
-    camera = ColorCamera(K, W, H, T_color_depth)
-    seen_before = np.ones((H, W), np.float32) if color_valid is None else color_valid.astype(np.float32)
-    moved, seen = register_color(np.dstack([rgb, seen_before]).astype(np.float32), depth, K, camera)
-    return np.ascontiguousarray(moved[..., :3]), seen & (moved[..., 3] > 0.5)
