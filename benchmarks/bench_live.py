@@ -95,7 +95,8 @@ def table(runs: list[LiveRun]) -> str:
     for r in runs:
         ref = reference.get(r.sequence)
         ratio = f"{r.ate_cm / ref:.2f}x" if r.mode == "live" and ref and r.ate_cm is not None else "-"
-        rows.append([r.sequence.removeprefix("rgbd_dataset_"), r.mode, str(r.frames), str(r.tracked), str(r.dropped), f"{100 * r.tracked_share:.0f} %",
+        rows.append([r.sequence.removeprefix("rgbd_dataset_"), r.mode, str(r.frames), str(r.tracked), str(r.dropped),
+                     f"{100 * r.tracked_share:.0f} %",
                      "-" if r.first_pose_s is None else f"{r.first_pose_s:.2f} s",
                      "-" if r.median_latency_s is None else f"{1000 * r.median_latency_s:.0f} ms",
                      "-" if r.ate_cm is None else f"{r.ate_cm:.2f}", ratio])

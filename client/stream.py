@@ -357,7 +357,6 @@ class StatusPoller:
             if self._stop.wait(self.every_s):
                 return
 
-
     def _handled(self, state: dict) -> int | None:
         """``Progress.server_handled`` from a status (``latest_frame`` is agent 0's)."""
         if not self.live:
@@ -648,7 +647,8 @@ def stream(source: FrameSource, server: Server, options: StreamOptions, out: Tex
         return StreamResult(error.code, None, progress)
     print(f"voxfusion stream: session {session_id} from {source.info.name}", file=out)
     print(f"voxfusion stream: open {server.page_url(session_id)} to watch it", file=out, flush=True)
-    with StatusPoller(server, session_id, progress, live=not options.all_frames):  # to the end: frames are tracked after finishing too
+    # To the end: frames are tracked after finishing too.
+    with StatusPoller(server, session_id, progress, live=not options.all_frames):
         result = _stream_session(source, server, session_id, options, progress, out)
     if progress.track_latency_s or progress.ack_latency_s:
         print(f"voxfusion stream: latency ({len(progress.track_latency_s)} of {progress.acked} frames tracked "

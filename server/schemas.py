@@ -197,7 +197,8 @@ class SessionOut(BaseModel):
                                                       "a stream has seen")
     phase: Literal["queued", "starting", "tracking", "refining", "writing", "done"] = Field(
         examples=["tracking"],
-        description="what a session does now: queued; starting (its worker loads, the mapper starts: seconds; a stream's frames sent now wait); tracking (frames are read and tracked, maps grow); refining "
+        description="what a session does now: queued; starting (its worker loads, the mapper starts: seconds; "
+                    "a stream's frames sent now wait); tracking (frames are read and tracked, maps grow); refining "
                     "(the input ended: final global bundle adjustment and mesh, minutes on a long run); writing "
                     "(trajectories and run.json); done (ended, however: see status)")
     phase_started: str | None = Field(None, examples=["2025-01-01T12:03:10+00:00"],

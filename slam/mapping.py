@@ -358,7 +358,8 @@ class Mapper:
         self.timer.add("voxel_allocation", time.perf_counter() - tb)
         losses: dict[str, float] = {}
         if optimize:
-            iters = (m.first_frame_iterations if first_iterations is None else first_iterations) if first else m.iterations
+            first_iters = m.first_frame_iterations if first_iterations is None else first_iterations
+            iters = first_iters if first else m.iterations
             current = None if is_kf or not tracked.tracking_ok else (tracked.frame, T_map_cam)
             losses, T_current = self._optimize_window(submap, iters, current)
             self.fit_fine(submap, self.config.fine_color.fit_iterations)
