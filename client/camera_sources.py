@@ -131,16 +131,18 @@ class FolderSource:
 
     TUM folders are paced by their recorded timestamps; other formats (whose timestamps are
     frame numbers) at ``DEFAULT_FPS``; ``fps`` overrides both. The timestamps sent are the
-    dataset's own, so the trajectory that comes back lines up with its ground truth.
+    dataset's own, so the trajectory that comes back lines up with its ground truth. With
+    ``color_camera`` (colour from a camera of its own) the colour sent is registered onto the
+    depth camera first, as ``voxfusion run`` registers it.
     """
 
     def __init__(self, path: str, *, fps: float | None = None, max_frames: int | None = None,
-                 width: int | None = None) -> None:
+                 width: int | None = None, color_camera=None) -> None:
         from slam import DataError, detect_format, open_sequence
 
         try:
             self.format = detect_format(path)
-            self.sequence = open_sequence(path, width=width, max_frames=max_frames)
+            self.sequence = open_sequence(path, width=width, max_frames=max_frames, color_camera=color_camera)
             if len(self.sequence) == 0:
                 raise SourceError(f"{path}: the dataset has no frames")
             first = self.sequence[0]

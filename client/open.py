@@ -19,12 +19,19 @@ NOT_YET = {
 
 
 def open_source(spec: str, *, fps: float | None = None, max_frames: int | None = None, width: int | None = None,
-                serial: str | None = None, all_frames: bool = False, min_confidence: int = 1) -> FrameSource:
+                serial: str | None = None, all_frames: bool = False, min_confidence: int = 1,
+                color_camera=None) -> FrameSource:
     """``realsense``, a ``.bag`` file, ``record3d``, a ``.r3d`` file, or a dataset folder /
-    ``synthetic:SPEC`` -> a source.
+    ``synthetic:SPEC`` -> a source. ``color_camera`` (``slam.data.registration.ColorCamera``):
+    a folder whose colour comes from its own camera; its frames are registered onto the depth
+    camera as ``voxfusion run`` registers them, before they are sent.
 
     Raises SourceError with one line for the user (missing library, bad folder, no camera).
     """
+    if color_camera is not None and (spec in NOT_YET or spec in ("record3d", "realsense")
+                                     or spec.endswith((".r3d", ".bag", ".db3")) or spec.startswith("synthetic:")):
+        raise SourceError(f"{spec}: a colour camera of its own is for dataset folders (RealSense and Record3D "
+                          f"register colour themselves; a synthetic scene's colour is registered)")
     if spec in NOT_YET:
         raise SourceError(f"{NOT_YET[spec]} is not supported yet; record to a dataset folder "
                           f"(TUM layout) and stream that, or use a RealSense or Record3D")
@@ -38,4 +45,4 @@ def open_source(spec: str, *, fps: float | None = None, max_frames: int | None =
     if spec.endswith((".bag", ".db3")):
         return RealSenseSource(bag=Path(spec), options=RealSenseOptions(real_time=not all_frames),
                                max_frames=max_frames)
-    return FolderSource(spec, fps=fps, max_frames=max_frames, width=width)
+    return FolderSource(spec, fps=fps, max_frames=max_frames, width=width, color_camera=color_camera)

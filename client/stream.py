@@ -811,6 +811,9 @@ def add_stream_arguments(parser) -> None:
     parser.add_argument("--wait", type=float, default=None, metavar="SECONDS",
                         help="after finishing, wait up to this long for the session's result")
     parser.add_argument("--quiet", action="store_true", help="no progress line")
+    from slam.cli import add_color_camera_arguments
+
+    add_color_camera_arguments(parser)  # a folder's colour camera: its colour is registered before it is sent
 
 
 def stream_command(args) -> int:
@@ -822,12 +825,19 @@ def stream_command(args) -> int:
         print("voxfusion stream: --max-frames must be at least 1", file=sys.stderr)
         return EXIT_SOURCE
     from client.open import open_source
+    from slam.cli import color_camera_of
+    from slam.data.frame import DataError
 
+    try:
+        color_camera = color_camera_of(args)
+    except DataError as error:
+        print(f"voxfusion stream: {error}", file=sys.stderr)
+        return EXIT_SOURCE
     try:
         # A recording is not a camera: it waits for the server unless --live asks for a camera's pace.
         source = open_source(args.source, fps=args.fps, max_frames=args.max_frames, width=args.width,
                              serial=args.serial, all_frames=not args.live,
-                             min_confidence=args.min_confidence)
+                             min_confidence=args.min_confidence, color_camera=color_camera)
     except SourceError as error:
         print(f"voxfusion stream: {error}", file=sys.stderr)
         return EXIT_SOURCE

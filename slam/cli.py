@@ -97,6 +97,19 @@ def color_camera_of(args: argparse.Namespace):
     return color_camera_from_values(args.color_intrinsics, args.depth_to_color)
 
 
+def add_color_camera_arguments(p: argparse.ArgumentParser) -> None:
+    """``--color-intrinsics``, ``--depth-to-color`` and ``--calibration`` (``color_camera_of``
+    reads them): ``voxfusion run``'s and ``voxfusion stream``'s."""
+    p.add_argument("--color-intrinsics", type=_color_intrinsics, default=None,
+                   metavar="fx,fy,cx,cy,width,height[,k1,k2,p1,p2[,k3]]",
+                   help="colour from its own camera: its intrinsics; colour is registered onto the depth camera")
+    p.add_argument("--depth-to-color", type=_depth_to_color, default=None, metavar="16 numbers",
+                   help="with --color-intrinsics: the depth camera's frame in the colour camera's, 4x4 row-major "
+                        "(default: identity)")
+    p.add_argument("--calibration", type=Path, default=None,
+                   help='JSON with "color_intrinsics" and "T_color_depth" (instead of the two options above)')
+
+
 def add_run_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("paths", nargs="+", metavar="PATH",
                    help="dataset folder(s), or a synthetic spec such as synthetic:orbit?frames=100")
@@ -110,14 +123,7 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--stride", type=int, default=1)
     p.add_argument("--intrinsics", type=_intrinsics, default=None, metavar="fx,fy,cx,cy")
     p.add_argument("--depth-scale", type=float, default=None)
-    p.add_argument("--color-intrinsics", type=_color_intrinsics, default=None,
-                   metavar="fx,fy,cx,cy,width,height[,k1,k2,p1,p2[,k3]]",
-                   help="colour from its own camera: its intrinsics; colour is registered onto the depth camera")
-    p.add_argument("--depth-to-color", type=_depth_to_color, default=None, metavar="16 numbers",
-                   help="with --color-intrinsics: the depth camera's frame in the colour camera's, 4x4 row-major "
-                        "(default: identity)")
-    p.add_argument("--calibration", type=Path, default=None,
-                   help='JSON with "color_intrinsics" and "T_color_depth" (instead of the two options above)')
+    add_color_camera_arguments(p)
     p.add_argument("--gt-poses", action="store_true", help="map with the dataset's poses (no tracking)")
     p.add_argument("--no-loops", action="store_true", help="multi-maps without loop closure")
     p.add_argument("--single-process", action="store_true", help="tracking and mapping in one process")

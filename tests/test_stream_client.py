@@ -890,3 +890,25 @@ def test_record3d_phone_unplugged_mid_stream_end_to_end(server_url, tmp_path, mo
     state = wait_until_ended(server_url, session_id, SESSION_END_S)
     # A camera's session is live: frames that waited while a newer one came are passed over.
     assert state["status"] == "finished" and 3 <= state["frames_done"] <= on_server
+
+
+def test_a_folders_own_colour_camera_is_registered_before_it_is_sent(tum_folder, capsys):
+    """``voxfusion stream FOLDER --color-intrinsics ...``: the folder's frames are read with that
+    colour camera (registered as ``voxfusion run`` registers them); other sources, and a
+    transform without intrinsics, are refused with one line and exit 2."""
+    from client.open import open_source
+    from slam.data.registration import ColorCamera
+
+    root, _ = tum_folder
+    plain = open_source(str(root))
+    K = plain.sequence[0].K.copy()
+    K[:2, :2] *= 1.1
+    camera = ColorCamera(K, plain.info.width, plain.info.height, np.eye(4))
+    registered = open_source(str(root), color_camera=camera)
+    assert registered.sequence.color_camera is camera and registered.info.intrinsics == plain.info.intrinsics
+    frame, raw = registered.sequence[0], plain.sequence[0]
+    assert frame.color_valid is not None and not np.allclose(frame.rgb, raw.rgb)
+    with pytest.raises(SourceError, match="a colour camera of its own is for dataset folders"):
+        open_source("realsense", color_camera=camera)
+    code = main(["stream", str(root), "--url", "http://127.0.0.1:9", "--depth-to-color", ",".join(["0"] * 16)])
+    assert code == 2 and "--depth-to-color needs --color-intrinsics" in capsys.readouterr().err
