@@ -47,7 +47,6 @@ class LiveRun:
     first_pose_s: float | None
     median_latency_s: float | None
     ate_cm: float | None
-    wall_s: float
     output: str
 
     @property
@@ -73,16 +72,16 @@ def stream_once(server: Server, folder: Path, max_frames: int | None, mode: str,
         raise RuntimeError(f"voxfusion stream exited {done.returncode}:\n{out[-2000:]}")
     session = re.search(r"session (\S+) from", out).group(1)
     state = server.status(session)
-    arrived = int(_number(r"frames sent (\d+)", out, 0)) + int(_number(r"dropped (\d+) \(", out, 0))
+    dropped = int(_number(r"dropped (\d+) \(", out, 0))
     ate = state.get("ate_rmse_m")
     first = _number(r"first frame tracked (\d+) ms", out)
+    median = _number(r"sent to tracked: median (\d+) ms", out)
     return LiveRun(
-        sequence=folder.name, mode=mode, frames=arrived, tracked=int(state.get("frames_done") or 0),
-        dropped=int(_number(r"dropped (\d+) \(", out, 0)),
+        sequence=folder.name, mode=mode, frames=int(_number(r"frames sent (\d+)", out, 0)) + dropped,
+        tracked=int(state.get("frames_done") or 0), dropped=dropped,
         first_pose_s=None if first is None else first / 1000,
-        median_latency_s=(_number(r"sent to tracked: median (\d+) ms", out) or 0) / 1000 or None,
-        ate_cm=None if ate is None else 100 * float(ate), wall_s=float(state.get("elapsed_s") or 0.0),
-        output=out[-1500:])
+        median_latency_s=None if median is None else median / 1000,
+        ate_cm=None if ate is None else 100 * float(ate), output=out[-1500:])
 
 
 def table(runs: list[LiveRun]) -> str:

@@ -16,6 +16,9 @@ NOT_YET = {
     "k4a": "Azure Kinect (pyk4a)",
     "orbbec": "Orbbec (pyorbbecsdk)",
 }
+CAMERAS = ("record3d", "realsense")
+RECORDINGS = (".r3d", ".bag", ".db3")
+"""Files a device library reads; any other source is a dataset folder or a synthetic scene."""
 
 
 def open_source(spec: str, *, fps: float | None = None, max_frames: int | None = None, width: int | None = None,
@@ -28,8 +31,8 @@ def open_source(spec: str, *, fps: float | None = None, max_frames: int | None =
 
     Raises SourceError with one line for the user (missing library, bad folder, no camera).
     """
-    if color_camera is not None and (spec in NOT_YET or spec in ("record3d", "realsense")
-                                     or spec.endswith((".r3d", ".bag", ".db3")) or spec.startswith("synthetic:")):
+    if color_camera is not None and (spec in NOT_YET or spec in CAMERAS or spec.endswith(RECORDINGS)
+                                     or spec.startswith("synthetic:")):
         raise SourceError(f"{spec}: a colour camera of its own is for dataset folders (RealSense and Record3D "
                           f"register colour themselves; a synthetic scene's colour is registered)")
     if spec in NOT_YET:

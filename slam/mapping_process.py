@@ -169,7 +169,8 @@ def _integrate(side: _MapperSide, msg: FrameMessage, optimize: bool) -> list[Rep
     # map at once; the rest follow in steps, each one published (_pay_first_frames).
     first_iterations = min(m.iterations, m.first_frame_iterations) if mapper.config.runtime.live else None
     step = mapper.process(_tracked_frame(mapper, msg), optimize=optimize, first_iterations=first_iterations)
-    if step.started_map is not None and first_iterations is not None and optimize:
+    if step.started_map is not None and first_iterations is not None and optimize \
+            and m.first_frame_iterations > first_iterations:
         side.first_frame_debt[step.map_id] = m.first_frame_iterations - first_iterations
     out: list[Reply] = []
     if step.T_map_cam is not None:
@@ -427,21 +428,22 @@ def _integrate_batch(side: _MapperSide, work: list[FrameMessage]) -> list[Reply]
 
 
 def _pay_first_frames(side: _MapperSide) -> list[Reply]:
-    """Live mode: one more step of a map's first-frame iterations (a window's worth), and its
-    snapshot; nothing when no map is owed any."""
-    for map_id, owed in list(side.first_frame_debt.items()):
-        submap = next((s for s in side.mapper.active.values() if s.map_id == map_id), None)
-        step = min(owed, side.mapper.config.mapping.iterations)
-        if submap is None or step <= 0:
-            del side.first_frame_debt[map_id]
-            continue
-        t0 = time.perf_counter()
-        side.mapper.optimize(submap, step)
-        side.mapper.version += 1
+    """Live mode: one more step of the first owed map's first-frame iterations (a window's
+    worth), and its snapshot. Only called while ``side.first_frame_debt`` holds a map."""
+    map_id, owed = next(iter(side.first_frame_debt.items()))
+    submap = next((s for s in side.mapper.active.values() if s.map_id == map_id), None)
+    step = min(owed, side.mapper.config.mapping.iterations)
+    if owed == step or submap is None:
+        del side.first_frame_debt[map_id]
+    else:
         side.first_frame_debt[map_id] = owed - step
-        side.busy += time.perf_counter() - t0
-        return [SnapshotReply(side.snapshot(submap))]
-    return []
+    if submap is None:
+        return []  # the map is no longer active: its frames map it now
+    t0 = time.perf_counter()
+    side.mapper.optimize(submap, step)
+    side.mapper.version += 1
+    side.busy += time.perf_counter() - t0
+    return [SnapshotReply(side.snapshot(submap))]
 
 
 def _idle_step(side: _MapperSide, frame_waiting: Callable[[], bool]) -> list[Reply]:
@@ -524,9 +526,9 @@ def _mapping_process(config_dict: dict, device_name: str, out_dir: str, emit_mes
                 # the reply pipe at exit would block this process forever.
                 replies.cancel_join_thread()
                 return
-            owed = _pay_first_frames(side) if side.first_frame_debt else []
-            if owed:
-                replies.put(owed[0])
+            if side.first_frame_debt:
+                for reply in _pay_first_frames(side):
+                    replies.put(reply)
                 continue
             idle_steps = side.mapper.active and not config.runtime.deterministic
             try:
@@ -565,6 +567,8 @@ class InlineMapper:
 
     def submit(self, msg: FrameMessage) -> None:
         self.pending += _integrate_batch(self.side, [msg])
+        while self.side.first_frame_debt:  # no loop here to pay a live first frame later
+            self.pending += _pay_first_frames(self.side)
 
     def offer(self, msg: FrameMessage) -> bool:
         """``submit`` without waiting: in this process there is always room."""

@@ -671,7 +671,7 @@ def _timed(items: Iterable, clock: StageClock, name: str) -> Iterator:
 def _skipped_frames(sources: list[Iterable[Frame]]) -> list[dict]:
     """Frames the sources left out because they could not be read (``FileSequence.skipped``):
     agent, index and why, for ``run.json``."""
-    return [{"agent": agent if getattr(skipped, "agent", None) is None else skipped.agent, "index": skipped.index,
+    return [{"agent": agent if skipped.agent is None else skipped.agent, "index": skipped.index,
              "reason": skipped.reason}
             for agent, source in enumerate(sources) for skipped in getattr(source, "skipped", ())]
 

@@ -788,6 +788,10 @@ def test_a_live_run_maps_its_first_frame_in_published_steps(tmp_path, monkeypatc
     while side.first_frame_debt:
         paid += mapping_process._pay_first_frames(side)
     assert steps == [2, 2, 1] and len(paid) == 3 and all(isinstance(r, type(replies[-1])) for r in paid)
+    steps.clear()
+    inline = mapping_process.InlineMapper(cfg, torch.device("cpu"), tmp_path / "inline", False, 0)
+    inline.submit(msg)
+    assert steps == [2, 2, 1] and not inline.side.first_frame_debt, "in one process the first frame is paid at once"
 
     frames8 = list(open_sequence(SPEC, max_frames=8))
     done = do_run([frames8], replace(cfg, runtime=replace(cfg.runtime, processes=True)), tmp_path / "run")

@@ -26,8 +26,6 @@ class Frame:
         color_valid: (H, W) bool, the pixels whose colour the camera observed, or None: all of
             them. Undistortion leaves black the pixels whose source lies outside the raw image
             (6-7 % of a TUM fr1 frame); they are no observation, though their depth is 0 too.
-        depth_offset_s: the depth image's time minus the colour image's, seconds (TUM records
-            the two cameras apart: 7-19 ms on fr1); 0 where they are taken together.
     """
 
     index: int
@@ -37,7 +35,6 @@ class Frame:
     K: np.ndarray
     T_world_cam: np.ndarray | None = None
     color_valid: np.ndarray | None = None
-    depth_offset_s: float = 0.0
 
     @property
     def height(self) -> int:

@@ -345,8 +345,6 @@ class FrameFiles:
     depth: Path
     timestamp: float
     T_world_cam: np.ndarray | None = None
-    depth_offset_s: float = 0.0
-    """The depth image's time minus the colour image's (``Frame.depth_offset_s``)."""
 
 
 @dataclass(frozen=True)
@@ -519,7 +517,7 @@ class FileSequence:
             color_valid = seen if color_valid is None else color_valid & seen
         pose = None if files.T_world_cam is None else files.T_world_cam.copy()
         return Frame(index=index, timestamp=files.timestamp, rgb=rgb, depth=depth, K=K, T_world_cam=pose,
-                     color_valid=color_valid, depth_offset_s=files.depth_offset_s)
+                     color_valid=color_valid)
 
     def calibrate_colour(self) -> "ColorWarp | None":
         """Estimate how the colour image lies on the depth image from ``CALIBRATION_FRAMES``

@@ -250,4 +250,3 @@ def register_color_reference(rgb: np.ndarray, depth: np.ndarray, K_depth: np.nda
             out[y, x] = ((1 - ax) * (1 - ay) * rgb[y0, x0] + ax * (1 - ay) * rgb[y0, x1]
                          + (1 - ax) * ay * rgb[y1, x0] + ax * ay * rgb[y1, x1])
     return out, valid
-

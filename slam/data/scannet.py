@@ -46,7 +46,6 @@ def scannet_color_camera(root: Path, first_color: Path) -> ColorCamera | None:
     header), placed by the two extrinsics when both are exported (else at the depth
     camera); None without ``intrinsic_color.txt``."""
     from slam.data.images import header_of
-    from slam.data.registration import ColorCamera
 
     root = Path(root)
     path = confined(root / COLOR_INTRINSICS_FILE, root, str(COLOR_INTRINSICS_FILE))

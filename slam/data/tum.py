@@ -11,8 +11,7 @@
   folder (``freiburg1``, ``freiburg2``, ``freiburg3``). fr1 and fr2 images are distorted and
   get undistorted to the same pinhole K; fr3 images are already undistorted.
 - Depth: 16-bit PNG, 5000 units per metre unless overridden.
-- Frame.timestamp is the rgb timestamp (what TUM's evaluation tools match against);
-  ``Frame.depth_offset_s`` says how much later (or earlier) its depth image was taken.
+- Frame.timestamp is the rgb timestamp (what TUM's evaluation tools match against).
 """
 
 from __future__ import annotations
@@ -162,7 +161,6 @@ def tum_layout(root: Path, intrinsics: Intrinsics | None = None, depth_scale: fl
             depth=dataset_entry(root, depth_rows[j][1][0], "depth.txt"),
             timestamp=rgb_rows[i][0],
             T_world_cam=pose,
-            depth_offset_s=depth_rows[j][0] - rgb_rows[i][0],
         )
         for (i, j), pose in zip(pairs, poses)
     )
